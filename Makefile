@@ -1,0 +1,58 @@
+# upright — one Makefile for setup, tests, demo, benchmarks and the firmware bundle.
+# `make demo` and `make test` set themselves up on a fresh machine.
+
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+NODE_STAMP := node_modules/.installed
+OUT    ?= out
+PORT   ?= /dev/ttyACM0
+ARCH   ?= armv6m
+
+.PHONY: all setup test demo bench firmware flash generate check-generated clean help
+
+all: test
+
+help:
+	@echo "make demo      set up, then run the main job and write plots to $(OUT)/"
+	@echo "make test      set up, then run the test suite"
+	@echo "make bench     speed figures, side by side in one run"
+	@echo "make generate  regenerate the generated sources (gain tables, DBC, protocol docs)"
+	@echo "make firmware  compile the firmware bundle with mpy-cross (ARCH=$(ARCH))"
+	@echo "make flash     copy the bundle to a board (PORT=$(PORT)) with mpremote"
+
+setup: $(STAMP) $(NODE_STAMP)
+
+$(STAMP): requirements.txt pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --disable-pip-version-check -q -r requirements.txt
+	$(BIN)/pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e .
+	touch $@
+
+# The 32-bit MicroPython WebAssembly port used by the allocation/small-int tests.
+$(NODE_STAMP): package.json package-lock.json
+	npm ci --no-audit --no-fund --loglevel=error
+	touch $@
+
+generate: $(STAMP)
+	$(BIN)/upright generate
+
+test: setup
+	$(PY) -m pytest -q
+
+demo: setup
+	$(BIN)/upright demo --out $(OUT)
+
+bench: setup
+	$(PY) -m host.bench --out $(OUT)/bench.json
+
+firmware: $(STAMP)
+	$(PY) -m host.bundle --arch $(ARCH) --out $(OUT)/firmware
+
+flash: firmware
+	$(BIN)/mpremote connect $(PORT) fs cp -r $(OUT)/firmware/. : + reset
+
+clean:
+	rm -rf $(OUT) .pytest_cache .hypothesis

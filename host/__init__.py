@@ -1,0 +1,1 @@
+"""upright host side: design, analysis, fixed-point export, link clients, HIL runner and CLI."""

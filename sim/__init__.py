@@ -1,0 +1,1 @@
+"""upright simulation: parameters, nonlinear plant, sensors, scenarios, metrics."""

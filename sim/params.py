@@ -1,0 +1,229 @@
+"""Physical parameters of the pendulum-on-cart robot, loaded from TOML and validated.
+
+The schema below is the single source of truth for every parameter: its section, key,
+unit, admissible range and meaning.  A missing, unknown or non-physical value is an
+error that names the offending key (``ParamError.key``).
+
+The default file ``sim/robot.toml`` describes the report's robot with the values that
+reproduce the report's numerical results (see ``docs/parameters.md``).
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+DEFAULT_PATH = Path(__file__).with_name("robot.toml")
+
+__all__ = ["ParamError", "Spec", "SCHEMA", "RobotParams", "load_params", "params_from_dict", "DEFAULT_PATH"]
+
+
+class ParamError(ValueError):
+    """A parameter file or value is invalid.
+
+    Parameters
+    ----------
+    key : str
+        Dotted name of the offending key (``"cart.M"``), or ``""`` for file-level errors.
+    message : str
+        What is wrong with it.
+    """
+
+    def __init__(self, key: str, message: str) -> None:
+        self.key = key
+        super().__init__(f"{key}: {message}" if key else message)
+
+
+@dataclass(frozen=True)
+class Spec:
+    """Specification of one parameter: unit, open/closed bounds, doc, default."""
+
+    unit: str
+    doc: str
+    lo: float | None = None  # lower bound
+    hi: float | None = None  # upper bound
+    lo_open: bool = True  # lower bound excluded (strictly positive masses, lengths)
+    integer: bool = False
+    default: float | None = None  # None: required
+
+
+_P = Spec  # short alias for the table below
+
+# (section, key) -> Spec.  Optional keys carry a default; None as default with
+# ``optional`` semantics is expressed by the DERIVED set below.
+SCHEMA: dict[str, Spec] = {
+    "cart.M": _P("kg", "mass of the cart", 0.0),
+    "cart.b": _P("N/(m/s)", "viscous friction coefficient cart-ground", 0.0, lo_open=False),
+    "pendulum.m_cam": _P("kg", "mass of the camera head", 0.0),
+    "pendulum.m_shaft": _P("kg", "mass of the shaft", 0.0),
+    "pendulum.L_shaft": _P("m", "length of the shaft", 0.0),
+    "pendulum.L_cam": _P("m", "length of the camera head along the shaft", 0.0),
+    "pendulum.L_cm": _P("m", "pivot to centre of mass (derived from geometry if absent)", 0.0, default=math.nan),
+    "pendulum.I": _P("kg*m^2", "inertia about the pivot, eq. (2.10) (derived if absent)", 0.0, default=math.nan),
+    "environment.g": _P("m/s^2", "gravitational acceleration", 0.0),
+    "motor.V_supply": _P("V", "H-bridge supply voltage", 0.0),
+    "motor.R": _P("ohm", "armature resistance", 0.0),
+    "motor.kt": _P("N*m/A", "torque constant (= back-EMF constant, V*s/rad)", 0.0),
+    "motor.gear": _P("-", "gear reduction, motor turns per wheel turn", 0.0),
+    "motor.r_wheel": _P("m", "wheel radius", 0.0),
+    "motor.n_motors": _P("-", "motors driving the cart in parallel", 0.0, integer=True),
+    "sensors.adc_bits": _P("bit", "resolution of the angle ADC", 1, 16, lo_open=False, integer=True),
+    "sensors.pot_range": _P("rad", "electrical travel of the angle potentiometer", 0.0),
+    "sensors.pot_offset": _P("count", "ADC counts read with the pendulum upright", 0, lo_open=False, integer=True),
+    "sensors.enc_cpr": _P("count/rev", "encoder counts per wheel revolution", 0, integer=True),
+    "sensors.delay": _P("s", "measurement delay", 0.0, 0.1, lo_open=False),
+    "loop.rate": _P("Hz", "control loop rate", 0.0, 10000.0, integer=True),
+    "loop.track": _P("m", "half-length of the usable track", 0.0),
+    "loop.a_max": _P("m/s^2", "cart acceleration constraint", 0.0),
+    "loop.phi_max": _P("rad", "tilt constraint", 0.0, math.pi / 2),
+    "loop.t_settle": _P("s", "settling-time constraint", 0.0),
+}
+
+
+def _check(key: str, value: Any, spec: Spec) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ParamError(key, f"expected a number in {spec.unit}, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ParamError(key, f"must be finite, got {value!r}")
+    if spec.integer and v != int(v):
+        raise ParamError(key, f"must be an integer, got {value!r}")
+    if spec.lo is not None and (v <= spec.lo if spec.lo_open else v < spec.lo):
+        rel = ">" if spec.lo_open else ">="
+        raise ParamError(key, f"must be {rel} {spec.lo:g} {spec.unit} ({spec.doc}), got {value!r}")
+    if spec.hi is not None and v > spec.hi:
+        raise ParamError(key, f"must be <= {spec.hi:g} {spec.unit} ({spec.doc}), got {value!r}")
+    return int(v) if spec.integer else v
+
+
+@dataclass(frozen=True)
+class RobotParams:
+    """Validated robot parameters (SI units).
+
+    The attributes mirror the TOML keys (``cart.M`` becomes ``M``).  The pendulum mass
+    ``m``, its centre of mass ``L`` and inertia ``I`` are derived from the geometry
+    unless the file gives ``pendulum.L_cm`` / ``pendulum.I``.
+    """
+
+    values: Mapping[str, float] = field(repr=False)
+    source: str = "<dict>"
+
+    def __getattr__(self, name: str) -> float:
+        vals = object.__getattribute__(self, "values")
+        for k, v in vals.items():
+            if k.split(".", 1)[1] == name:
+                return v
+        raise AttributeError(name)
+
+    @property
+    def m(self) -> float:
+        """Total pendulum mass m_pend = m_cam + m_shaft (kg)."""
+        return self.values["pendulum.m_cam"] + self.values["pendulum.m_shaft"]
+
+    @property
+    def L(self) -> float:
+        """Pivot-to-centre-of-mass length L_CM (m)."""
+        v = self.values["pendulum.L_cm"]
+        if not math.isnan(v):
+            return v
+        mc, ms = self.values["pendulum.m_cam"], self.values["pendulum.m_shaft"]
+        ls, lc = self.values["pendulum.L_shaft"], self.values["pendulum.L_cam"]
+        return (mc * (ls + lc / 2) + ms * ls / 2) / (mc + ms)
+
+    @property
+    def I(self) -> float:  # noqa: E743 - the report's symbol
+        """Pendulum inertia about the pivot, eq. (2.10) (kg m^2)."""
+        v = self.values["pendulum.I"]
+        if not math.isnan(v):
+            return v
+        mc, ms = self.values["pendulum.m_cam"], self.values["pendulum.m_shaft"]
+        ls, lc = self.values["pendulum.L_shaft"], self.values["pendulum.L_cam"]
+        return mc * (lc / 2 + ls) ** 2 + ms * ls**2 / 12
+
+    @property
+    def physical(self) -> dict[str, float]:
+        """The parameters of the equations of motion: M, m, L, I, b, g."""
+        return {"M": self.M, "m": self.m, "L": self.L, "I": self.I, "b": self.b, "g": self.g}
+
+    def replace(self, **changes: float) -> "RobotParams":
+        """Return a copy with some values changed (keys dotted or bare), re-validated."""
+        vals = dict(self.values)
+        for k, v in changes.items():
+            dotted = k if "." in k else next((d for d in SCHEMA if d.split(".", 1)[1] == k), k)
+            if dotted not in SCHEMA:
+                raise ParamError(k, "unknown parameter")
+            vals[dotted] = v
+        return params_from_dict(_nest(vals), source=self.source)
+
+
+def _nest(flat: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    out: dict[str, dict[str, Any]] = {}
+    for k, v in flat.items():
+        sec, key = k.split(".", 1)
+        out.setdefault(sec, {})[key] = v
+    return out
+
+
+def params_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> RobotParams:
+    """Validate a nested mapping ``{section: {key: value}}`` into :class:`RobotParams`.
+
+    Raises
+    ------
+    ParamError
+        On an unknown section or key, a missing required key, or a value out of range.
+    """
+    sections = {k.split(".", 1)[0] for k in SCHEMA}
+    values: dict[str, float] = {}
+    for sec, body in data.items():
+        if sec not in sections:
+            raise ParamError(sec, f"unknown section (expected one of {sorted(sections)})")
+        if not isinstance(body, Mapping):
+            raise ParamError(sec, "expected a table of parameters")
+        for key, value in body.items():
+            dotted = f"{sec}.{key}"
+            if dotted not in SCHEMA:
+                raise ParamError(dotted, "unknown parameter")
+            if isinstance(value, float) and math.isnan(value) and SCHEMA[dotted].default is not None:
+                values[dotted] = value  # "derive it" marker, as produced by replace()
+                continue
+            values[dotted] = _check(dotted, value, SCHEMA[dotted])
+    for dotted, spec in SCHEMA.items():
+        if dotted not in values:
+            if spec.default is None:
+                raise ParamError(dotted, f"missing ({spec.doc}, {spec.unit})")
+            values[dotted] = spec.default
+    if values["sensors.pot_offset"] >= 2 ** values["sensors.adc_bits"]:
+        raise ParamError("sensors.pot_offset", "must be below the ADC full scale 2**adc_bits")
+    return RobotParams(values=values, source=source)
+
+
+def load_params(path: str | Path | None = None) -> RobotParams:
+    """Load and validate a robot parameter file (default: the report's robot).
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        TOML file; ``None`` loads ``sim/robot.toml``.
+
+    Returns
+    -------
+    RobotParams
+
+    Raises
+    ------
+    ParamError
+        If the file cannot be read or parsed, or a key is missing, unknown or out of range.
+    """
+    p = Path(path) if path is not None else DEFAULT_PATH
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise ParamError("", f"cannot read parameter file {p}: {exc.strerror}") from exc
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ParamError("", f"{p}: not valid TOML: {exc}") from exc
+    return params_from_dict(data, source=str(p))
