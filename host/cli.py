@@ -19,6 +19,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "report": ("host.cmd_report", "reproduce the numbers the design report publishes (report seed [--json])"),
     "export": ("host.export", "write the fixed-point gain table module for the firmware"),
     "generate": ("host.generate", "regenerate every generated file (or --check that none is stale)"),
+    "proto": ("host.cmd_proto", "encode/decode protocol messages (serial or CAN framing) and dump a live link"),
+    "hil": ("host.cmd_hil", "close the firmware in a hardware-in-the-loop run with the simulated plant"),
+    "sweep": ("host.cmd_sweep", "batch Monte Carlo: robustness, weight tuning, largest recoverable tilt"),
+    "demo": ("host.cmd_demo", "the main job: the report's scenarios balanced by the firmware, summary and plots"),
 }
 
 
