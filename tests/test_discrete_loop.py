@@ -1,0 +1,114 @@
+"""The discrete controller (host/discrete.py) against the nonlinear plant with delay and saturation."""
+
+from __future__ import annotations
+
+import control as ct
+import numpy as np
+import pytest
+
+from host.discrete import controller_ss, delay_steps, discretise, simulate_loop
+from sim.params import load_params
+from sim.plant import linear_model
+
+
+@pytest.fixture(scope="module")
+def params():
+    return load_params()
+
+
+@pytest.fixture(scope="module")
+def ctrl(params):
+    return controller_ss(params)
+
+
+def test_shapes_and_delay(params, ctrl) -> None:
+    assert ctrl.delay_steps == 5 == delay_steps(params)
+    n = 4 + 5
+    assert ctrl.Ac.shape == (n, n) and ctrl.Bc.shape == (n, 3) and ctrl.Bu.shape == (n, 1)
+    assert ctrl.Cc.shape == (1, n) and ctrl.Dc.shape == (1, 3)
+    assert ctrl.Ts == pytest.approx(0.002)
+    # the controller itself is stable (all eigenvalues inside the unit circle)
+    assert np.max(np.abs(np.linalg.eigvals(ctrl.Ac))) < 1.0
+
+
+def test_dlqr_poles_match_the_continuous_design(params, ctrl) -> None:
+    A, B, _, _ = linear_model(params)
+    Kc, _, _ = ct.lqr(A, B, np.diag([5.4, 0, 0.8, 0]), 0.001)
+    np.testing.assert_allclose(Kc, [[-73.4847, -43.6178, 133.2959, 28.7986]], rtol=1e-4)  # the report's K
+    sc = np.sort_complex(np.linalg.eigvals(A - B @ Kc))
+    zd = np.linalg.eigvals(ctrl.Ad - ctrl.Bd @ ctrl.K)
+    sd = np.sort_complex(np.log(zd.astype(complex)) / ctrl.Ts)
+    np.testing.assert_allclose(sd, sc, rtol=1e-3)
+    assert ctrl.kr == pytest.approx(ctrl.K[0, 0], rel=1e-9)  # x is an integrator: kr = K_x
+
+
+def test_matrix_form_equals_structured_form(params, ctrl) -> None:
+    rng = np.random.default_rng(1)
+    z = rng.normal(size=ctrl.n) * 0.1
+    v = [0.05, -0.02, 0.2]
+    xh = ctrl.estimate(z, v)
+    u = -float((ctrl.K @ xh)[0]) + ctrl.kr * v[2]
+    assert ctrl.output(z, v) == pytest.approx(u, rel=1e-9)
+    # saturated input enters the buffer's end; the buffer shifts
+    z2 = ctrl.step(z, v, 3.0)
+    assert z2[-1] == 3.0
+    np.testing.assert_allclose(z2[4:-1], z[5:])
+
+
+def test_balances_from_tilt(params, ctrl) -> None:
+    r = simulate_loop(params, ctrl, [0, 0, 0.1, 0], 5.0, quantise=True)
+    assert np.max(np.abs(r["phi"])) < 0.3
+    late = r["t"] > 2.5
+    assert np.max(np.abs(r["phi"][late])) < 0.01
+    assert np.max(np.abs(r["x"][late])) < 0.05
+    assert np.max(np.abs(r["u"])) <= ctrl.u_max
+    # the report's weights need more than 5 m/s^2 from 0.1 rad (about 22 m/s^2 here)
+    assert np.max(np.abs(r["xddot"])) > 5.0
+
+
+def test_acceleration_constraint_is_feasible_with_softer_weights(params) -> None:
+    soft = controller_ss(params, Q=(0.2, 0.5, 0.0, 0.0), R=1.0)
+    r = simulate_loop(params, soft, [0, 0, 0.1, 0], 6.0, quantise=True)
+    assert np.max(np.abs(r["phi"])) < 0.3
+    assert np.max(np.abs(r["xddot"])) <= 5.0
+    assert abs(r["phi"][-1]) < 0.01
+
+
+def test_reference_step_is_tracked(params, ctrl) -> None:
+    r = simulate_loop(params, ctrl, [0, 0, 0, 0], 5.0, x_ref=0.2, quantise=True)
+    assert abs(r["x"][-1] - 0.2) < 0.005
+    off = np.where(np.abs(r["x"] - 0.2) > 0.01)[0]
+    assert r["t"][off[-1]] < 2.5  # the report's settling constraint
+    assert np.max(np.abs(r["phi"])) < 0.3
+
+
+def test_saturation_is_fed_back(params) -> None:
+    small = controller_ss(params, u_max=8.0)
+    r = simulate_loop(params, small, [0, 0, 0.1, 0], 5.0)
+    assert np.max(np.abs(r["u"])) == pytest.approx(8.0)
+    assert abs(r["phi"][-1]) < 0.01
+
+
+def test_no_delay(params) -> None:
+    c = controller_ss(params, delay=0.0)
+    assert c.delay_steps == 0 and c.n == 4
+    r = simulate_loop(params, c, [0, 0, 0.1, 0], 4.0)
+    assert abs(r["phi"][-1]) < 0.01
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [dict(design="nope"), dict(Q=(1, 2, 3)), dict(R=0.0), dict(design="gain"), dict(design="gain", K=(1, 1, 1, 1)),
+     dict(rate=0), dict(delay=-1.0), dict(u_max=0.0), dict(K=(1, 2, 3, 4))],
+)
+def test_bad_arguments(params, kwargs) -> None:
+    with pytest.raises(ValueError):
+        controller_ss(params, **kwargs)
+
+
+def test_zoh_matches_python_control(params) -> None:
+    Ad, Bd, C, Ts = discretise(params)
+    A, B, C0, D = linear_model(params)
+    sd = ct.c2d(ct.ss(A, B, C0, D), Ts)
+    np.testing.assert_allclose(Ad, sd.A, atol=1e-12)
+    np.testing.assert_allclose(Bd, sd.B, atol=1e-12)
