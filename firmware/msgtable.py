@@ -131,7 +131,7 @@ MESSAGES = (
      (("nbytes", "H", 1, "B", "table length in bytes (1..GAINS_MAX)"),
       ("crc", "H", 1, "", "CRC-16/CCITT-FALSE of the table bytes"))),
     (GAINS_CHUNK, "gains_chunk", TO_BOARD,
-     "Table bytes [offset, offset+6); chunks in offset order, the last one zero-padded. No reply unless refused (BAD_SEQUENCE).",
+     "Table bytes [offset, offset+6) in offset order, the last chunk zero-padded. ACK (a repeat of the previous chunk is ACKed again) or NACK(BAD_SEQUENCE, upload aborted).",
      (("offset", "H", 1, "B", "byte offset of this chunk, multiple of 6"),
       ("data", "6s", 1, "", "six table bytes"))),
     (GAINS_COMMIT, "gains_commit", TO_BOARD,

@@ -1,0 +1,206 @@
+# Command dispatcher: a decoded message -> the firmware target (the app), with range
+# checks against msgtable.PARAMS before the target is called, NACK(id, reason, seq)
+# for every refusal (a refused command changes nothing), and the gain-table upload
+# assembled chunk by chunk into a preallocated buffer, CRC-checked over the whole
+# table and handed to target.gains_apply only while disarmed.
+#
+# target methods (each returns msgtable.OK or a reason code unless noted):
+#   cmd_arm(), cmd_disarm(), cmd_clear_faults(), cmd_set_reference(x_um),
+#   param_get(index) -> value, param_set(index, value), gains_apply(buf, nbytes),
+#   fill_heartbeat(arr) (state, faults, boot, uptime_ms),
+#   fill_telemetry(arr) (TELEM_STATE fields then TELEM_CTRL fields: 8 ints),
+#   fill_timing(arr) (TIMING fields: 4 ints).
+# sender: any object with send(mid, seq, vals, voff) (framing.SerialTx,
+# canframe-based senders, or a test double).
+
+try:
+    from micropython import const
+except ImportError:
+    def const(x):
+        return x
+
+from array import array
+
+from . import crc16
+from . import msgtable as T
+
+_FAULT_STATE = const(3)
+_DISARMED = const(0)
+
+
+class Dispatcher:
+    def __init__(self, target, layout, sender, table=None):
+        self.target = target
+        self.layout = layout
+        self.sender = sender
+        self.table = table if table is not None else crc16.make_table()
+        n = len(T.PARAMS)
+        self.pmin = array("i", [0] * n)
+        self.pmax = array("i", [0] * n)
+        for p in T.PARAMS:
+            self.pmin[p[0]] = p[3]
+            self.pmax[p[0]] = p[4]
+        self.nparams = n
+        self.rx = array("i", [0] * 8)
+        self.tx = array("i", [0] * 8)
+        self.gbuf = bytearray(T.GAINS_MAX)
+        self.g_len = 0
+        self.g_crc = 0
+        self.g_got = 0
+        self.g_active = False
+        self.n_refused = 0
+        self.n_handled = 0
+
+    # ---- replies ----
+    def _ack(self, mid, seq):
+        tx = self.tx
+        tx[0] = mid
+        tx[1] = seq
+        self.sender.send(T.ACK, seq, tx, 0)
+        return T.OK
+
+    def _nack(self, mid, seq, reason):
+        tx = self.tx
+        tx[0] = mid
+        tx[1] = reason
+        tx[2] = seq
+        self.n_refused += 1
+        self.sender.send(T.NACK, seq, tx, 0)
+        return reason
+
+    def _reply(self, mid, seq, reason):
+        if reason:
+            return self._nack(mid, seq, reason)
+        return self._ack(mid, seq)
+
+    def _param_value(self, index, seq):
+        tx = self.tx
+        tx[0] = index
+        tx[1] = self.target.param_get(index)
+        self.sender.send(T.PARAM_VALUE, seq, tx, 0)
+        return T.OK
+
+    # ---- periodic / requested messages ----
+    def send_heartbeat(self, seq):
+        self.target.fill_heartbeat(self.tx)
+        self.sender.send(T.HEARTBEAT, seq, self.tx, 0)
+
+    def send_telemetry(self, seq):
+        self.target.fill_telemetry(self.tx)
+        self.sender.send(T.TELEM_STATE, seq, self.tx, 0)
+        self.sender.send(T.TELEM_CTRL, seq, self.tx, 4)
+
+    def send_timing(self, seq):
+        self.target.fill_timing(self.tx)
+        self.sender.send(T.TIMING, seq, self.tx, 0)
+
+    def _disarmed(self):
+        # (state, faults) from the heartbeat fields
+        self.target.fill_heartbeat(self.tx)
+        return self.tx[0] == _DISARMED
+
+    # ---- dispatch ----
+    def handle(self, mid, seq, buf, off):
+        # message mid (payload at buf[off:], length already checked by the decoder).
+        # Returns OK or the reason sent in a NACK; -1 when the message is not a
+        # command (HIL_SENSOR: the HIL HAL consumes it).
+        if mid == T.HIL_SENSOR:
+            return -1
+        if mid > T.MAX_ID or self.layout.direction[mid] != T.TO_BOARD:
+            return self._nack(mid, seq, T.R_UNKNOWN)
+        self.n_handled += 1
+        rx = self.rx
+        self.layout.unpack(mid, buf, off, rx, 0)
+        tg = self.target
+        if mid == T.SET_REFERENCE:
+            x = rx[0]
+            lim = tg.param_get(T.P_REF_LIMIT)
+            if x > lim or x < -lim:
+                return self._nack(mid, seq, T.R_OUT_OF_RANGE)
+            return self._reply(mid, seq, tg.cmd_set_reference(x))
+        if mid == T.ARM:
+            tg.fill_heartbeat(self.tx)
+            if self.tx[1] != 0 or self.tx[0] == _FAULT_STATE:
+                return self._nack(mid, seq, T.R_FAULTED)
+            return self._reply(mid, seq, tg.cmd_arm())
+        if mid == T.DISARM:
+            return self._reply(mid, seq, tg.cmd_disarm())
+        if mid == T.CLEAR_FAULTS:
+            return self._reply(mid, seq, tg.cmd_clear_faults())
+        if mid == T.PARAM_GET:
+            if rx[0] >= self.nparams:
+                return self._nack(mid, seq, T.R_BAD_INDEX)
+            return self._param_value(rx[0], seq)
+        if mid == T.PARAM_SET:
+            i = rx[0]
+            if i >= self.nparams:
+                return self._nack(mid, seq, T.R_BAD_INDEX)
+            v = rx[1]
+            if v < self.pmin[i] or v > self.pmax[i]:
+                return self._nack(mid, seq, T.R_OUT_OF_RANGE)
+            r = tg.param_set(i, v)
+            if r:
+                return self._nack(mid, seq, r)
+            return self._param_value(i, seq)
+        if mid == T.GAINS_BEGIN:
+            return self._gains_begin(rx[0], rx[1], seq)
+        if mid == T.GAINS_CHUNK:
+            return self._gains_chunk(rx[0], buf, rx[1], seq)
+        if mid == T.GAINS_COMMIT:
+            return self._gains_commit(seq)
+        if mid == T.REQUEST:
+            w = rx[0]
+            if w == T.HEARTBEAT:
+                self.send_heartbeat(seq)
+            elif w == T.TELEM_STATE or w == T.TELEM_CTRL:
+                self.send_telemetry(seq)
+            elif w == T.TIMING:
+                self.send_timing(seq)
+            else:
+                return self._nack(mid, seq, T.R_NOT_SUPPORTED)
+            return T.OK
+        return self._nack(mid, seq, T.R_UNKNOWN)
+
+    # ---- gain table upload ----
+    def _gains_begin(self, nbytes, crc, seq):
+        if nbytes < 1 or nbytes > T.GAINS_MAX:
+            self.g_active = False
+            return self._nack(T.GAINS_BEGIN, seq, T.R_BAD_LENGTH)
+        self.g_len = nbytes
+        self.g_crc = crc
+        self.g_got = 0
+        self.g_active = True
+        return self._ack(T.GAINS_BEGIN, seq)
+
+    def _gains_chunk(self, offset, buf, doff, seq):
+        if not self.g_active:
+            return self._nack(T.GAINS_CHUNK, seq, T.R_BAD_SEQUENCE)
+        got = self.g_got
+        n = self.g_len - offset
+        if n > T.CHUNK_BYTES:
+            n = T.CHUNK_BYTES
+        if offset < got and offset + n == got:
+            # the previous chunk again (its ACK was lost): idempotent
+            return self._ack(T.GAINS_CHUNK, seq)
+        if offset != got or n <= 0:
+            self.g_active = False
+            return self._nack(T.GAINS_CHUNK, seq, T.R_BAD_SEQUENCE)
+        g = self.gbuf
+        for i in range(n):
+            g[offset + i] = buf[doff + i]
+        self.g_got = got + n
+        return self._ack(T.GAINS_CHUNK, seq)
+
+    def _gains_commit(self, seq):
+        if not self.g_active:
+            return self._nack(T.GAINS_COMMIT, seq, T.R_BAD_SEQUENCE)
+        if self.g_got != self.g_len:
+            return self._nack(T.GAINS_COMMIT, seq, T.R_INCOMPLETE)
+        if crc16.compute(self.table, self.gbuf, 0, self.g_len) != self.g_crc:
+            self.g_active = False
+            return self._nack(T.GAINS_COMMIT, seq, T.R_BAD_CRC)
+        if not self._disarmed():
+            # upload kept: disarm and commit again
+            return self._nack(T.GAINS_COMMIT, seq, T.R_ARMED)
+        self.g_active = False
+        return self._reply(T.GAINS_COMMIT, seq, self.target.gains_apply(self.gbuf, self.g_len))

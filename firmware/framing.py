@@ -1,0 +1,174 @@
+# Serial framing: 0x00, COBS([id][seq][payload][crc16 big-endian]), 0x00.
+# crc16 is CRC-16/CCITT-FALSE over id, seq, payload; the CRC over the whole unstuffed
+# frame (CRC bytes included) is then 0, which is what the decoder checks.
+# Encoder writes into a preallocated buffer; Decoder is a byte-at-a-time state
+# machine over a preallocated buffer that never raises and never allocates, drops
+# bad frames by cause and resynchronises at the next 0x00.
+
+try:
+    from micropython import const
+except ImportError:
+    def const(x):
+        return x
+
+from . import crc16
+from . import msgtable
+
+_MAX_FRAME = const(12)
+_MAX_WIRE = const(15)
+_UNKNOWN = const(0xFF)
+_CMAX = const(0x3FFFFFFF)
+
+
+class Encoder:
+    # raw: unstuffed frame being built (payload at raw[2:]); out: wire bytes
+    def __init__(self, layout, table=None):
+        self.layout = layout
+        self.table = table if table is not None else crc16.make_table()
+        self.raw = bytearray(_MAX_FRAME)
+        self.out = bytearray(_MAX_WIRE)
+
+    def encode(self, mid, seq, vals, voff):
+        # pack vals[voff:] as message mid, frame it; returns the wire length in self.out
+        n = self.layout.pack(mid, vals, voff, self.raw, 2)
+        return self.frame(mid, seq, n)
+
+    def frame(self, mid, seq, n):
+        # frame raw[2:2+n] (already filled) as message mid with sequence seq
+        raw = self.raw
+        raw[0] = mid & 0xFF
+        raw[1] = seq & 0xFF
+        crc = crc16.compute(self.table, raw, 0, 2 + n)
+        raw[2 + n] = crc >> 8
+        raw[3 + n] = crc & 0xFF
+        # COBS stuffing
+        out = self.out
+        out[0] = 0
+        cpos = 1
+        code = 1
+        o = 2
+        for i in range(4 + n):
+            b = raw[i]
+            if b == 0:
+                out[cpos] = code
+                cpos = o
+                o += 1
+                code = 1
+            else:
+                out[o] = b
+                o += 1
+                code += 1
+                if code == 0xFF:
+                    out[cpos] = code
+                    cpos = o
+                    o += 1
+                    code = 1
+        out[cpos] = code
+        out[o] = 0
+        return o + 1
+
+
+class Decoder:
+    # feed(b) -> message id of a complete valid frame, else -1.  After a frame:
+    # self.mid, self.seq, self.plen, payload in self.buf[2:2+plen] (valid until the
+    # next feed).  Drop counters: n_crc, n_length, n_unknown, n_overrun; n_ok frames.
+    def __init__(self, layout, table=None):
+        self.plen_of = layout.plen
+        self.table = table if table is not None else crc16.make_table()
+        self.buf = bytearray(_MAX_FRAME)
+        self.n_ok = 0
+        self.n_crc = 0
+        self.n_length = 0
+        self.n_unknown = 0
+        self.n_overrun = 0
+        self.mid = -1
+        self.seq = 0
+        self.plen = 0
+        self.reset()
+
+    def reset(self):
+        self._n = 0
+        self._left = 0
+        self._code = 0
+        self._zero = False
+        self._skip = False
+        self._crc = 0xFFFF
+
+    def _put(self, b):
+        n = self._n
+        if n >= _MAX_FRAME:
+            self._skip = True
+            if self.n_overrun < _CMAX:
+                self.n_overrun += 1
+            return
+        self.buf[n] = b
+        self._n = n + 1
+        c = self._crc
+        self._crc = ((c << 8) & 0xFFFF) ^ self.table[((c >> 8) ^ b) & 0xFF]
+
+    def feed(self, b):
+        if b == 0:
+            return self._end()
+        if self._skip:
+            return -1
+        if self._left == 0:
+            # a COBS code byte; the block before it implied a zero (unless code 0xFF)
+            if self._zero:
+                self._put(0)
+                if self._skip:
+                    return -1
+            self._code = b
+            self._left = b - 1
+            self._zero = b != 0xFF
+        else:
+            self._put(b)
+            self._left -= 1
+        return -1
+
+    def _end(self):
+        n = self._n
+        skip = self._skip
+        empty = n == 0 and self._code == 0
+        left = self._left
+        crc = self._crc
+        self.reset()
+        if skip or empty:
+            return -1
+        if left != 0 or n < 4:
+            if self.n_length < _CMAX:
+                self.n_length += 1
+            return -1
+        if crc != 0:
+            if self.n_crc < _CMAX:
+                self.n_crc += 1
+            return -1
+        mid = self.buf[0]
+        pl = self.plen_of[mid] if mid < 32 else _UNKNOWN
+        if pl == _UNKNOWN:
+            if self.n_unknown < _CMAX:
+                self.n_unknown += 1
+            return -1
+        if n - 4 != pl:
+            if self.n_length < _CMAX:
+                self.n_length += 1
+            return -1
+        self.mid = mid
+        self.seq = self.buf[1]
+        self.plen = pl
+        if self.n_ok < _CMAX:
+            self.n_ok += 1
+        return mid
+
+    def drops(self):
+        return self.n_crc + self.n_length + self.n_unknown + self.n_overrun
+
+
+class SerialTx:
+    # sender for commands.Dispatcher: encode and write(buf, n) one frame
+    def __init__(self, encoder, write):
+        self.enc = encoder
+        self.write = write
+
+    def send(self, mid, seq, vals, voff):
+        n = self.enc.encode(mid, seq, vals, voff)
+        self.write(self.enc.out, n)
