@@ -1,0 +1,360 @@
+"""The plant side of a closed loop, one control tick at a time: shared by HIL and pure simulation.
+
+:class:`PlantSim` holds the robot's true state and, each control tick, does what the physical
+robot would do between two loop iterations of the board:
+
+1. :meth:`PlantSim.read` -- the sensor values the board reads at this tick: ADC counts of the
+   angle potentiometer and the 16-bit encoder counter, with the scenario's noise, quantised,
+   and ``delay_steps`` ticks old (:class:`sim.sensors.SensorModel`).
+2. :meth:`PlantSim.step` -- the board's answer, a PWM duty in ``[-32767, 32767]``, is held
+   for one period ``Ts``; the DC motor model turns it into a force at the (changing) cart
+   speed (:func:`sim.motor.force_from_duty`), the scenario adds its disturbance force, and
+   the nonlinear plant (:func:`sim.plant.dynamics`) is integrated with classical RK4 in
+   ``substeps`` steps of ``h = Ts/substeps`` (at least 1 kHz; default 2 kHz, i.e. 4 substeps
+   at the default 500 Hz loop).  A Dirac impulse of the scenario is applied as an
+   instantaneous jump of the velocities at the start of the sub-step that contains it.
+
+The HIL runner calls ``read()`` -> sends the frame -> gets the duty -> ``step(duty)``;
+:func:`run_scenario_float` does the same with the float reference controller
+(``host.discrete.DiscreteController``) in place of the board, so both use exactly this code.
+Every tick is logged; :meth:`PlantSim.result` returns the log as arrays (:data:`LOG_COLUMNS`),
+the input of :mod:`sim.metrics` and :mod:`sim.plots`.
+
+For speed (the lockstep HIL budget is a fraction of a millisecond per tick) the per-tick
+integration uses scalar ``math`` versions of the plant and motor equations; a test checks
+them against :func:`sim.plant.dynamics` and :func:`sim.motor.force_from_duty`.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from . import motor, sensors
+from .params import RobotParams
+from .scenario import Scenario
+
+__all__ = ["LOG_COLUMNS", "PlantSim", "run_scenario_float", "write_csv", "read_csv"]
+
+LOG_COLUMNS: dict[str, str] = {
+    "t": "s, time of the tick",
+    "x": "m, cart position at the tick",
+    "xdot": "m/s, cart velocity",
+    "phi": "rad, pendulum tilt from upright",
+    "phidot": "rad/s, tilt rate",
+    "x_ref": "m, cart position reference",
+    "adc": "count, ADC reading the board got at this tick (delayed, noisy)",
+    "enc": "count, 16-bit encoder counter the board got at this tick (delayed)",
+    "duty": "PWM duty applied during the tick (-32767..32767)",
+    "force": "N, motor force at the start of the tick",
+    "f_dist": "N, finite disturbance force at the start of the tick",
+    "xddot": "m/s^2, cart acceleration at the start of the tick (motor + disturbance)",
+    "u_cmd": "N, controller force command before saturation (NaN if unknown)",
+    "u_sat": "N, controller force command after saturation (NaN if unknown)",
+}
+"""Columns of a run log (one row per control tick) with their units."""
+
+
+class PlantSim:
+    """The simulated robot, advanced one control tick at a time.
+
+    Parameters
+    ----------
+    params : RobotParams
+        Robot parameters (the scenario's ``[params]`` overrides and delay are applied).
+    scenario : Scenario
+        Initial state, disturbances, reference, noise, delay, seed.
+    x0 : sequence of 4 float, optional
+        Initial state overriding the scenario's.
+    seed : int, optional
+        Noise seed overriding the scenario's.
+    substep_rate : float
+        Minimum integration rate (Hz); at least 1000.
+
+    Attributes
+    ----------
+    params : RobotParams
+        The parameters actually simulated.
+    Ts : float
+        Control period (s).
+    substeps : int
+        RK4 steps per control tick.
+    tick : int
+        Index of the current tick (the next ``step`` applies to it).
+    state : ndarray
+        True state ``[x, xdot, phi, phidot]`` at the current tick.
+    """
+
+    def __init__(
+        self,
+        params: RobotParams,
+        scenario: Scenario,
+        *,
+        x0: Sequence[float] | None = None,
+        seed: int | None = None,
+        substep_rate: float = 2000.0,
+    ) -> None:
+        if not substep_rate >= 1000.0:
+            raise ValueError(f"substep_rate must be >= 1000 Hz, got {substep_rate!r}")
+        self.params = p = scenario.apply(params)
+        self.scenario = scenario
+        self.Ts = 1.0 / p.rate
+        self.substeps = max(1, math.ceil(substep_rate * self.Ts - 1e-9))
+        self.h = self.Ts / self.substeps
+        self.n_ticks = int(round(scenario.duration * p.rate))
+        self.tick = 0
+        x = [float(v) for v in (scenario.x0 if x0 is None else x0)]
+        if len(x) != 4 or not all(math.isfinite(v) for v in x):
+            raise ValueError(f"x0 must be 4 finite numbers, got {x0!r}")
+        self._x = x
+        # physical constants for the scalar right-hand side
+        ph = p.physical
+        self._M, self._m, self._L, self._I, self._b, self._g = ph["M"], ph["m"], ph["L"], ph["I"], ph["b"], ph["g"]
+        self._J = self._I + self._m * self._L**2
+        self._mL = self._m * self._L
+        # motor: F = a_duty * duty - c_emf * xdot  (duty clipped to the supply)
+        fpa = p.n_motors * p.gear * p.kt / p.r_wheel
+        self._a_duty = fpa * p.V_supply / (motor.DUTY_MAX * p.R)
+        self._c_emf = fpa * p.kt * p.gear / (p.r_wheel * p.R)
+        self._dist = self._disturbance_fn()
+        self._diracs = sorted((t, imp) for t, imp in scenario.dirac_impulses(0.0, math.inf))
+        self.sensor_model = sensors.SensorModel(
+            p, noise=scenario.noise, rng=scenario.seed if seed is None else seed
+        )
+        self.sensor_model.reset(x[0], x[2])
+        self._reading = self._measure()
+        self._log: dict[str, list[float]] = {k: [] for k in LOG_COLUMNS}
+
+    # ------------------------------------------------------------------ plant
+    def _disturbance_fn(self) -> Callable[[float], float]:
+        finite = [f for f in self.scenario.forces if not f.is_dirac]
+        spans = []
+        for f in finite:
+            level = f.amplitude if f.kind == "push" else f.impulse / f.width
+            spans.append((f.start, f.end, level))
+
+        def dist(t: float) -> float:
+            s = 0.0
+            for a, b, lv in spans:
+                if a <= t < b:
+                    s += lv
+            return s
+
+        return dist
+
+    def _rhs(self, x: list[float], duty: float, t: float) -> tuple[float, float, float, float]:
+        # sim.plant.dynamics for one state, with the motor force evaluated at this speed
+        xd, phi, phid = x[1], x[2], x[3]
+        F = self._a_duty * duty - self._c_emf * xd + self._dist(t)
+        s, c = math.sin(phi), math.cos(phi)
+        mL, J = self._mL, self._J
+        rhs1 = F - self._b * xd - mL * phid * phid * s
+        rhs2 = mL * self._g * s
+        det = (self._M + self._m) * J - (mL * c) ** 2
+        return xd, (J * rhs1 + mL * c * rhs2) / det, phid, (mL * c * rhs1 + (self._M + self._m) * rhs2) / det
+
+    def _apply_impulse(self, x: list[float], imp: float) -> list[float]:
+        # generalised momenta jump: Mq [dxd, dphid] = [imp, 0], Mq = [[M+m, -mL c], [-mL c, J]]
+        c = math.cos(x[2])
+        mL, J, Mt = self._mL, self._J, self._M + self._m
+        det = Mt * J - (mL * c) ** 2
+        return [x[0], x[1] + J * imp / det, x[2], x[3] + mL * c * imp / det]
+
+    def _integrate(self, duty: float, t0: float) -> None:
+        x = self._x
+        h = self.h
+        for i in range(self.substeps):
+            t = t0 + i * h
+            while self._diracs and self._diracs[0][0] < t + h - 1e-12:
+                x = self._apply_impulse(x, self._diracs.pop(0)[1])
+            k1 = self._rhs(x, duty, t)
+            x2 = [x[j] + 0.5 * h * k1[j] for j in range(4)]
+            k2 = self._rhs(x2, duty, t + 0.5 * h)
+            x3 = [x[j] + 0.5 * h * k2[j] for j in range(4)]
+            k3 = self._rhs(x3, duty, t + 0.5 * h)
+            x4 = [x[j] + h * k3[j] for j in range(4)]
+            k4 = self._rhs(x4, duty, t + h)
+            x = [x[j] + (h / 6.0) * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j]) for j in range(4)]
+        self._x = x
+
+    def _measure(self) -> tuple[int, int]:
+        adc, enc = self.sensor_model.measure(self._x[0], self._x[2])
+        return int(adc), int(enc)
+
+    # ------------------------------------------------------------------ public
+    @property
+    def t(self) -> float:
+        """Time of the current tick (s)."""
+        return self.tick * self.Ts
+
+    @property
+    def state(self) -> np.ndarray:
+        """True state ``[x, xdot, phi, phidot]`` at the current tick (a copy)."""
+        return np.array(self._x)
+
+    @property
+    def done(self) -> bool:
+        """True once the scenario's duration has been simulated."""
+        return self.tick >= self.n_ticks
+
+    def read(self) -> tuple[int, int]:
+        """Sensor values the board reads at the current tick: ``(adc, enc)`` counts.
+
+        Calling it again before :meth:`step` returns the same values.
+        """
+        return self._reading
+
+    def x_ref(self) -> float:
+        """Cart position reference at the current tick (m)."""
+        return float(self.scenario.x_ref(self.t))
+
+    def step(self, duty: int, *, u_cmd: float = math.nan, u_sat: float = math.nan) -> None:
+        """Apply ``duty`` for one control period and advance to the next tick.
+
+        Parameters
+        ----------
+        duty : int
+            PWM duty the board commanded for this tick; clipped to ``[-32767, 32767]`` by
+            the bridge (the log keeps what was commanded).
+        u_cmd, u_sat : float, optional
+            The controller's force command before/after saturation, logged if known.
+        """
+        d = min(max(int(duty), -motor.DUTY_MAX), motor.DUTY_MAX)
+        t = self.t
+        x = self._x
+        fm = self._a_duty * d - self._c_emf * x[1]
+        fd = self._dist(t)
+        log = self._log
+        for name, v in (("t", t), ("x", x[0]), ("xdot", x[1]), ("phi", x[2]), ("phidot", x[3]),
+                        ("x_ref", self.x_ref()), ("adc", self._reading[0]), ("enc", self._reading[1]),
+                        ("duty", int(duty)), ("force", fm), ("f_dist", fd), ("xddot", self._rhs(x, d, t)[1]),
+                        ("u_cmd", u_cmd), ("u_sat", u_sat)):
+            log[name].append(v)
+        self._integrate(d, t)
+        self.tick += 1
+        self._reading = self._measure()
+
+    def result(self) -> dict[str, np.ndarray]:
+        """The log so far: one array per :data:`LOG_COLUMNS` entry, one row per tick."""
+        out = {k: np.asarray(v, dtype=float) for k, v in self._log.items()}
+        for k in ("adc", "enc", "duty"):
+            out[k] = out[k].astype(np.int64)
+        return out
+
+
+def _linear_rows(ctrl: Any) -> tuple[np.ndarray, np.ndarray]:
+    # the controller's state estimate xh = Ez z + Ev v is linear: probe it once
+    n = ctrl.n
+    zero_z, zero_v = np.zeros(n), np.zeros(3)
+    Ez = np.column_stack([ctrl.estimate(np.eye(n)[i], zero_v) for i in range(n)])
+    Ev = np.column_stack([ctrl.estimate(zero_z, np.eye(3)[i]) for i in range(3)])
+    return Ez, Ev
+
+
+def run_scenario_float(
+    scenario: Scenario,
+    params: RobotParams,
+    controller: Any,
+    *,
+    speed: str = "estimate",
+    seed: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[str, np.ndarray]:
+    """Close the loop in pure simulation with the float discrete controller.
+
+    Each tick: the delayed, noisy, quantised sensor counts of :class:`PlantSim` are decoded
+    like the firmware does (ADC -> rad with offset and scale; 16-bit encoder unwrapped ->
+    m), the controller (``host.discrete.DiscreteController``) computes ``u``, saturates it to
+    ``u_max`` and updates its state with the saturated value; the force is mapped to an
+    integer duty by the inverse motor model with back-EMF compensation
+    (:func:`sim.motor.duty_from_force`), and the plant integrates that duty.
+
+    Parameters
+    ----------
+    scenario : Scenario
+        What happens during the run.
+    params : RobotParams
+        Robot parameters (the scenario's overrides are applied on top).
+    controller : DiscreteController
+        ``Cc, Dc, Ac, Bc, Bu, u_max`` and ``estimate(z, v)``.
+    speed : {"estimate", "none"}
+        Cart speed used for the back-EMF compensation: the controller's predicted state
+        (``estimate(z, v)[1]``) or none (duty proportional to force).
+    seed : int, optional
+        Noise seed overriding the scenario's.
+    progress : callable, optional
+        ``progress(tick, n_ticks)`` called every 100 ticks.
+
+    Returns
+    -------
+    dict
+        The run log (:data:`LOG_COLUMNS`), plus ``x_meas``, ``phi_meas`` and ``xdot_est``.
+    """
+    if speed not in ("estimate", "none"):
+        raise ValueError(f"speed must be 'estimate' or 'none', got {speed!r}")
+    sim = PlantSim(params, scenario, seed=seed)
+    p = sim.params
+    Ac, Bc, Cc, Dc = (np.asarray(m, dtype=float) for m in (controller.Ac, controller.Bc, controller.Cc, controller.Dc))
+    Bu = np.asarray(controller.Bu, dtype=float)[:, 0]
+    umax = float(controller.u_max)
+    Ez_v = _linear_rows(controller) if speed == "estimate" else None
+    cpm = sensors.enc_counts_per_m(p)
+    cpr = sensors.adc_counts_per_rad(p)
+    z = np.zeros(Ac.shape[0])
+    adc0, enc0 = sim.read()
+    unwrap = sensors.EncoderUnwrapper(enc0)
+    extra: dict[str, list[float]] = {"x_meas": [], "phi_meas": [], "xdot_est": []}
+    n = sim.n_ticks
+    for k in range(n):
+        adc, enc = sim.read()
+        xm = float(unwrap.update(enc)) / cpm
+        phm = (adc - p.pot_offset) / cpr
+        v = np.array([xm, phm, sim.x_ref()])
+        u = float(Cc[0] @ z + Dc[0] @ v)
+        us = min(max(u, -umax), umax)
+        xd_est = float(Ez_v[0][1] @ z + Ez_v[1][1] @ v) if Ez_v is not None else 0.0
+        duty = int(motor.duty_from_force(us, xd_est, p))
+        z = Ac @ z + Bc @ v + Bu * us
+        sim.step(duty, u_cmd=u, u_sat=us)
+        extra["x_meas"].append(xm)
+        extra["phi_meas"].append(phm)
+        extra["xdot_est"].append(xd_est)
+        if progress is not None and k % 100 == 0:
+            progress(k, n)
+    out = sim.result()
+    out.update({k: np.asarray(v) for k, v in extra.items()})
+    return out
+
+
+def write_csv(log: Mapping[str, np.ndarray], path: str | Path) -> Path:
+    """Write a run log as CSV (header row = column names; units in :data:`LOG_COLUMNS`)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cols = list(log)
+    n = len(log[cols[0]]) if cols else 0
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(cols)
+        for i in range(n):
+            w.writerow([_cell(log[c][i]) for c in cols])
+    return path
+
+
+def _cell(v: Any) -> str:
+    if isinstance(v, (np.integer, int)):
+        return str(int(v))
+    return repr(float(v))
+
+
+def read_csv(path: str | Path) -> dict[str, np.ndarray]:
+    """Read a log written by :func:`write_csv` back into arrays."""
+    with Path(path).open(newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows:
+        raise ValueError(f"{path}: empty CSV")
+    head, body = rows[0], rows[1:]
+    return {h: np.array([float(r[i]) for r in body]) for i, h in enumerate(head)}
