@@ -1,0 +1,116 @@
+"""The virtual serial port: pty + MicroPython unix port + firmware/uart_unix.py (real interpreter)."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from host.vport import PTMX, BoardExited, PortError, VirtualBoard, open_can, open_serial, slave_of
+
+ECHO = r"""
+import gc, micropython
+from firmware.uart_unix import UnixUART
+
+
+def loop(u, buf, out):
+    # a function, so that its variables are locals (a new global would grow a dict)
+    n = 0
+    frames = 0
+    while True:
+        if not u.wait(5000):
+            break
+        k = u.readinto(buf)
+        if k == 0:
+            break
+        u.write(buf, k)
+        n += k
+        frames += 1
+    out[0] = n
+    out[1] = frames
+
+
+u = UnixUART(%r)
+buf = bytearray(64)
+r = [0, 0]
+gc.collect()
+micropython.heap_lock()
+try:
+    loop(u, buf, r)
+finally:
+    micropython.heap_unlock()
+print("echoed", r[0], "frames", r[1])
+"""
+
+# every byte value, including the ones a cooked tty would eat or translate
+PAYLOAD = bytes(range(256))
+
+
+def test_uart_unix_echo_is_transparent_and_allocation_free() -> None:
+    ser = open_serial(PTMX, timeout=5.0)
+    try:
+        board = VirtualBoard(slave_of(ser.fileno()), code=ECHO % "SLAVE")
+        board.cmd[-1] = ECHO % board.slave
+        with board:
+            got = 0
+            for i in range(200):
+                msg = PAYLOAD[i % 200: i % 200 + 50] or b"\x01"
+                ser.write(msg)
+                back = ser.read(len(msg))
+                assert back == msg
+                got += len(msg)
+            ser.close()  # the firmware sees the hang-up (EIO) and leaves its loop
+            board.proc.wait(timeout=10)
+            out = board.output()
+        assert board.returncode == 0, out
+        fields = out.split()
+        assert fields[0] == "echoed" and int(fields[1]) == got, out
+        # heap_lock was held for the whole loop: a single allocation would have raised
+        # MemoryError and a non-zero exit status
+        assert int(fields[3]) == 200, out
+    finally:
+        ser.close()
+
+
+def test_board_exits_when_host_closes_the_master() -> None:
+    ser = open_serial(PTMX, timeout=1.0)
+    board = VirtualBoard(slave_of(ser.fileno()), code=ECHO % "SLAVE")
+    board.cmd[-1] = ECHO % board.slave
+    with board:
+        ser.close()
+        board.proc.wait(timeout=10)
+    assert board.returncode == 0
+
+
+def test_bad_serial_port_is_one_line_error() -> None:
+    with pytest.raises(PortError) as ei:
+        open_serial("/dev/does-not-exist-upright")
+    msg = str(ei.value)
+    assert "/dev/does-not-exist-upright" in msg and "\n" not in msg
+
+
+def test_bad_can_channel_is_one_line_error() -> None:
+    with pytest.raises(PortError) as ei:
+        open_can("/dev/does-not-exist-upright", interface="serial")
+    assert "\n" not in str(ei.value)
+    with pytest.raises(PortError):
+        open_can("nope0", interface="no-such-interface")
+
+
+def test_slave_of_rejects_non_pty() -> None:
+    fd = os.open("/dev/null", os.O_RDWR)
+    try:
+        with pytest.raises(PortError):
+            slave_of(fd)
+    finally:
+        os.close(fd)
+
+
+def test_board_start_failure_names_the_error() -> None:
+    ser = open_serial(PTMX, timeout=1.0)
+    try:
+        with pytest.raises(BoardExited) as ei:
+            VirtualBoard(slave_of(ser.fileno()), code="raise ValueError('boom at start')").start()
+        assert "boom at start" in str(ei.value)
+    finally:
+        ser.close()
