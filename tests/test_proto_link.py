@@ -1,0 +1,174 @@
+"""One test body per behaviour, run against every transport.
+
+Transports: pyserial ``loop://``, a pty pair (both ends opened by pyserial), python-can
+``virtual``, and python-can's ``serial`` interface over a pty pair (python-can parsing
+the bytes).  The "board" peers run the firmware decoder, dispatcher and encoder
+(CPython) so the host parses what firmware code wrote; test_proto_mpy.py repeats the
+byte-level case with the real MicroPython interpreter.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import can
+import pytest
+import serial
+
+from firmware import msgtable as T
+from host import link as L
+from host import messages as M
+from proto_helpers import CanBoard, PtyBridge, SerialBoard
+
+_chan = itertools.count()
+
+
+def _samples() -> list[M.Message]:
+    out = []
+    for cls in M.MESSAGES.values():
+        kw = {}
+        for i, f in enumerate(cls.FIELDS):
+            lo, hi = (0, 0) if f.is_raw else f.bounds
+            kw[f.name] = bytes(range(1, f.size + 1)) if f.is_raw else (hi if i % 2 else lo + 1)
+        out.append(cls(**kw))
+    return out
+
+
+@pytest.fixture(params=["loop", "pty", "virtual", "serialcan"])
+def pair(request):
+    """Two links that see each other's messages (the same link for loop://)."""
+    kind = request.param
+    closers = []
+    if kind == "loop":
+        a = b = L.SerialLink("loop://")
+    elif kind == "virtual":
+        ch = f"upright-pair-{next(_chan)}"
+        a = L.CanLink(interface="virtual", channel=ch, node_id=1)
+        b = L.CanLink(interface="virtual", channel=ch, node_id=1)
+    else:
+        br = PtyBridge()
+        closers.append(br.close)
+        if kind == "pty":
+            a, b = L.SerialLink(br.a), L.SerialLink(br.b)
+        else:
+            a = L.CanLink(interface="serial", channel=br.a, node_id=1)
+            b = L.CanLink(interface="serial", channel=br.b, node_id=1)
+    yield a, b
+    a.close()
+    b.close()
+    for c in closers:
+        c()
+
+
+def test_every_message_roundtrips(pair):
+    a, b = pair
+    for msg in _samples():
+        a.send(msg)
+        assert b.recv(timeout=2.0) == msg
+        b.send(msg)
+        assert a.recv(timeout=2.0) == msg
+    assert a.recv(timeout=0) is None
+    assert sum(a.drops.values()) == 0
+
+
+@pytest.fixture(params=["pty", "virtual", "serialcan"])
+def board(request):
+    """(host link, board peer running the firmware dispatcher)."""
+    kind = request.param
+    if kind == "virtual":
+        ch = f"upright-board-{next(_chan)}"
+        bus = can.Bus(interface="virtual", channel=ch)
+        peer = CanBoard(bus, node=1)
+        host = L.CanLink(interface="virtual", channel=ch, node_id=1)
+        yield host, peer
+        host.close()
+        peer.close()
+        bus.shutdown()
+        return
+    br = PtyBridge()
+    ser = serial.serial_for_url(br.b, timeout=0.02)
+    if kind == "pty":
+        peer = SerialBoard(ser.read, ser.write)
+        host = L.SerialLink(br.a)
+    else:
+        peer = SerialBoard(ser.read, ser.write, can_node=1)
+        host = L.CanLink(interface="serial", channel=br.a, node_id=1)
+    yield host, peer
+    host.close()
+    peer.close()
+    ser.close()
+    br.close()
+
+
+def test_commands_against_firmware_dispatcher(board):
+    host, peer = board
+    tg = peer.target
+    kw = {"timeout": 1.0, "retries": 1}
+    assert host.param_get("watchdog_ms", **kw) == 250
+    assert host.param_set("watchdog_ms", 500, **kw) == 500 and tg.params[T.P_WATCHDOG_MS] == 500
+    host.set_reference(0.125, **kw)
+    assert tg.ref == 125000
+    before = tg.snapshot()
+    with pytest.raises(L.CommandRefused) as ei:
+        host.set_reference(5.0, **kw)  # beyond the track
+    assert ei.value.reason_name == "out_of_range" and ei.value.msg_id == T.SET_REFERENCE
+    with pytest.raises(L.CommandRefused) as ei:
+        host.param_set("watchdog_ms", 10**6, **kw)
+    assert ei.value.reason == T.R_OUT_OF_RANGE
+    with pytest.raises(L.CommandRefused) as ei:
+        host.param_get(200, **kw)
+    assert ei.value.reason == T.R_BAD_INDEX
+    tg.faults = 4
+    with pytest.raises(L.CommandRefused) as ei:
+        host.arm(**kw)
+    assert ei.value.reason_name == "faulted"
+    assert tg.snapshot() == (before[0], 4, *before[2:])
+    host.clear_faults(**kw)
+    hb = host.query("heartbeat", **kw)
+    assert (hb.state, hb.faults, hb.boot, hb.uptime_ms) == (0, 0, 7, 1234)
+    assert host.query("timing", **kw).values() == (10, 20, 30, 0)
+    ts = host.query("telem_state", **kw)
+    assert ts.values() == (1, -2, 3, -4)
+    assert host.expect("telem_ctrl", timeout=1.0).values() == (5, -6, 7, 8)
+    table = bytes(range(47))
+    host.upload_gains(table, **kw)
+    assert tg.gains == table
+    host.arm(**kw)
+    with pytest.raises(L.CommandRefused) as ei:
+        host.upload_gains(bytes(12), **kw)
+    assert ei.value.reason_name == "armed" and tg.gains == table
+    assert sum(host.drops.values()) == 0
+
+
+def test_timeout_and_errors_are_link_errors():
+    with L.SerialLink("loop://") as link:
+        # loop:// echoes the request, never an answer: retries then LinkTimeout
+        with pytest.raises(L.LinkTimeout) as ei:
+            link.request(M.ParamGet(index=0), timeout=0.01, retries=2)
+        assert isinstance(ei.value, TimeoutError) and isinstance(ei.value, OSError)
+        assert link.sent == 3
+        # the echoed requests were not lost: they are still there to recv
+        assert link.recv(timeout=0.5) == M.ParamGet(index=0)
+    with pytest.raises(L.LinkClosed):
+        link.send(M.Arm())
+    with pytest.raises(L.LinkError) as ei:
+        L.SerialLink("/dev/does-not-exist-upright")
+    assert isinstance(ei.value.__cause__, serial.SerialException)
+    with pytest.raises(L.LinkError) as ei:
+        L.CanLink(interface="no-such-interface", channel="x")
+    assert ei.value.__cause__ is not None
+    with pytest.raises(TypeError):
+        L.CanLink(can.Bus(interface="virtual", channel="t"), bitrate=5)
+    with pytest.raises(ValueError):
+        L.open_link("can:virtual")
+
+
+def test_garbage_on_the_wire_is_counted_not_raised():
+    with L.SerialLink("loop://") as link:
+        good = M.encode_serial(M.Heartbeat(state=1, faults=0, boot=2, uptime_ms=3), 4)
+        bad = bytearray(good)
+        bad[3] ^= 0x40
+        link.write_raw(b"\x13\x37" + bytes(bad) + good + b"\x00" * 5)
+        assert link.recv(timeout=1.0) == M.Heartbeat(state=1, faults=0, boot=2, uptime_ms=3)
+        assert link.recv(timeout=0.05) is None
+        assert link.drops["crc"] + link.drops["length"] == 2
