@@ -1,0 +1,133 @@
+"""Fixed-point export (host/export.py): the headroom proof, the table layout and the CLI."""
+
+from __future__ import annotations
+
+import math
+import struct
+
+import pytest
+
+from host import export as ex
+from host.discrete import controller_ss
+from sim.params import load_params
+
+SMALL = 2**30 - 1
+
+
+@pytest.fixture(scope="module")
+def fd():
+    return ex.export()
+
+
+def _t(fd, name):
+    return fd.tables[name]
+
+
+def test_every_row_fits_a_small_int(fd) -> None:
+    for r in fd.rows:
+        assert r.worst <= SMALL - ex.MARGIN, r.name
+        assert 0 <= r.shift <= ex.SHIFT_MAX
+
+
+def test_headroom_recomputed_from_the_tables(fd) -> None:
+    # independent of Row: rebuild each accumulator's bound from the flat tables
+    d = fd.delay
+    LIM = _t(fd, "LIM")
+    (ULIM,), (RLIM,), (ILIM,) = _t(fd, "ULIM"), _t(fd, "RLIM"), _t(fd, "ILIM")
+    M, SM = _t(fd, "M"), _t(fd, "SM")
+    for i in range(4):
+        worst = abs(M[2 * i]) * 2 * LIM[0] + abs(M[2 * i + 1]) * 2 * LIM[2] + 2 ** SM[i]
+        assert worst <= SMALL
+        # the state after the filter: |p| + |acc >> S| stays small too
+        assert LIM[i] + (worst >> SM[i]) <= SMALL
+    force = sum(abs(g) * b for g, b in zip(_t(fd, "KF"), LIM)) + sum(abs(g) * ULIM for g in _t(fd, "KB"))
+    force += abs(_t(fd, "KR")[0]) * RLIM + abs(_t(fd, "KI")[0]) * ILIM + 2 ** (_t(fd, "SK")[0] - 1)
+    assert force <= SMALL
+    speed = sum(abs(g) * b for g, b in zip(_t(fd, "KV"), LIM)) + sum(abs(g) * ULIM for g in _t(fd, "KVB"))
+    assert speed + 2 ** (_t(fd, "SKV")[0] - 1) <= SMALL
+    AD, BD, SA = _t(fd, "AD"), _t(fd, "BD"), _t(fd, "SA")
+    for i in range(4):
+        worst = sum(abs(AD[4 * i + j]) * LIM[j] for j in range(4)) + abs(BD[i]) * ULIM + 2 ** SA[i]
+        assert worst <= SMALL
+    KDU, KDV, SD = _t(fd, "MOT")
+    assert abs(KDU) * ULIM + abs(KDV) * LIM[1] + 2 ** (SD - 1) <= SMALL
+    RNUM, RSH = _t(fd, "REF")
+    assert RNUM * ex.REF_UM_MAX + 2 ** (RSH - 1) <= SMALL
+    # the integrator input: r - x, then the running sum, stay small
+    assert RLIM + LIM[0] + 32 <= SMALL and ILIM + ((RLIM + LIM[0]) >> ex.INTEG_SHIFT) + 1 <= SMALL
+    # measurement conversion: clamped counts shifted into state LSB stay within the limits
+    YX, YP = _t(fd, "YLIM")
+    QX, QP = _t(fd, "FMT")[:2]
+    assert YX << QX <= LIM[0] and YP << QP <= LIM[2]
+    assert len(fd.flat()) == fd.tables["HDR"][2] and fd.tables["HDR"][1] == d
+
+
+def test_scales_and_limits(fd) -> None:
+    p = fd.params
+    assert fd.lsb["x"] * _t(fd, "LIM")[0] == pytest.approx(2 * p.track, rel=1e-3)
+    assert fd.lsb["phi"] * _t(fd, "LIM")[2] == pytest.approx(math.pi / 2, rel=1e-3)
+    assert fd.lsb["u"] * _t(fd, "ULIM")[0] == pytest.approx(fd.ctrl.u_max, rel=1e-3)
+    # the resolution of the states is finer than the sensors'
+    assert fd.lsb["x"] < 2 * math.pi * p.r_wheel / p.enc_cpr
+    assert fd.lsb["phi"] < p.pot_range / 2**p.adc_bits
+
+
+def test_gains_reproduce_the_float_controller(fd) -> None:
+    c = fd.ctrl
+    s = fd.lsb
+    SK = _t(fd, "SK")[0]
+    Kf = [-g / 2**SK * s["u"] / s[k] for g, k in zip(_t(fd, "KF"), ("x", "xdot", "phi", "phidot"))]
+    assert Kf == pytest.approx(list(c.Kf[0]), rel=2e-3)
+    assert _t(fd, "KR")[0] / 2**SK * s["u"] / s["x"] == pytest.approx(c.kr, rel=2e-3)
+
+
+def test_blob_crc_and_render(fd) -> None:
+    blob = fd.blob()
+    flat = fd.flat()
+    assert struct.unpack(f"<{len(flat)}i", blob) == tuple(flat)
+    assert ex.crc16(b"123456789") == 0x29B1
+    text = ex.render(fd)
+    assert "do not edit" in text.splitlines()[0] and "host/export.py" in text.splitlines()[0]
+    assert f"CRC = const(0x{fd.crc():04X})" in text
+    ns: dict = {}
+    exec(compile(text, "gains.py", "exec"), ns)
+    assert list(ns["FLAT"]) == flat and ns["LENGTH"] == len(flat) and ns["DELAY"] == fd.delay
+    assert [n for n, _ in ns["LAYOUT"]] == [n for n, _ in ex.LAYOUT]
+
+
+def test_default_render_is_deterministic() -> None:
+    assert ex.render_default() == ex.render_default()
+
+
+def test_integral_gain_sign_follows_kr() -> None:
+    fd = ex.export(ki=20.0)
+    assert fd.tables["KI"][0] != 0 and (fd.tables["KI"][0] > 0) == (fd.tables["KR"][0] > 0)
+
+
+@pytest.mark.parametrize("kwargs", [dict(ki=-1.0), dict(ki=math.inf), dict(deadband=-1), dict(deadband=1.5)])
+def test_bad_arguments(kwargs) -> None:
+    with pytest.raises(ValueError):
+        ex.export(**kwargs)
+
+
+def test_a_row_that_cannot_fit_is_an_error() -> None:
+    with pytest.raises(ValueError, match="row big"):
+        ex._row("big", [2.0**20], [2**12])
+
+
+def test_other_rates_and_designs_export() -> None:
+    p = load_params()
+    for rate in (250, 1000):
+        fd = ex.export(p, controller_ss(p, rate=rate))
+        assert fd.tables["RATE"] == [rate]
+        assert all(r.worst <= SMALL for r in fd.rows)
+
+
+def test_cli_export(tmp_path) -> None:
+    from host import cli
+
+    out = tmp_path / "g.py"
+    blob = tmp_path / "g.bin"
+    assert cli.main(["export", "--out", str(out), "--blob", str(blob), "--ki", "5"]) == 0
+    assert "do not edit" in out.read_text()
+    assert len(blob.read_bytes()) % 4 == 0
