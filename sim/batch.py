@@ -1,0 +1,600 @@
+"""Vectorised closed-loop simulation of many runs at once (numpy over a batch axis).
+
+Every run is the same loop the firmware closes on the real robot, with its own physical
+parameters, measurement delay, noise stream and initial state::
+
+    tick k (period Ts = 1/rate):
+        reading  = sensors(x, phi, noise_k)          ADC / encoder counts (sim.sensors)
+        v        = decode(reading from d_i ticks ago)  [x_meas, phi_meas, x_ref]
+        u        = Cc z + Dc v ; u_sat = clip(u, +-u_max)
+        z        = Ac z + Bc v + Bu u_sat             (host.discrete.DiscreteController)
+        duty     = duty_from_force(u_sat, xdot_est)  back-EMF compensation (sim.motor)
+    between ticks: RK4 sub-steps at ``plant_rate`` (1 kHz) of sim.plant.dynamics with the
+    force F = force_from_duty(duty, xdot) of the *true* motor (it varies with xdot inside
+    the tick, as a real H-bridge's does).
+
+``drive="force"`` skips the motor model (F = u_sat, the report's ideal force actuator).
+The run's state lives in arrays of shape ``(4, N)``; per-run parameters are arrays of
+shape ``(N,)`` handed to the broadcasting models of :mod:`sim.plant` and :mod:`sim.motor`.
+
+Randomness is per run, never per batch: run ``i`` draws its noise from
+``numpy.random.default_rng(noise_seed[i])`` exactly as a single-run
+:class:`sim.sensors.NoiseSource` would, so a run's result does not depend on which
+batch, chunk or machine simulated it (the Dask scale-out relies on this).
+
+:func:`closed_loop_iosys` is the same loop for one run as a python-control discrete-time
+``nlsys`` (scalar code written independently of the batch code); :func:`simulate_run`
+drives it with ``control.input_output_response``.  Tests compare the two trajectory by
+trajectory; ``make bench`` times both.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+from .motor import MOTOR_KEYS, duty_from_force, force_from_duty
+from .params import RobotParams
+from .plant import dynamics, rk4_step
+from .sensors import (
+    NoiseModel,
+    adc_to_phi,
+    enc_counts_per_m,
+    encoder_delta,
+    phi_to_adc,
+    x_to_encoder,
+)
+
+__all__ = [
+    "BatchError",
+    "PLANT_KEYS",
+    "VARIED_KEYS",
+    "METRICS",
+    "RunSet",
+    "BatchResult",
+    "estimator_rows",
+    "simulate_batch",
+    "closed_loop_iosys",
+    "closed_loop_x0",
+    "simulate_run",
+    "draw_noise",
+]
+
+PLANT_KEYS = ("M", "m", "L", "I", "b", "g")
+"""Physical parameters of the equations of motion that may vary per run."""
+
+VARIED_KEYS = PLANT_KEYS + ("V_supply", "R", "kt")
+"""Every parameter a :class:`RunSet` may give per run (the true robot of that run).
+
+Sensor and geometry parameters (``r_wheel``, ``gear``, ``enc_cpr``, ``pot_*``) stay
+nominal: the firmware converts counts with them, so they are known exactly.
+"""
+
+METRICS = (
+    "phi_max",
+    "x_max",
+    "xddot_max",
+    "force_max",
+    "settle",
+    "phi_rms",
+    "force_rms",
+    "fallen",
+)
+"""Per-run metrics of :class:`BatchResult` (see :func:`simulate_batch`)."""
+
+_FALLEN = math.pi / 2  # |phi| beyond this: the pendulum has fallen over
+_NOISE_BLOCK = 256  # ticks of noise drawn per run at a time
+
+
+class BatchError(ValueError):
+    """Inconsistent batch inputs (shapes, unknown keys, bad options)."""
+
+
+@dataclass(frozen=True)
+class RunSet:
+    """The per-run inputs of a batch of ``N`` closed-loop runs.
+
+    Parameters
+    ----------
+    x0 : ndarray, shape (N, 4)
+        Initial plant states ``[x, xdot, phi, phidot]``.
+    values : mapping of str to ndarray (N,)
+        True parameter values of each run for any of :data:`VARIED_KEYS`; a key not
+        given is nominal in every run.
+    delay_ticks : ndarray of int, shape (N,)
+        Measurement delay of each run in whole control ticks (>= 0).
+    noise_seed : ndarray of int, shape (N,)
+        Seed of each run's noise generator (``default_rng(seed)``).
+    x_ref : ndarray, shape (N,)
+        Cart position reference (m), held for the run.
+    """
+
+    x0: np.ndarray
+    values: Mapping[str, np.ndarray] = field(default_factory=dict)
+    delay_ticks: np.ndarray | None = None
+    noise_seed: np.ndarray | None = None
+    x_ref: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        x0 = np.atleast_2d(np.asarray(self.x0, dtype=float))
+        if x0.ndim != 2 or x0.shape[1] != 4:
+            raise BatchError(f"x0 must have shape (N, 4), got {np.shape(self.x0)}")
+        n = x0.shape[0]
+        object.__setattr__(self, "x0", x0)
+        vals = {}
+        for k, v in dict(self.values).items():
+            if k not in VARIED_KEYS:
+                raise BatchError(f"cannot vary {k!r} per run (variable: {', '.join(VARIED_KEYS)})")
+            a = np.broadcast_to(np.asarray(v, dtype=float), (n,)).copy()
+            if not np.all(np.isfinite(a)) or np.any(a <= 0) and k != "b" or np.any(a < 0):
+                raise BatchError(f"per-run {k} must be finite and positive")
+            vals[k] = a
+        object.__setattr__(self, "values", vals)
+        d = np.zeros(n, dtype=np.int64) if self.delay_ticks is None else np.asarray(self.delay_ticks)
+        if d.shape != (n,) or not np.issubdtype(d.dtype, np.integer) or np.any(d < 0):
+            raise BatchError(f"delay_ticks must be {n} non-negative ints")
+        object.__setattr__(self, "delay_ticks", d.astype(np.int64))
+        s = np.arange(n, dtype=np.int64) if self.noise_seed is None else np.asarray(self.noise_seed)
+        if s.shape != (n,) or not np.issubdtype(s.dtype, np.integer) or np.any(s < 0):
+            raise BatchError(f"noise_seed must be {n} non-negative ints")
+        object.__setattr__(self, "noise_seed", s)
+        r = np.zeros(n) if self.x_ref is None else np.broadcast_to(np.asarray(self.x_ref, dtype=float), (n,)).copy()
+        object.__setattr__(self, "x_ref", r)
+
+    def __len__(self) -> int:
+        return self.x0.shape[0]
+
+    def subset(self, index: np.ndarray | slice) -> "RunSet":
+        """The runs selected by ``index`` (a slice, integer or boolean array)."""
+        return RunSet(
+            x0=self.x0[index],
+            values={k: v[index] for k, v in self.values.items()},
+            delay_ticks=self.delay_ticks[index],
+            noise_seed=self.noise_seed[index],
+            x_ref=self.x_ref[index],
+        )
+
+    def true_params(self, nominal: RobotParams, i: int | None = None) -> dict[str, Any]:
+        """Mapping of the true plant and motor parameters (arrays, or run ``i``'s floats)."""
+        out: dict[str, Any] = dict(nominal.physical)
+        out.update({k: getattr(nominal, k) for k in MOTOR_KEYS})
+        for k, v in self.values.items():
+            out[k] = v if i is None else float(v[i])
+        return out
+
+
+@dataclass
+class BatchResult:
+    """Metrics (and optionally traces) of a batch.
+
+    Attributes
+    ----------
+    metrics : dict of str to ndarray (N,)
+        :data:`METRICS`: ``phi_max`` (rad), ``x_max`` (m), ``xddot_max`` (m/s^2),
+        ``force_max`` (N, applied), ``settle`` (s, ``inf`` if not settled),
+        ``phi_rms`` (rad) and ``force_rms`` (N) over the final ``window``,
+        ``fallen`` (bool, ``|phi|`` passed pi/2).
+    traces : dict of str to ndarray (T, N), or None
+        With ``record=True``: ``t`` (T,), ``x, xdot, phi, phidot`` at every tick,
+        ``u_sat`` (N), ``force`` (N, at the start of the tick), ``duty``,
+        ``x_meas, phi_meas``.
+    """
+
+    metrics: dict[str, np.ndarray]
+    traces: dict[str, np.ndarray] | None = None
+
+
+def estimator_rows(ctrl: Any) -> tuple[np.ndarray, np.ndarray] | None:
+    """The controller's cart-speed estimate as a linear map ``xdot_est = ce z + de v``.
+
+    Built from the structured pieces of :class:`host.discrete.DiscreteController`
+    (``Ad, Bd, C, M, delay_steps``), the same prediction as its ``estimate()``.
+    Returns ``None`` for a controller without them.
+    """
+    try:
+        Ad, Bd, C, M, d = ctrl.Ad, ctrl.Bd, ctrl.C, ctrl.M, int(ctrl.delay_steps)
+    except AttributeError:
+        return None
+    n = ctrl.Ac.shape[0]
+    Phi = np.linalg.matrix_power(Ad, d)
+    ce = np.zeros((4, n))
+    de = np.zeros((4, 3))
+    ce[:, :4] = Phi @ (np.eye(4) - M @ C)
+    de[:, :2] = Phi @ M
+    for i in range(d):
+        ce[:, 4 + i] = (np.linalg.matrix_power(Ad, d - 1 - i) @ Bd)[:, 0]
+    return ce[1].copy(), de[1].copy()
+
+
+def _ctrl_matrices(ctrl: Any) -> tuple[np.ndarray, ...]:
+    Ac = np.asarray(ctrl.Ac, dtype=float)
+    n = Ac.shape[0]
+    Bc = np.asarray(ctrl.Bc, dtype=float).reshape(n, 3)
+    Cc = np.asarray(ctrl.Cc, dtype=float).reshape(n)
+    Dc = np.asarray(ctrl.Dc, dtype=float).reshape(3)
+    Bu = getattr(ctrl, "Bu", None)
+    Bu = np.zeros(n) if Bu is None else np.asarray(Bu, dtype=float).reshape(n)
+    return Ac, Bc, Cc, Dc, Bu
+
+
+def draw_noise(model: NoiseModel, Ts: float, seeds: np.ndarray, start: int, ticks: int) -> np.ndarray:
+    """Noise ``[n_x, n_phi]`` of ticks ``start .. start+ticks-1`` for each run, shape (ticks, 2, N).
+
+    Run ``i`` draws from ``default_rng(seeds[i])`` in the order a single-run
+    :class:`sim.sensors.NoiseSource` draws (one ``(2,)`` sample per held period).  The
+    generators are created afresh and advanced to ``start`` (``start`` must be a
+    multiple of the hold period); callers that stream keep their own generators
+    (see :class:`_NoiseStream`).
+    """
+    s = _NoiseStream(model, Ts, seeds)
+    if start:
+        s.take(start)
+    return s.take(ticks)
+
+
+class _NoiseStream:
+    """Per-run noise generators, read in blocks of ticks."""
+
+    def __init__(self, model: NoiseModel, Ts: float, seeds: np.ndarray) -> None:
+        self.model = model
+        self.n = len(seeds)
+        self.hold = model.hold_ticks(Ts)
+        self.std = model.std(Ts) if model.kind == "white" else 0.0
+        self.mask = np.array([[c in model.channels] for c in ("x", "phi")], dtype=float)  # (2, 1)
+        self.rngs = [np.random.default_rng(int(s)) for s in seeds] if model.kind != "none" else []
+        self.pos = 0
+
+    def take(self, ticks: int) -> np.ndarray:
+        if self.model.kind == "none" or ticks == 0:
+            self.pos += ticks
+            return np.zeros((ticks, 2, self.n))
+        if self.pos % self.hold:
+            raise BatchError("noise blocks must start on a hold boundary")
+        draws = -(-ticks // self.hold)
+        raw = np.empty((self.n, draws, 2))
+        m = self.model
+        if m.kind == "white":
+            for i, g in enumerate(self.rngs):
+                raw[i] = g.standard_normal((draws, 2)) * self.std
+        else:
+            lo, hi = -m.amplitude, m.amplitude
+            for i, g in enumerate(self.rngs):
+                raw[i] = g.uniform(lo, hi, (draws, 2))
+        out = np.ascontiguousarray(raw.transpose(1, 2, 0)) * self.mask
+        if self.hold > 1:
+            out = np.repeat(out, self.hold, axis=0)[:ticks]
+        self.pos += ticks
+        return out
+
+
+def simulate_batch(
+    params: RobotParams,
+    ctrl: Any,
+    runs: RunSet,
+    *,
+    duration: float = 5.0,
+    noise: NoiseModel | None = None,
+    drive: str = "motor",
+    plant_rate: float = 1000.0,
+    settle_band: float = 0.02,
+    window: float = 1.0,
+    accel_limit: float | None = None,
+    record: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> BatchResult:
+    """Simulate every run of ``runs`` in closed loop with the discrete controller.
+
+    Parameters
+    ----------
+    params : RobotParams
+        Nominal parameters: the firmware's (sensor conversion, motor inversion, loop
+        rate) and the defaults of every run's true plant.
+    ctrl : DiscreteController
+        The controller (``Ac, Bc, Cc, Dc, Bu, Ts, u_max``), see :mod:`host.discrete`.
+    runs : RunSet
+        Per-run parameters, delays, seeds, initial states, references.
+    duration : float
+        Simulated time per run (s).
+    noise : sim.sensors.NoiseModel, optional
+        Measurement noise (default none); each run has its own stream.
+    drive : {"motor", "force"}
+        ``"motor"``: the force command goes through the firmware's inverse motor model
+        (with the controller's speed estimate) to a duty, and the true motor turns the
+        duty into force.  ``"force"``: the saturated force is applied as is.
+    plant_rate : float
+        RK4 step rate (Hz); rounded up to a whole number of sub-steps per tick.
+    settle_band : float
+        ``settle`` is the time after which ``|phi|`` stays within this band (rad).
+    window : float
+        ``phi_rms`` and ``force_rms`` are taken over the final ``window`` seconds.
+    accel_limit : float, optional
+        If given, the applied force is clipped so that ``|xddot| <= accel_limit`` at each
+        RK4 evaluation (a drive that cannot accelerate the cart harder).
+    record : bool
+        Keep per-tick traces (memory ``~ 10 * T * N`` floats).
+    progress : callable, optional
+        ``progress(ticks_done, ticks_total)`` called now and then.
+
+    Returns
+    -------
+    BatchResult
+
+    Raises
+    ------
+    BatchError
+        On a bad option.
+    """
+    if drive not in ("motor", "force"):
+        raise BatchError(f"drive must be 'motor' or 'force', got {drive!r}")
+    if not (duration > 0 and plant_rate > 0 and settle_band > 0 and window > 0):
+        raise BatchError("duration, plant_rate, settle_band and window must be > 0")
+    noise = NoiseModel() if noise is None else noise
+    Ac, Bc, Cc, Dc, Bu = _ctrl_matrices(ctrl)
+    nz = Ac.shape[0]
+    Ts = float(ctrl.Ts)
+    u_max = float(ctrl.u_max)
+    est = estimator_rows(ctrl) if drive == "motor" else None
+    if drive == "motor" and est is None:
+        raise BatchError("drive='motor' needs the controller's speed estimate (Ad, Bd, C, M)")
+    # one matrix for the whole linear part: rows [u; xdot_est; z'] from columns [z; v]
+    G = np.zeros((nz + 2, nz + 3))
+    G[0, :nz], G[0, nz:] = Cc, Dc
+    if est is not None:
+        G[1, :nz], G[1, nz:] = est
+    G[2:, :nz], G[2:, nz:] = Ac, Bc
+    N = len(runs)
+    n_ticks = int(round(duration / Ts))
+    sub = max(1, math.ceil(Ts * plant_rate - 1e-9))
+    h = Ts / sub
+    true = runs.true_params(params)
+    phys = {k: true[k] for k in PLANT_KEYS}
+    motor_true = {k: true[k] for k in MOTOR_KEYS}
+    motor_nom = {k: getattr(params, k) for k in MOTOR_KEYS}
+    sens = {k: getattr(params, k) for k in ("adc_bits", "pot_range", "pot_offset", "enc_cpr", "r_wheel")}
+    cpm = enc_counts_per_m(sens)
+
+    X = runs.x0.T.copy()  # (4, N) plant states
+    W = np.zeros((nz + 3, N))  # [z; v] controller state and inputs
+    W[nz + 2] = runs.x_ref
+    d = runs.delay_ticks
+    L = int(d.max()) + 1 if N else 1
+    cols = np.arange(N)
+    enc0 = x_to_encoder(X[0], sens)
+    adc0 = phi_to_adc(X[2], sens)
+    ring_enc = np.repeat(enc0[None], L, axis=0)  # (L, N) delay line of counts (noiseless start)
+    ring_adc = np.repeat(adc0[None], L, axis=0)
+    flat_enc, flat_adc = ring_enc.reshape(-1), ring_adc.reshape(-1)
+    enc_last = enc0.copy()
+    enc_total = encoder_delta(enc0, 0)
+    stream = _NoiseStream(noise, Ts, runs.noise_seed)
+    blk = stream.hold * max(1, _NOISE_BLOCK // stream.hold)
+    nblock = np.zeros((0, 2, N))
+
+    phi_max = np.abs(X[2])
+    x_max = np.abs(X[0])
+    xdd_max = np.zeros(N)
+    f_max = np.zeros(N)
+    last_out = np.where(phi_max > settle_band, 0, -1).astype(np.int64)  # sample index
+    w0 = n_ticks * sub - int(round(window / h))  # first sample of the RMS window
+    phi_sq = np.zeros(N)
+    f_sq = np.zeros(N)
+    n_sq = 0
+    tr: dict[str, np.ndarray] | None = None
+    if record:
+        names = ("x", "xdot", "phi", "phidot", "u_sat", "force", "duty", "x_meas", "phi_meas")
+        tr = {k: np.zeros((n_ticks + 1, N)) for k in names}
+        tr["t"] = np.arange(n_ticks + 1) * Ts
+    if accel_limit is not None:
+        zeros, ones = np.zeros(N), np.ones(N)
+
+    def rhs(x: np.ndarray, duty: np.ndarray | None, us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        F = us if duty is None else force_from_duty(duty, x[1], motor_true)
+        if accel_limit is not None:
+            # xddot is affine in F: clip F to the range that keeps |xddot| <= accel_limit
+            a0 = dynamics(0.0, x, zeros, phys)[1]
+            a1 = dynamics(0.0, x, ones, phys)[1] - a0
+            F = np.clip(F, (-accel_limit - a0) / a1, (accel_limit - a0) / a1)
+        return dynamics(0.0, x, F, phys), F
+
+    sample = 0
+    for k in range(n_ticks + 1):
+        # --- sensors: this tick's reading enters the delay line, the delayed one comes out
+        j = k % blk
+        if j == 0:
+            nblock = stream.take(min(blk, n_ticks + 1 - k))
+        ring_enc[k % L] = x_to_encoder(X[0], sens, nblock[j, 0])
+        ring_adc[k % L] = phi_to_adc(X[2], sens, nblock[j, 1])
+        idx = ((k - d) % L) * N + cols
+        seen_enc = flat_enc[idx]
+        enc_total = enc_total + encoder_delta(seen_enc, enc_last)
+        enc_last = seen_enc
+        W[nz] = enc_total / cpm
+        W[nz + 1] = adc_to_phi(flat_adc[idx], sens)
+        # --- controller (einsum: the same arithmetic for a run whatever the batch)
+        out = np.einsum("ij,jn->in", G, W)
+        us = np.clip(out[0], -u_max, u_max)
+        duty = duty_from_force(us, out[1], motor_nom) if est is not None else None
+        if tr is not None:
+            for name, val in (("x", X[0]), ("xdot", X[1]), ("phi", X[2]), ("phidot", X[3]), ("u_sat", us), ("x_meas", W[nz]), ("phi_meas", W[nz + 1])):
+                tr[name][k] = val
+            tr["duty"][k] = 0 if duty is None else duty
+            tr["force"][k] = rhs(X, duty, us)[1]
+        W[:nz] = out[2:] + Bu[:, None] * us
+        if k == n_ticks:
+            break
+        # --- plant: RK4 sub-steps with the duty (or force) held
+        for _ in range(sub):
+            k1, F = rhs(X, duty, us)
+            np.maximum(xdd_max, np.abs(k1[1]), out=xdd_max)
+            np.maximum(f_max, np.abs(F), out=f_max)
+            if sample >= w0:
+                phi_sq += X[2] * X[2]
+                f_sq += F * F
+                n_sq += 1
+            k2 = rhs(X + (0.5 * h) * k1, duty, us)[0]
+            k3 = rhs(X + (0.5 * h) * k2, duty, us)[0]
+            k4 = rhs(X + h * k3, duty, us)[0]
+            X = X + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+            sample += 1
+            aphi = np.abs(X[2])
+            np.maximum(phi_max, aphi, out=phi_max)
+            np.maximum(x_max, np.abs(X[0]), out=x_max)
+            last_out[aphi > settle_band] = sample
+        if progress is not None and k % 100 == 0:
+            progress(k, n_ticks)
+    n_samples = n_ticks * sub
+    settle = np.where(last_out < 0, 0.0, (last_out + 1) * h)
+    settle[last_out >= n_samples] = np.inf
+    nrm = max(n_sq, 1)
+    metrics = {
+        "phi_max": phi_max,
+        "x_max": x_max,
+        "xddot_max": xdd_max,
+        "force_max": f_max,
+        "settle": settle,
+        "phi_rms": np.sqrt(phi_sq / nrm),
+        "force_rms": np.sqrt(f_sq / nrm),
+        "fallen": phi_max > _FALLEN,
+    }
+    if progress is not None:
+        progress(n_ticks, n_ticks)
+    return BatchResult(metrics=metrics, traces=tr)
+
+
+def closed_loop_iosys(
+    params: RobotParams,
+    ctrl: Any,
+    true: Mapping[str, float],
+    delay_ticks: int,
+    *,
+    x_ref: float = 0.0,
+    drive: str = "motor",
+    plant_rate: float = 1000.0,
+) -> "Any":
+    """One run's closed loop as a python-control discrete-time ``nlsys`` (period ``Ts``).
+
+    Scalar, written independently of :func:`simulate_batch` but with the same models:
+    :class:`sim.sensors` conversions and a delay line of ``delay_ticks`` readings,
+    ``ctrl.tick`` / ``ctrl.estimate`` of the float reference controller, the motor model
+    and RK4 sub-steps of :func:`sim.plant.dynamics`.
+
+    Parameters
+    ----------
+    params : RobotParams
+        Nominal parameters (the firmware's).
+    ctrl : DiscreteController
+        Float reference controller.
+    true : mapping
+        The run's true ``M, m, L, I, b, g`` and motor constants.
+    delay_ticks : int
+        Measurement delay (ticks).
+    x_ref : float
+        Cart reference (m).
+    drive : {"motor", "force"}
+        As in :func:`simulate_batch`.
+    plant_rate : float
+        RK4 step rate (Hz).
+
+    Returns
+    -------
+    control.NonlinearIOSystem
+        Inputs ``n_x, n_phi`` (measurement noise, m and rad, per tick); states
+        ``x, xdot, phi, phidot``, the controller state, the delay line and the encoder
+        unwrapper; outputs = states.  Use :func:`closed_loop_x0` for the initial state.
+    """
+    import control as ct
+
+    if drive not in ("motor", "force"):
+        raise BatchError(f"drive must be 'motor' or 'force', got {drive!r}")
+    Ts = float(ctrl.Ts)
+    n = ctrl.Ac.shape[0]
+    dl = int(delay_ticks)
+    sub = max(1, math.ceil(Ts * plant_rate - 1e-9))
+    h = Ts / sub
+    phys = {k: float(true[k]) for k in PLANT_KEYS}
+    mot = {k: float(true[k]) for k in MOTOR_KEYS}
+    cpm = float(enc_counts_per_m(params))
+
+    def update(t: float, s: np.ndarray, w: np.ndarray, _p: Any) -> np.ndarray:
+        x = s[:4]
+        z = s[4 : 4 + n]
+        line = s[4 + n : 4 + n + 2 * dl].reshape(dl, 2)
+        enc_last, enc_total = s[-2], s[-1]
+        reading = np.array([float(x_to_encoder(x[0], params, w[0])), float(phi_to_adc(x[2], params, w[1]))])
+        if dl:
+            seen = line[0].copy()
+            line = np.vstack([line[1:], reading])
+        else:
+            seen = reading
+        enc_total = enc_total + float(encoder_delta(int(seen[0]), int(enc_last)))
+        v = [enc_total / cpm, float(adc_to_phi(seen[1], params)), x_ref]
+        _, us, z_next = ctrl.tick(z, v)
+        if drive == "motor":
+            duty = float(duty_from_force(us, ctrl.estimate(z, v)[1], params))
+
+            def f(xx: np.ndarray, dd: float) -> np.ndarray:
+                return dynamics(0.0, xx, np.array([float(force_from_duty(dd, xx[1], mot))]), phys)
+
+            hold = duty
+        else:
+
+            def f(xx: np.ndarray, uu: float) -> np.ndarray:
+                return dynamics(0.0, xx, np.array([uu]), phys)
+
+            hold = us
+        for _ in range(sub):
+            x = rk4_step(f, x, hold, h)
+        return np.concatenate([x, z_next, line.ravel(), [seen[0], enc_total]])
+
+    nstates = 4 + n + 2 * dl + 2
+    return ct.nlsys(update, None, inputs=["n_x", "n_phi"], states=nstates, dt=Ts, name="closed_loop")
+
+
+def closed_loop_x0(params: RobotParams, ctrl: Any, x0: np.ndarray, delay_ticks: int) -> np.ndarray:
+    """Initial state of :func:`closed_loop_iosys`: plant ``x0``, zero controller state,
+    the delay line filled with the noiseless reading of ``x0``."""
+    x0 = np.asarray(x0, dtype=float)
+    r0 = [float(x_to_encoder(x0[0], params)), float(phi_to_adc(x0[2], params))]
+    enc0 = float(encoder_delta(int(r0[0]), 0))
+    return np.concatenate([x0, np.zeros(ctrl.Ac.shape[0]), np.tile(r0, int(delay_ticks)), [r0[0], enc0]])
+
+
+def simulate_run(
+    params: RobotParams,
+    ctrl: Any,
+    runs: RunSet,
+    i: int,
+    *,
+    duration: float = 5.0,
+    noise: NoiseModel | None = None,
+    drive: str = "motor",
+    plant_rate: float = 1000.0,
+) -> dict[str, np.ndarray]:
+    """Run ``i`` of ``runs`` alone, with ``control.input_output_response``.
+
+    The noise is drawn tick by tick with a single-run :class:`sim.sensors.NoiseSource`
+    seeded like the batch run.
+
+    Returns
+    -------
+    dict
+        ``t`` and ``x, xdot, phi, phidot`` at every tick (``duration * rate + 1`` samples).
+    """
+    import control as ct
+
+    from .sensors import NoiseSource
+
+    noise = NoiseModel() if noise is None else noise
+    Ts = float(ctrl.Ts)
+    n_ticks = int(round(duration / Ts))
+    src = NoiseSource(noise, Ts, np.random.default_rng(int(runs.noise_seed[i])))
+    W = np.stack([src.draw().copy() for _ in range(n_ticks + 1)], axis=1)  # (2, T)
+    d = int(runs.delay_ticks[i])
+    sys = closed_loop_iosys(params, ctrl, runs.true_params(params, i), d, x_ref=float(runs.x_ref[i]), drive=drive, plant_rate=plant_rate)
+    T = np.arange(n_ticks + 1) * Ts
+    resp = ct.input_output_response(sys, T, W, closed_loop_x0(params, ctrl, runs.x0[i], d))
+    S = np.asarray(resp.states)
+    return {"t": T, "x": S[0], "xdot": S[1], "phi": S[2], "phidot": S[3]}
