@@ -18,7 +18,9 @@ from pathlib import Path
 from typing import Any, Sequence
 
 # name -> "module:function"
-BENCHES: dict[str, str] = {}
+BENCHES: dict[str, str] = {
+    "batch": "host.bench_batch:bench",
+}
 
 
 def _table(rows: list[dict[str, Any]]) -> str:
