@@ -1,0 +1,93 @@
+# The supervisor: owns the state machine and the latched fault flags.
+#
+#   DISARMED --arm--> ARMED --|tilt| < arm_tilt--> BALANCING
+#   any state --fault--> FAULT (motor off in the same tick, flags latched)
+#   FAULT --clear_faults--> DISARMED (a cause still present latches again next tick)
+#   ARMED/BALANCING --disarm--> DISARMED
+# The motor may run only in BALANCING.  Fault flags (bit: meaning):
+F_TILT = 1       # |tilt| beyond tilt_limit while balancing (the pendulum fell)
+F_WATCHDOG = 2   # no valid frame from the host for watchdog_ms while armed/balancing
+F_ADC_RAIL = 4   # angle ADC at 0 or full scale: potentiometer open, shorted or unpowered
+F_ENC_JUMP = 8   # encoder step larger than the cart can move in one tick: noise/lost counts
+F_TRACK = 16     # cart beyond the track (1.25 x the reference limit) while balancing
+F_GAINS = 32     # the gain table failed its check at start-up (controller not usable)
+
+try:
+    from micropython import const
+except ImportError:
+    def const(x):
+        return x
+
+from .msgtable import OK, R_BAD_STATE, R_FAULTED
+
+DISARMED = const(0)
+ARMED = const(1)
+BALANCING = const(2)
+FAULT = const(3)
+
+
+class Supervisor:
+    def __init__(self):
+        self.state = DISARMED
+        self.faults = 0
+        self.last = 0  # flags raised by the latest update (not latched)
+        self.tilt_counts = 0  # |ADC counts from upright| that trips F_TILT
+        self.arm_counts = 0  # |ADC counts| below which ARMED starts balancing
+        self.track_counts = 0  # |encoder counts| that trips F_TRACK
+        self.wd_ticks = 0  # watchdog in ticks (0: off)
+        self.wd_count = 0
+
+    def arm(self):
+        if self.faults or self.state == FAULT:
+            return R_FAULTED
+        if self.state == DISARMED:
+            self.state = ARMED
+            self.wd_count = 0
+        return OK
+
+    def disarm(self):
+        # always accepted; a latched fault stays latched
+        if self.state != FAULT:
+            self.state = DISARMED
+        return OK
+
+    def clear(self):
+        if self.state == ARMED or self.state == BALANCING:
+            return R_BAD_STATE
+        self.faults = 0
+        self.state = DISARMED
+        return OK
+
+    def feed(self):
+        self.wd_count = 0
+
+    def update(self, counts, pos, rail, jump):
+        # one tick: check the sensors; returns True on the tick balancing starts
+        f = 0
+        if rail:
+            f |= F_ADC_RAIL
+        if jump:
+            f |= F_ENC_JUMP
+        st = self.state
+        if st == BALANCING:
+            if counts > self.tilt_counts or counts < -self.tilt_counts:
+                f |= F_TILT
+            if pos > self.track_counts or pos < -self.track_counts:
+                f |= F_TRACK
+        if (st == ARMED or st == BALANCING) and self.wd_ticks > 0:
+            self.wd_count += 1
+            if self.wd_count > self.wd_ticks:
+                f |= F_WATCHDOG
+        self.last = f
+        if f:
+            self.faults |= f
+            self.state = FAULT
+            return False
+        if self.faults:
+            # latched but no longer present: stay in FAULT until cleared
+            self.state = FAULT
+            return False
+        if st == ARMED and -self.arm_counts < counts < self.arm_counts:
+            self.state = BALANCING
+            return True
+        return False
