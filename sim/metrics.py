@@ -81,6 +81,7 @@ class Metrics:
     ss_cart_error: float
     duration: float
     noisy: bool = False
+    settle_from: float = 0.0  # start (s) of the segment whose settling time is reported
 
     def as_dict(self) -> dict[str, float | bool]:
         """The metrics as a plain dict."""
@@ -222,6 +223,7 @@ def compute_metrics(log: Mapping[str, np.ndarray], scenario: Scenario, params: R
 
     # settling
     settle = math.nan
+    settle_from = 0.0
     if not scenario.noisy or len(events) > 1:
         worst = 0.0
         segs = list(zip(bounds[:-1], bounds[1:]))
@@ -237,6 +239,8 @@ def compute_metrics(log: Mapping[str, np.ndarray], scenario: Scenario, params: R
                     sel = (t >= a) & (t < b)
                     scale = max(abs(step), float(np.max(np.abs(sig[sel] - np.mean(sig[sel][-max(1, int(_TAIL * sel.sum())):])))))
                 ts_ = settling_time(t, sig, t0=a, t1=b, scale=scale, floor=floors[name])
+                if math.isnan(ts_) or ts_ > worst:
+                    settle_from = a
                 worst = max(worst, ts_) if not math.isnan(ts_) else math.nan
                 if math.isnan(worst):
                     break
@@ -289,6 +293,7 @@ def compute_metrics(log: Mapping[str, np.ndarray], scenario: Scenario, params: R
         ss_cart_error=float(np.mean(np.abs(x[tail] - xr[tail]))),
         duration=end,
         noisy=scenario.noisy,
+        settle_from=float(settle_from),
     )
 
 
