@@ -208,6 +208,16 @@ class PlantSim:
         """
         return self._reading
 
+    def peek(self, j: int) -> tuple[int, int]:
+        """``(adc, enc)`` the board will read ``j`` ticks from now, ``1 <= j <= delay_steps``.
+
+        Those readings were taken ``delay_steps - j`` ticks ago and wait in the delay line, so
+        they do not depend on the duties still to come (a lockstep HIL host may send them
+        ahead).  Raises ``ValueError`` outside that range.
+        """
+        adc, enc = self.sensor_model.peek(j)
+        return int(adc), int(enc)
+
     def x_ref(self) -> float:
         """Cart position reference at the current tick (m)."""
         return float(self.scenario.x_ref(self.t))

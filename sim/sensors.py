@@ -298,6 +298,16 @@ class DelayLine:
         self._i = (self._i + 1) % self.steps
         return out
 
+    def peek(self, j: int) -> np.ndarray:
+        """The value :meth:`push` will return ``j`` pushes from now (``1 <= j <= steps``).
+
+        It was inserted ``steps - j`` pushes ago, so it is already known: a lockstep HIL
+        host can send sensor frames ahead of the board's answers.
+        """
+        if not 1 <= j <= self.steps:
+            raise ValueError(f"can only look 1..{self.steps} ticks ahead, asked {j}")
+        return self._buf[(self._i + j - 1) % self.steps].copy()
+
 
 class SensorModel:
     """The board's sensors: noise, quantisation to ADC/encoder counts, measurement delay.
@@ -363,6 +373,13 @@ class SensorModel:
             self.reset(x, phi)
         reading = self.quantise(x, phi, self._noise.draw())
         out = self._line.push(reading)
+        return out[1], out[0]
+
+    def peek(self, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(adc, enc)`` that :meth:`measure` will return ``j`` ticks from now (``1 <= j <= delay_steps``)."""
+        if self._line is None:
+            raise ValueError("no reading taken yet")
+        out = self._line.peek(j)
         return out[1], out[0]
 
     def decode(self, adc: np.ndarray | int, enc: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:

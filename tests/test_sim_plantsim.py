@@ -162,3 +162,22 @@ def test_summary_of_float_runs_prints(float_runs, capsys) -> None:
     print(text)
     assert all(n[:28] in text for n in REPORT_SCENARIOS)
     assert "0 unexpected" in text
+
+
+def test_peek_ahead_matches_future_reads(p) -> None:
+    sc = load_scenario("white_noise_1e-5_delay10ms")
+    sim = PlantSim(p, sc)
+    d = sim.sensor_model.delay_steps
+    rng = np.random.default_rng(3)
+    for _ in range(7):
+        sim.step(int(rng.integers(-3000, 3000)))
+    ahead = [sim.peek(j) for j in range(1, d + 1)]
+    got = []
+    for _ in range(d):
+        sim.step(int(rng.integers(-3000, 3000)))  # any duties: the peeked readings are already taken
+        got.append(sim.read())
+    assert got == ahead
+    with pytest.raises(ValueError, match="ahead"):
+        sim.peek(d + 1)
+    with pytest.raises(ValueError, match="ahead"):
+        sim.peek(0)
