@@ -1,0 +1,125 @@
+# HAL for the Raspberry Pi Pico (RP2040): potentiometer on an ADC pin, quadrature
+# encoder decoded by a PIO state machine (no CPU per edge), PWM + DIR H-bridge.
+# The only kind of module that imports machine; pins come from firmware/board.py.
+#
+# The PIO program is the pico-examples quadrature decoder (x4 decoding with a 16-entry
+# jump table on the previous/current A,B state): the count lives in the Y register
+# and its low 16 bits are pushed (noblock) on every change, so the CPU reads the
+# latest value of a 16-bit counter -- exactly the wrapping counter the firmware
+# expects (a push never exceeds 65535: no big ints).  The program fills all 32
+# instruction slots, so it is loaded at offset 0 as its `mov(pc, isr)` jump table needs.
+
+import machine
+import rp2
+import time
+
+
+@rp2.asm_pio(in_shiftdir=rp2.PIO.SHIFT_LEFT, out_shiftdir=rp2.PIO.SHIFT_RIGHT)
+def _quadrature():
+    # 00 state
+    jmp("update")       # read 00
+    jmp("decrement")    # read 01
+    jmp("increment")    # read 10
+    jmp("update")       # read 11
+    # 01 state
+    jmp("increment")    # read 00
+    jmp("update")       # read 01
+    jmp("update")       # read 10
+    jmp("decrement")    # read 11
+    # 10 state
+    jmp("decrement")    # read 00
+    jmp("update")       # read 01
+    jmp("update")       # read 10
+    jmp("increment")    # read 11
+    # 11 state
+    jmp("update")       # read 00
+    jmp("increment")    # read 01
+    label("decrement")
+    jmp(y_dec, "update")  # read 10
+    wrap_target()
+    label("update")     # read 11
+    mov(isr, null)
+    in_(y, 16)
+    push(noblock)
+    label("sample_pins")
+    out(isr, 2)
+    in_(pins, 2)
+    mov(osr, isr)
+    mov(pc, isr)
+    label("increment")
+    mov(y, invert(y))
+    jmp(y_dec, "increment_cont")
+    label("increment_cont")
+    mov(y, invert(y))
+    wrap()
+    # padding: 25 instructions above + 7 = 32 (the only possible load offset is then 0)
+    nop()
+    nop()
+    nop()
+    nop()
+    nop()
+    nop()
+    nop()
+
+
+class HalPico:
+    def __init__(self, board):
+        self.b = board
+        self._adc = machine.ADC(machine.Pin(board.ADC_PIN))
+        self._adc_shift = board.ADC_SHIFT
+        pa = machine.Pin(board.ENC_A_PIN, machine.Pin.IN, machine.Pin.PULL_UP)
+        machine.Pin(board.ENC_B_PIN, machine.Pin.IN, machine.Pin.PULL_UP)
+        self._sm = rp2.StateMachine(board.ENC_PIO_SM, _quadrature, in_base=pa)
+        self._sm.active(1)
+        self._enc = 0
+        self._pwm = machine.PWM(machine.Pin(board.PWM_PIN))
+        self._pwm.freq(board.PWM_FREQ)
+        self._pwm.duty_u16(0)
+        self._dir = machine.Pin(board.DIR_PIN, machine.Pin.OUT, value=0)
+        self._en = None
+        if board.EN_PIN >= 0:
+            self._en = machine.Pin(board.EN_PIN, machine.Pin.OUT, value=1)
+        self._msign = board.MOTOR_SIGN
+        # cached bound methods
+        self._read_u16 = self._adc.read_u16
+        self._rx_fifo = self._sm.rx_fifo
+        self._get = self._sm.get
+        self._duty_u16 = self._pwm.duty_u16
+        self._dir_value = self._dir.value
+
+    def read_angle_raw(self):
+        return self._read_u16() >> self._adc_shift
+
+    def read_encoder(self):
+        # the latest pushed count (drain the FIFO; keep the last value if none)
+        while self._rx_fifo():
+            self._enc = self._get() & 0xFFFF
+        return self._enc
+
+    def set_motor(self, duty):
+        if self._msign < 0:
+            duty = -duty
+        if duty < 0:
+            self._dir_value(1)
+            duty = -duty
+        else:
+            self._dir_value(0)
+        if duty > 32767:
+            duty = 32767
+        # 0..32767 -> 0..65534 of the PWM period
+        self._duty_u16(duty << 1)
+
+    def ticks_us(self):
+        return time.ticks_us()
+
+    def ticks_ms(self):
+        return time.ticks_ms()
+
+    def ticks_diff(self, a, b):
+        return time.ticks_diff(a, b)
+
+    def off(self):
+        # motor off and driver disabled (on exit / exception)
+        self._duty_u16(0)
+        if self._en is not None:
+            self._en.value(0)

@@ -1,0 +1,28 @@
+# Board entry point (the bundle's top-level main.py calls main()): build the Pico HAL
+# from firmware/board.py, the app, the UART host link, and run the loop at the loop
+# rate.  The motor is switched off whatever happens.
+
+try:
+    from micropython import const
+except ImportError:
+    def const(x):
+        return x
+
+
+def main():
+    import machine
+
+    from . import board
+    from .app import App
+    from .hal_pico import HalPico
+    from .link_serial import SerialLink
+
+    hal = HalPico(board)
+    try:
+        app = App(hal, config=board.config())
+        uart = machine.UART(board.UART_ID, board.UART_BAUD,
+                            tx=machine.Pin(board.UART_TX_PIN), rx=machine.Pin(board.UART_RX_PIN))
+        app.link = SerialLink(uart, app)
+        app.run()
+    finally:
+        hal.off()
