@@ -85,7 +85,7 @@ class Link:
     """
 
     def __init__(self, *, backlog: int = 10000) -> None:
-        self._queue: collections.deque[M.Message] = collections.deque(maxlen=backlog)
+        self._queue: collections.deque[tuple[M.Message, int | None]] = collections.deque(maxlen=backlog)
         self._seq = 0
         self._closed = False
         self.last_seq: int | None = None
@@ -96,8 +96,11 @@ class Link:
     def _send(self, msg: M.Message, seq: int) -> None:  # pragma: no cover - abstract
         raise NotImplementedError
 
-    def _recv_internal(self, timeout: float | None) -> list[M.Message]:  # pragma: no cover - abstract
-        """Wait at most ``timeout`` s for input; return the messages it completed."""
+    def _recv_internal(self, timeout: float | None) -> list[tuple[M.Message, int | None]]:  # pragma: no cover
+        """Wait at most ``timeout`` s for input; return the ``(message, seq)`` it completed.
+
+        ``seq`` is ``None`` for framings without sequence numbers (CAN).
+        """
         raise NotImplementedError
 
     def _close(self) -> None:  # pragma: no cover - abstract
@@ -129,7 +132,8 @@ class Link:
     def recv(self, timeout: float | None = None) -> M.Message | None:
         """Next received message, or ``None`` when ``timeout`` s pass without one.
 
-        ``timeout=None`` waits forever; ``0`` polls.
+        ``timeout=None`` waits forever; ``0`` polls.  The serial sequence number of the
+        returned message is in :attr:`last_seq` (``None`` on CAN).
         """
         if self._closed:
             raise LinkClosed("link is closed")
@@ -141,7 +145,8 @@ class Link:
             self._queue.extend(got)
             if not self._queue and deadline is not None and time.monotonic() >= deadline:
                 return None
-        return self._queue.popleft()
+        msg, self.last_seq = self._queue.popleft()
+        return msg
 
     def expect(self, kind: type[M.Message] | str, timeout: float = 1.0) -> M.Message:
         """Wait for a message of ``kind``; other messages stay queued for :meth:`recv`.
@@ -155,14 +160,15 @@ class Link:
 
     def _wait(self, match: Any, timeout: float, what: str) -> M.Message:
         deadline = time.monotonic() + timeout
-        held: list[M.Message] = []
+        held: list[tuple[M.Message, int | None]] = []
         try:
             while True:
                 while self._queue:
-                    m = self._queue.popleft()
-                    if match(m):
-                        return m
-                    held.append(m)
+                    item = self._queue.popleft()
+                    if match(item[0]):
+                        self.last_seq = item[1]
+                        return item[0]
+                    held.append(item)
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise LinkTimeout(what)
@@ -334,7 +340,7 @@ class SerialLink(Link):
         except (self._serial_mod.SerialException, OSError) as exc:
             raise LinkError(f"write to {self.url!r} failed: {exc}") from exc
 
-    def _recv_internal(self, timeout: float | None) -> list[M.Message]:
+    def _recv_internal(self, timeout: float | None) -> list[tuple[M.Message, int | None]]:
         try:
             self._ser.timeout = timeout
             data = self._ser.read(1)
@@ -344,11 +350,7 @@ class SerialLink(Link):
                     data += self._ser.read(n)
         except (self._serial_mod.SerialException, OSError) as exc:
             raise LinkError(f"read from {self.url!r} failed: {exc}") from exc
-        out = []
-        for msg, seq in self.decoder.feed(data):
-            self.last_seq = seq
-            out.append(msg)
-        return out
+        return list(self.decoder.feed(data))
 
     def write_raw(self, data: bytes) -> None:
         """Write raw bytes (tests and fault injection)."""
@@ -405,7 +407,7 @@ class CanLink(Link):
         except (self._can.CanError, OSError, ValueError) as exc:
             raise LinkError(f"CAN send failed: {exc}") from exc
 
-    def _recv_internal(self, timeout: float | None) -> list[M.Message]:
+    def _recv_internal(self, timeout: float | None) -> list[tuple[M.Message, int | None]]:
         try:
             frame = self.bus.recv(timeout)
         except (self._can.CanError, OSError, ValueError) as exc:
@@ -424,7 +426,7 @@ class CanLink(Link):
         except M.FrameError as exc:
             self._drops[exc.cause] += 1
             return []
-        return [msg]
+        return [(msg, None)]
 
     def _close(self) -> None:
         if self._own_bus:
