@@ -188,6 +188,17 @@ class Reference:
             on &= phase < self.period / 2
         return np.where(on, self.amplitude, self.low)
 
+    def at(self, t: float) -> float:
+        """Reference at one time ``t`` (plain float, no numpy: the per-tick fast path)."""
+        if self.kind == "none" or t < self.start:
+            return self.low
+        if self.kind == "step":
+            on = self.duration is None or t < self.start + self.duration
+        else:
+            assert self.period is not None
+            on = math.fmod(t - self.start, self.period) < self.period / 2
+        return self.amplitude if on else self.low
+
     def edges(self, until: float) -> list[float]:
         """Times (s) in ``[0, until)`` at which the reference jumps."""
         if self.kind == "none" or self.amplitude == self.low:

@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Mapping, Union
+from typing import Any, Mapping, Union
 
 import numpy as np
 
@@ -270,6 +270,10 @@ class NoiseSource:
         return self._value
 
 
+def _copy(v: Any) -> Any:
+    return v.copy() if isinstance(v, np.ndarray) else v
+
+
 class DelayLine:
     """A FIFO of ``steps`` ticks: what goes in at tick k comes out at tick k + steps.
 
@@ -277,25 +281,26 @@ class DelayLine:
     ----------
     steps : int
         Delay in ticks (0 = pass-through).
-    initial : array_like
-        Value the line is filled with (output for the first ``steps`` ticks).
+    initial : object
+        Value the line is filled with (output for the first ``steps`` ticks); arrays are
+        copied on the way in, any other value is stored as is.
     """
 
-    def __init__(self, steps: int, initial: np.ndarray) -> None:
+    def __init__(self, steps: int, initial: Any) -> None:
         if steps < 0:
             raise ValueError(f"delay steps must be >= 0, got {steps}")
         self.steps = int(steps)
-        init = np.asarray(initial)
-        self._buf = np.repeat(init[np.newaxis], max(self.steps, 1), axis=0)
+        self._buf = [_copy(initial) for _ in range(max(self.steps, 1))]
         self._i = 0
 
-    def push(self, value: np.ndarray) -> np.ndarray:
+    def push(self, value: Any) -> Any:
         """Insert this tick's value and return the one from ``steps`` ticks ago."""
         if self.steps == 0:
-            return np.asarray(value)
-        out = self._buf[self._i].copy()
-        self._buf[self._i] = value
-        self._i = (self._i + 1) % self.steps
+            return value
+        i = self._i
+        out = self._buf[i]
+        self._buf[i] = _copy(value)
+        self._i = (i + 1) % self.steps
         return out
 
     def peek(self, j: int) -> np.ndarray:
@@ -306,7 +311,7 @@ class DelayLine:
         """
         if not 1 <= j <= self.steps:
             raise ValueError(f"can only look 1..{self.steps} ticks ahead, asked {j}")
-        return self._buf[(self._i + j - 1) % self.steps].copy()
+        return _copy(self._buf[(self._i + j - 1) % self.steps])
 
 
 class SensorModel:
@@ -346,10 +351,25 @@ class SensorModel:
         self.batch_shape = tuple(batch_shape)
         self._noise = NoiseSource(self.noise_model, self.Ts, rng, self.batch_shape)
         self._line: DelayLine | None = None
+        # constants of the scalar fast path (one robot, plain Python ints and floats)
+        self._scalar = self.batch_shape == ()
+        self._cpr = float(adc_counts_per_rad(params))
+        self._cpm = float(enc_counts_per_m(params))
+        self._off = float(params.pot_offset)
+        self._full = 2 ** int(params.adc_bits) - 1
+        self._noisy = self.noise_model.kind != "none"
 
-    def quantise(self, x: np.ndarray | float, phi: np.ndarray | float, noise: np.ndarray | None = None) -> np.ndarray:
-        """Counts ``[enc, adc]`` (int64, shape ``(2, *batch)``) for a state, without delay."""
+    def quantise(self, x: np.ndarray | float, phi: np.ndarray | float, noise: np.ndarray | None = None) -> Any:
+        """Counts ``[enc, adc]`` for a state, without delay.
+
+        Returns an int64 array of shape ``(2, *batch)``; for an unbatched model a tuple of two
+        Python ints (same values: ``round`` and ``numpy.rint`` both round half to even).
+        """
         nx, nphi = (0.0, 0.0) if noise is None else (noise[0], noise[1])
+        if self._scalar:
+            adc = round(self._off + (float(phi) + float(nphi)) * self._cpr)
+            adc = 0 if adc < 0 else (self._full if adc > self._full else adc)
+            return round((float(x) + float(nx)) * self._cpm) % ENC_MODULUS, adc
         return np.stack([x_to_encoder(x, self.params, nx), phi_to_adc(phi, self.params, nphi)])
 
     def reset(self, x: np.ndarray | float, phi: np.ndarray | float) -> None:
@@ -366,12 +386,12 @@ class SensorModel:
 
         Returns
         -------
-        (adc, enc) : tuple of int64 ndarray
+        (adc, enc) : tuple of int64 ndarray (Python ints when unbatched)
             ADC counts (0..2**adc_bits-1) and encoder counter (0..65535), ``batch_shape``.
         """
         if self._line is None:
             self.reset(x, phi)
-        reading = self.quantise(x, phi, self._noise.draw())
+        reading = self.quantise(x, phi, self._noise.draw() if self._noisy else None)
         out = self._line.push(reading)
         return out[1], out[0]
 

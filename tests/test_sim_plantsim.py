@@ -34,21 +34,53 @@ def test_scalar_rhs_matches_plant_and_motor(p) -> None:
 
 
 def test_open_loop_step_matches_reference_rk4(p) -> None:
-    sc = scenario_from_dict({"name": "o", "duration": 0.2, "initial": {"phi": 0.05}})
+    sc = scenario_from_dict({"name": "o", "duration": 0.2, "initial": {"phi": 0.05},
+                             "force": [{"kind": "push", "start": 0.05, "duration": 0.1, "amplitude": 0.7}]})
     sim = PlantSim(p, sc)
-    assert sim.substeps == 4 and sim.h == pytest.approx(0.0005)
+    assert sim.substeps == 2 and sim.h == pytest.approx(0.001)  # 1 kHz at the 500 Hz loop
     duty = 5000
     x = np.array(sc.x0)
 
-    def f(xx: np.ndarray, _u: float) -> np.ndarray:
-        return dynamics(0.0, xx, np.array([float(motor.force_from_duty(duty, xx[1], p))]), p.physical)
+    def f(xx: np.ndarray, t: float) -> np.ndarray:
+        F = float(motor.force_from_duty(duty, xx[1], p)) + float(sc.disturbance(t))
+        return dynamics(0.0, xx, np.array([F]), p.physical)
 
-    for _ in range(100):
+    h = 0.001
+    for k in range(100):
         sim.step(duty)
-        for _ in range(4):
-            x = rk4_step(f, x, 0.0, 0.0005)
+        for i in range(2):
+            t = k * 0.002 + i * h
+            k1 = f(x, t)
+            k2 = f(x + 0.5 * h * k1, t + 0.5 * h)
+            k3 = f(x + 0.5 * h * k2, t + 0.5 * h)
+            k4 = f(x + h * k3, t + h)
+            x = x + (h / 6) * (k1 + 2 * k2 + 2 * k3 + k4)
     assert np.allclose(sim.state, x, rtol=1e-10, atol=1e-12)
     assert sim.done and sim.tick == 100
+
+
+def test_integration_step_is_converged(p) -> None:
+    sc = load_scenario("tilt_0p1")
+    runs = []
+    for rate in (1000.0, 8000.0):
+        sim = PlantSim(p, sc, substep_rate=rate)
+        for k in range(500):  # 1 s of a falling, driven pendulum
+            sim.step(int(3000 * math.sin(k / 20)))
+        runs.append(sim.state)
+    assert abs(runs[0][2] - runs[1][2]) < 1e-6
+    assert abs(runs[0][2]) > 0.5  # it did move a lot
+
+
+def test_scalar_sensor_path_matches_vector_functions(p) -> None:
+    rng = np.random.default_rng(5)
+    m = sensors.SensorModel(p, delay=0.0)
+    for x, phi in zip(rng.uniform(-3, 3, 500), rng.uniform(-2.5, 2.5, 500)):
+        adc, enc = m.measure(x, phi)
+        assert type(adc) is int and type(enc) is int
+        assert adc == int(sensors.phi_to_adc(phi, p)) and enc == int(sensors.x_to_encoder(x, p))
+    # exact halves round to even in both
+    half = (p.pot_offset + 0.5) / sensors.adc_counts_per_rad(p) - p.pot_offset / sensors.adc_counts_per_rad(p)
+    assert m.quantise(0.0, half)[1] == int(sensors.phi_to_adc(half, p))
 
 
 def test_impulse_changes_momentum_by_the_impulse(p) -> None:
