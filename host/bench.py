@@ -20,6 +20,8 @@ from typing import Any, Sequence
 # name -> "module:function"
 BENCHES: dict[str, str] = {
     "batch": "host.bench_batch:bench",
+    "proto": "host.bench_proto:bench_throughput",
+    "proto_fuzz": "host.bench_proto:bench_fuzz",
 }
 
 

@@ -245,3 +245,12 @@ def test_micropython_board_on_a_pty(mode):
     assert proc.returncode == 0, err
     words = out.split()
     assert words[0] == "handled" and int(words[1]) >= 20 and words[-3:] == ["424242", "gains", "100"]
+
+
+def test_fuzz_bench_small_run_agrees_with_host():
+    from host.bench_proto import bench_fuzz
+
+    res = bench_fuzz(n_bytes=30000)
+    fw, host = res["rows"]
+    assert fw["frames_ok"] == host["frames_ok"] > 100
+    assert all(fw[k] == host[k] > 0 for k in ("crc", "length", "unknown", "overrun"))
