@@ -118,6 +118,11 @@ class HalPico:
     def ticks_diff(self, a, b):
         return time.ticks_diff(a, b)
 
+    def uart(self):
+        # the host-link UART of the board config (start-up only)
+        b = self.b
+        return machine.UART(b.UART_ID, b.UART_BAUD, tx=machine.Pin(b.UART_TX_PIN), rx=machine.Pin(b.UART_RX_PIN))
+
     def off(self):
         # motor off and driver disabled (on exit / exception)
         self._duty_u16(0)

@@ -10,8 +10,6 @@ except ImportError:
 
 
 def main():
-    import machine
-
     from . import board
     from .app import App
     from .hal_pico import HalPico
@@ -20,9 +18,7 @@ def main():
     hal = HalPico(board)
     try:
         app = App(hal, config=board.config())
-        uart = machine.UART(board.UART_ID, board.UART_BAUD,
-                            tx=machine.Pin(board.UART_TX_PIN), rx=machine.Pin(board.UART_RX_PIN))
-        app.link = SerialLink(uart, app)
+        app.link = SerialLink(hal.uart(), app)
         app.run()
     finally:
         hal.off()
