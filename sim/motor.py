@@ -69,7 +69,8 @@ def motor_constants(params: ParamsLike) -> dict[str, np.ndarray | float]:
         If a mapping lacks one of the motor keys.
     """
     if isinstance(params, RobotParams):
-        return {k: getattr(params, k) for k in MOTOR_KEYS}
+        vals = params.values  # direct dotted lookup: RobotParams.__getattr__ scans every key
+        return {k: vals[f"motor.{k}"] for k in MOTOR_KEYS}
     missing = [k for k in MOTOR_KEYS if k not in params]
     if missing:
         raise KeyError(f"motor parameters missing: {', '.join(missing)}")

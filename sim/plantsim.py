@@ -336,15 +336,20 @@ def run_scenario_float(
     Ez_v = _linear_rows(controller) if speed == "estimate" else None
     cpm = sensors.enc_counts_per_m(p)
     cpr = sensors.adc_counts_per_rad(p)
+    off = p.pot_offset
     z = np.zeros(Ac.shape[0])
     adc0, enc0 = sim.read()
-    unwrap = sensors.EncoderUnwrapper(enc0)
+    # the firmware's 16-bit unwrap (sensors.EncoderUnwrapper), on plain ints
+    total, last = int(sensors.encoder_delta(enc0, 0)), enc0
     extra: dict[str, list[float]] = {"x_meas": [], "phi_meas": [], "xdot_est": []}
     n = sim.n_ticks
     for k in range(n):
         adc, enc = sim.read()
-        xm = float(unwrap.update(enc)) / cpm
-        phm = (adc - p.pot_offset) / cpr
+        d = (enc - last) % sensors.ENC_MODULUS
+        total += d - sensors.ENC_MODULUS if d >= sensors.ENC_MODULUS // 2 else d
+        last = enc
+        xm = total / cpm
+        phm = (adc - off) / cpr
         v = np.array([xm, phm, sim.x_ref()])
         u = float(Cc[0] @ z + Dc[0] @ v)
         us = min(max(u, -umax), umax)

@@ -50,7 +50,7 @@ from typing import Any, Mapping, Union
 
 import numpy as np
 
-from .params import RobotParams
+from .params import SCHEMA, RobotParams
 
 __all__ = [
     "ENC_MODULUS",
@@ -79,8 +79,12 @@ CHANNELS = ("x", "phi")
 ParamsLike = Union[RobotParams, Mapping[str, "float | np.ndarray"]]
 
 
+_DOTTED = {k.split(".", 1)[1]: k for k in SCHEMA}
+
+
 def _get(params: ParamsLike, key: str):  # noqa: ANN202 - float or ndarray
-    return getattr(params, key) if isinstance(params, RobotParams) else params[key]
+    # direct dotted lookup for RobotParams (its __getattr__ scans every key)
+    return params.values[_DOTTED[key]] if isinstance(params, RobotParams) else params[key]
 
 
 def adc_counts_per_rad(params: ParamsLike) -> float | np.ndarray:
