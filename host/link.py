@@ -410,7 +410,13 @@ class CanLink(Link):
     def _recv_internal(self, timeout: float | None) -> list[tuple[M.Message, int | None]]:
         try:
             frame = self.bus.recv(timeout)
-        except (self._can.CanError, OSError, ValueError) as exc:
+        except ValueError:
+            # a malformed frame the interface could not parse (python-can's serial
+            # interface raises ValueError for a DLC > 8): dropped and counted, the
+            # interface resynchronises on the next frame
+            self._drops["length"] += 1
+            return []
+        except (self._can.CanError, OSError) as exc:
             raise LinkError(f"CAN receive failed: {exc}") from exc
         if frame is None:
             return []

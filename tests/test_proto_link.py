@@ -172,3 +172,25 @@ def test_garbage_on_the_wire_is_counted_not_raised():
         assert link.recv(timeout=1.0) == M.Heartbeat(state=1, faults=0, boot=2, uptime_ms=3)
         assert link.recv(timeout=0.05) is None
         assert link.drops["crc"] + link.drops["length"] == 2
+
+
+def test_python_can_serial_garbage_is_dropped_not_fatal():
+    br = PtyBridge()
+    try:
+        with serial.serial_for_url(br.b) as ser, L.CanLink(interface="serial", channel=br.a, node_id=1) as link:
+            good = M.Heartbeat(state=1, faults=2, boot=3, uptime_ms=4)
+            cid, data = M.encode_can(good, 1)
+            frame = b"\xaa" + bytes(4) + bytes([len(data)]) + cid.to_bytes(4, "little") + data + b"\xbb"
+            bad_dlc = b"\xaa" + bytes(4) + bytes([9]) + bytes(20)
+            other_node = b"\xaa" + bytes(4) + bytes([8]) + M.can_id(2, good.ID).to_bytes(4, "little") + data + b"\xbb"
+            ser.write(bad_dlc + other_node + frame)
+            ser.flush()
+            got = None
+            for _ in range(50):
+                got = link.recv(timeout=0.1)
+                if got is not None:
+                    break
+            assert got == good
+            assert link.drops["length"] == 1 and link.drops["other"] == 1
+    finally:
+        br.close()

@@ -171,8 +171,20 @@ def run(s):
         if m >= 0:
             out.append((m, dec.seq, bytes(dec.buf[2:2 + dec.plen])))
     return out, (dec.n_crc, dec.n_length, dec.n_unknown, dec.n_overrun)
-""" + f"\nSTREAMS = {streams!r}\nfor s in STREAMS:\n    f, d = run(s)\n    print(repr([(a, b, c.hex()) for a, b, c in f]), d)\n"
-    lines = run_unix(code).strip().splitlines()
+def locked(streams):
+    dec = framing.Decoder(layout)
+    ok = 0
+    micropython.heap_lock()
+    for s in streams:
+        for i in range(len(s)):
+            if dec.feed(s[i]) >= 0:
+                ok += 1
+    micropython.heap_unlock()
+    return ok, dec.drops()
+""" + f"\nSTREAMS = {streams!r}\nprint(*locked(STREAMS))\nfor s in STREAMS:\n    f, d = run(s)\n    print(repr([(a, b, c.hex()) for a, b, c in f]), d)\n"
+    first, *lines = run_unix(code).strip().splitlines()
+    # the whole batch once more with the heap locked: same totals, nothing allocated
+    assert list(map(int, first.split())) == [sum(len(e[0]) for e in expected), sum(sum(e[1].values()) for e in expected)]
     assert len(lines) == len(streams)
     for line, (frames, drops) in zip(lines, expected):
         f, d = line.rsplit(" (", 1)
