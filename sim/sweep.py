@@ -21,7 +21,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from .batch import METRICS, RunSet, simulate_batch
-from .params import RobotParams
+from .params import SCHEMA, RobotParams
 from .scenario import Expectation, Scenario, dump_scenario
 from .sensors import NoiseModel, delay_steps
 
@@ -53,6 +53,7 @@ __all__ = [
 ]
 
 _SAMPLED = ("M", "m_cam", "m_shaft", "I", "b", "R", "kt")  # robot-file keys a run varies
+_DOTTED = {k.split(".", 1)[1]: k for k in SCHEMA}
 
 
 class SweepError(ValueError):
@@ -375,7 +376,8 @@ def robustness(cfg: SweepConfig, n: int, *, chunk: int = 1000, scheduler: str | 
 
 def _q(v: np.ndarray, q: float) -> float:
     v = np.asarray(v, dtype=float)
-    return float(np.quantile(v, q)) if v.size else math.nan
+    # a sample value (no interpolation: settling times may be inf)
+    return float(np.quantile(v, q, method="inverted_cdf")) if v.size else math.nan
 
 
 def summarise(table: Mapping[str, np.ndarray]) -> dict[str, float]:
@@ -416,7 +418,7 @@ def worst_case_scenarios(cfg: SweepConfig, table: Mapping[str, np.ndarray], k: i
         }
         note = (f"sweep seed {cfg.seed} run {run}, design {cfg.design.name}: phi_max={table['phi_max'][i]:.4g} rad, "
                 f"settle={table['settle'][i]:.4g} s, xddot_max={table['xddot_max'][i]:.4g} m/s^2")
-        overrides = {k_: float(table[k_][i]) for k_ in _SAMPLED if float(table[k_][i]) != float(getattr(p, k_))}
+        overrides = {_DOTTED[k_]: float(table[k_][i]) for k_ in _SAMPLED if float(table[k_][i]) != float(getattr(p, k_))}
         out.append(Scenario(
             name=f"worst{rank + 1}_seed{cfg.seed}_run{run}",
             duration=float(cfg.duration),
