@@ -293,6 +293,7 @@ def run_scenario_float(
     controller: Any,
     *,
     speed: str = "estimate",
+    init: str = "zero",
     seed: int | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, np.ndarray]:
@@ -316,6 +317,12 @@ def run_scenario_float(
     speed : {"estimate", "none"}
         Cart speed used for the back-EMF compensation: the controller's predicted state
         (``estimate(z, v)[1]``) or none (duty proportional to force).
+    init : {"zero", "measured"}
+        Initial controller state.  ``"zero"``: ``z = 0`` and positions measured from the
+        encoder's zero.  ``"measured"``: as the firmware when balancing starts -- the cart
+        position origin is the first encoder reading (``x_meas`` and the reference are taken
+        relative to it), the estimate of the delayed tilt is the first ADC reading, speeds
+        and stored forces are zero.
     seed : int, optional
         Noise seed overriding the scenario's.
     progress : callable, optional
@@ -328,6 +335,8 @@ def run_scenario_float(
     """
     if speed not in ("estimate", "none"):
         raise ValueError(f"speed must be 'estimate' or 'none', got {speed!r}")
+    if init not in ("zero", "measured"):
+        raise ValueError(f"init must be 'zero' or 'measured', got {init!r}")
     sim = PlantSim(params, scenario, seed=seed)
     p = sim.params
     Ac, Bc, Cc, Dc = (np.asarray(m, dtype=float) for m in (controller.Ac, controller.Bc, controller.Cc, controller.Dc))
@@ -341,6 +350,11 @@ def run_scenario_float(
     adc0, enc0 = sim.read()
     # the firmware's 16-bit unwrap (sensors.EncoderUnwrapper), on plain ints
     total, last = int(sensors.encoder_delta(enc0, 0)), enc0
+    x_origin = 0.0
+    if init == "measured":
+        x_origin = total / cpm
+        total = 0
+        z[2] = (adc0 - off) / cpr
     extra: dict[str, list[float]] = {"x_meas": [], "phi_meas": [], "xdot_est": []}
     n = sim.n_ticks
     for k in range(n):
@@ -350,7 +364,7 @@ def run_scenario_float(
         last = enc
         xm = total / cpm
         phm = (adc - off) / cpr
-        v = np.array([xm, phm, sim.x_ref()])
+        v = np.array([xm, phm, sim.x_ref() - x_origin])
         u = float(Cc[0] @ z + Dc[0] @ v)
         us = min(max(u, -umax), umax)
         xd_est = float(Ez_v[0][1] @ z + Ez_v[1][1] @ v) if Ez_v is not None else 0.0

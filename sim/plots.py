@@ -88,6 +88,8 @@ def plot_run(
     overlay: Mapping[str, Log] | None = None,
     label: str = "run",
     metrics: Metrics | None = None,
+    settling_time: float | None = None,
+    settle_from: float = 0.0,
 ) -> Path:
     """Write a PNG of tilt, cart position, force and acceleration with the constraint bands.
 
@@ -108,6 +110,9 @@ def plot_run(
     metrics : Metrics, optional
         The run's metrics: the settling instant (end of the worst settling segment) is
         marked with a vertical line.
+    settling_time, settle_from : float, optional
+        The same mark given by hand (``settle_from + settling_time``), when ``metrics`` is
+        not given.
 
     Returns
     -------
@@ -131,11 +136,13 @@ def plot_run(
     _ylim(ax_phi, [lg["phi"] for lg in runs.values()], params.phi_max)
     _band(ax_phi, params.phi_max, f"|phi| < {params.phi_max:g} rad")
     ax_phi.set_ylabel("tilt phi (rad)")
-    if metrics is not None and math.isfinite(metrics.settling_time):
-        ts = metrics.settling_time
+    if metrics is not None:
+        settling_time, settle_from = metrics.settling_time, metrics.settle_from
+    if settling_time is not None and math.isfinite(settling_time):
+        ts = settling_time
         for ax in axes:
-            ax.axvline(metrics.settle_from + ts, color="tab:green", lw=0.8, ls=":")
-        ax_phi.plot([], [], color="tab:green", ls=":", label=f"settled ({ts:.2f} s after {metrics.settle_from:g} s; limit {params.t_settle:g} s)")
+            ax.axvline(settle_from + ts, color="tab:green", lw=0.8, ls=":")
+        ax_phi.plot([], [], color="tab:green", ls=":", label=f"settled ({ts:.2f} s after {settle_from:g} s; limit {params.t_settle:g} s)")
     # cart
     if "x_ref" in log:
         ax_x.step(t, log["x_ref"], where="post", color="k", lw=0.9, ls="--", label="reference")
