@@ -2,7 +2,8 @@
 # checks against msgtable.PARAMS before the target is called, NACK(id, reason, seq)
 # for every refusal (a refused command changes nothing), and the gain-table upload
 # assembled chunk by chunk into a preallocated buffer, CRC-checked over the whole
-# table and handed to target.gains_apply only while disarmed.
+# table and handed to target.gains_apply only while the motor is off (disarmed or
+# fault).
 #
 # target methods (each returns msgtable.OK or a reason code unless noted):
 #   cmd_arm(), cmd_disarm(), cmd_clear_faults(), cmd_set_reference(x_um),
@@ -94,10 +95,12 @@ class Dispatcher:
         self.target.fill_timing(self.tx)
         self.sender.send(T.TIMING, seq, self.tx, 0)
 
-    def _disarmed(self):
-        # (state, faults) from the heartbeat fields
+    def _motor_off(self):
+        # disarmed or fault (state from the heartbeat fields): a gain table may be
+        # applied (a latched gains fault is fixed by uploading a good table)
         self.target.fill_heartbeat(self.tx)
-        return self.tx[0] == _DISARMED
+        st = self.tx[0]
+        return st == _DISARMED or st == _FAULT_STATE
 
     # ---- dispatch ----
     def handle(self, mid, seq, buf, off):
@@ -199,7 +202,7 @@ class Dispatcher:
         if crc16.compute(self.table, self.gbuf, 0, self.g_len) != self.g_crc:
             self.g_active = False
             return self._nack(T.GAINS_COMMIT, seq, T.R_BAD_CRC)
-        if not self._disarmed():
+        if not self._motor_off():
             # upload kept: disarm and commit again
             return self._nack(T.GAINS_COMMIT, seq, T.R_ARMED)
         self.g_active = False

@@ -119,6 +119,12 @@ def test_gain_table_upload():
     assert rs[-1] == T.R_ARMED and tg.gains == table
     _send(disp, M.Disarm())
     assert _send(disp, M.GainsCommit()) == T.OK and tg.gains == bytes(range(12))
+    # motor off because of a latched fault: a table may be applied (fixes a gains fault)
+    tg.state, tg.faults = 3, 32
+    assert _upload(disp, bytes(range(6)))[-1] == T.OK and tg.gains == bytes(range(6))
+    tg.state, tg.faults = 2, 0
+    assert _upload(disp, bytes(6))[-1] == T.R_ARMED and tg.gains == bytes(range(6))
+    tg.state = 0
     # declared length that a chunk cannot reach
     assert _upload(disp, bytes(6), nbytes=7)[-1] == T.R_INCOMPLETE
 
