@@ -193,7 +193,7 @@ class App:
             return T.R_OUT_OF_RANGE
         o = self.off["REF"]
         t = self.table
-        r = (x_um * t[o] + (1 << (t[o + 1] - 1))) >> t[o + 1]
+        r = (x_um * t[o] + (t[o + 1] >> 1)) // t[o + 1]
         self.ref = fixmath.clamp(r, t[self.off["RLIM"]])
         self.ref_um = x_um
         return T.OK

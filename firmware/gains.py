@@ -21,7 +21,7 @@
 #   update[2]         19     884506879           189234944   0.0948
 #   update[3]         19     664145775           409596048   0.0894
 #   duty              13     805269140           268472683   2.4
-#   reference         15     834016384           239725439   13.1
+#   reference          0    1000000000            73741823   0
 #   tilt              19     683827144           389914679   0.000526
 #   telemetry[0]      14     327685378           746056445   0.0567
 #   telemetry[1]      14      58990192          1014751631   0
@@ -38,7 +38,7 @@ except ImportError:
 VERSION = const(1)
 DELAY = const(5)
 LENGTH = const(91)
-CRC = const(0x31C7)
+CRC = const(0x2ABA)
 
 # (name, length) of each table in FLAT, in order
 LAYOUT = (
@@ -118,7 +118,7 @@ FLAT = (
     # MOT
     6553, 9102, 13,
     # REF
-    834, 15,
+    1000, 39270,
     # TILT
     455710, 19,
     # ENCJ

@@ -70,7 +70,8 @@ class Supervisor:
             f |= F_ENC_JUMP
         st = self.state
         if st == BALANCING:
-            if counts > self.tilt_counts or counts < -self.tilt_counts:
+            # a railed ADC is no angle measurement: F_ADC_RAIL alone names the cause
+            if not rail and (counts > self.tilt_counts or counts < -self.tilt_counts):
                 f |= F_TILT
             if pos > self.track_counts or pos < -self.track_counts:
                 f |= F_TRACK

@@ -106,7 +106,7 @@ LAYOUT: tuple[tuple[str, int | str], ...] = (
     ("BD", 4),
     ("SA", 4),
     ("MOT", 3),  # KDU, KDV, SD
-    ("REF", 2),  # RNUM, RSH: x LSB = (um * RNUM) >> RSH
+    ("REF", 2),  # RMUL, RDIV: x LSB = (um * RMUL + RDIV // 2) // RDIV (RDIV = x LSB in nm)
     ("TILT", 2),  # TNUM, TSH: ADC counts = (mrad * TNUM) >> TSH
     ("ENCJ", 1),  # largest plausible encoder step per tick (counts)
     ("CAL", 2),  # ADC counts with the pendulum upright (pot_offset), ADC full scale
@@ -312,7 +312,11 @@ def export(
     kdv = p.kt * p.gear / p.r_wheel / p.V_supply * DUTY_MAX * s[1]
     rm = _row("duty", [kdu, kdv], [ULIM, LIM[1]])
     rows.append(rm)
-    rr = _row("reference", [1e-6 / s[0]], [REF_UM_MAX])
+    # reference um -> x LSB by an exact-ish division: r = (um * 1000 + RDIV/2) // RDIV
+    rdiv = int(round(s[0] * 1e9))  # x LSB in nm
+    rr = Row("reference", (1000,), (REF_UM_MAX,), 0, (1000.0,))
+    if rr.worst + rdiv // 2 > SMALL_MAX:
+        raise ValueError("reference conversion overflows")
     rows.append(rr)
     rt = _row("tilt", [1e-3 / rad_per_count], [TILT_MRAD_MAX])
     rows.append(rt)
@@ -351,7 +355,7 @@ def export(
         "BD": BD,
         "SA": SA,
         "MOT": [rm.gains[0], rm.gains[1], rm.shift],
-        "REF": [rr.gains[0], rr.shift],
+        "REF": [1000, rdiv],
         "TILT": [rt.gains[0], rt.shift],
         "ENCJ": [encj],
         "CAL": [int(p.pot_offset), 2 ** int(p.adc_bits) - 1],

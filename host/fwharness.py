@@ -57,9 +57,9 @@ def layout_of(fd: FixedDesign) -> list[tuple[str, int]]:
 
 def ref_lsb(fd: FixedDesign, x_m: float) -> int:
     """A reference in metres as the firmware converts it (um, then RNUM/RSH, clamped)."""
-    rnum, rsh = fd.tables["REF"]
+    rmul, rdiv = fd.tables["REF"]
     um = int(round(x_m * 1e6))
-    r = (um * rnum + (1 << (rsh - 1))) >> rsh
+    r = (um * rmul + (rdiv >> 1)) // rdiv
     lim = fd.tables["RLIM"][0]
     return max(-lim, min(lim, r))
 

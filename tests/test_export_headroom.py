@@ -51,8 +51,9 @@ def test_headroom_recomputed_from_the_tables(fd) -> None:
         assert worst <= SMALL
     KDU, KDV, SD = _t(fd, "MOT")
     assert abs(KDU) * ULIM + abs(KDV) * LIM[1] + 2 ** (SD - 1) <= SMALL
-    RNUM, RSH = _t(fd, "REF")
-    assert RNUM * ex.REF_UM_MAX + 2 ** (RSH - 1) <= SMALL
+    RMUL, RDIV = _t(fd, "REF")
+    assert RMUL * ex.REF_UM_MAX + RDIV // 2 <= SMALL
+    assert RDIV * 1e-9 / RMUL * 1e3 == pytest.approx(fd.lsb["x"], rel=1e-4)
     # the integrator input: r - x, then the running sum, stay small
     assert RLIM + LIM[0] + 32 <= SMALL and ILIM + ((RLIM + LIM[0]) >> ex.INTEG_SHIFT) + 1 <= SMALL
     # measurement conversion: clamped counts shifted into state LSB stay within the limits
