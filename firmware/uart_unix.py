@@ -55,6 +55,8 @@ class UnixUART:
         for _ in self._poll.ipoll(0):
             pass
         self.error = 0
+        # set once the peer has hung up (POLLHUP/POLLERR seen by wait())
+        self.hup = False
         self.rx_bytes = 0
         self.tx_bytes = 0
 
@@ -63,8 +65,11 @@ class UnixUART:
 
     def wait(self, timeout_ms):
         # block until a byte can be read (True) or timeout_ms passes (False);
-        # -1 waits forever.  A hung-up peer also returns True (readinto then says 0).
+        # -1 waits forever.  A hung-up peer also returns True (readinto then says 0)
+        # and sets self.hup.
         for ev in self._poll.ipoll(timeout_ms):
+            if ev[1] & self._bad:
+                self.hup = True
             return (ev[1] & (self._pin | self._bad)) != 0
         return False
 

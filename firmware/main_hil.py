@@ -1,0 +1,213 @@
+# HIL entry point: the unchanged firmware app, its sensors and motor replaced by the link.
+#
+# Runs under the MicroPython unix port on a pty (host/vport.py starts it) or on a real
+# board in HIL mode (hand it the board's machine.UART):
+#   from firmware import main_hil; main_hil.main("/dev/pts/3", link="serial", mode="lockstep")
+#   main_hil.main(uart=machine.UART(0, 1000000), mode="realtime")
+#
+# link  "serial": COBS frames (framing.py); "can": python-can `serial`-interface frames
+#       (canframe.py) on the same byte stream, node id `node`.
+# mode  "lockstep": one app.step() per received HIL_SENSOR frame, answered by one
+#       HIL_ACTUATOR frame with the same tick -- deterministic, as fast as the link goes.
+#       "realtime": the app paces itself (app.run(): one step per period on ticks_us);
+#       this object is the app's link: its poll(), called after every step, answers the
+#       sensor frame the step used, sends telemetry/heartbeat, then serves the link
+#       (latching sensor frames, dispatching commands) until just before the next step,
+#       so a frame that arrives before a step is the one that step uses.
+# Both modes decode every other frame through commands.Dispatcher (arm, parameters,
+# requests...) and send telemetry every telem_div steps and a heartbeat every
+# heartbeat_ms.  The loop allocates nothing (tests/test_hil_*.py run it under
+# micropython.heap_lock()).  main() returns 0 when the host hangs up.
+
+try:
+    from micropython import const
+except ImportError:
+    def const(x):
+        return x
+
+from array import array
+
+from . import codec
+from . import commands
+from . import crc16
+from . import msgtable as T
+from .hal_hil import HilHal
+
+_RX = const(256)
+_IDLE_MS = const(50)
+# real time: stop serving the link this long before the next step (app.run spins it)
+_GUARD_US = const(250)
+
+
+class HangUp(Exception):
+    # the host closed the link (ends app.run(); raised once, at the very end)
+    pass
+
+
+class HilMain:
+    # uart: UnixUART or machine.UART-like (wait/any, readinto(buf, n), write(buf, n));
+    # app_factory(hal, link) -> the firmware app (default firmware.app.App; link is this
+    # object in real time, whose poll() app.run() calls after each step)
+    def __init__(self, uart, link="serial", mode="lockstep", node=1, app_factory=None):
+        if link != "serial" and link != "can":
+            raise ValueError("link must be 'serial' or 'can'")
+        if mode != "lockstep" and mode != "realtime":
+            raise ValueError("mode must be 'lockstep' or 'realtime'")
+        self.uart = uart
+        self.mode = mode
+        self.can = link == "can"
+        layout = codec.Layout()
+        table = crc16.make_table()
+        self.layout = layout
+        if self.can:
+            from . import canframe
+            self.dec = canframe.SerialCanDecoder(layout, node)
+            w = canframe.SerialCanWriter(layout, node)
+            self.tx = canframe.SerialCanTx(w, uart.write, self._ticks_ms)
+            self.pbuf = self.dec.data
+            self.poff = 0
+        else:
+            from . import framing
+            self.dec = framing.Decoder(layout, table)
+            self.tx = framing.SerialTx(framing.Encoder(layout, table), uart.write)
+            self.pbuf = self.dec.buf
+            self.poff = 2
+        self.hal = HilHal(self.tx)
+        if app_factory is None:
+            from .app import App
+            app_factory = App
+        self.app = app_factory(self.hal, self if mode == "realtime" else None)
+        self.hal.set_status(self.app.fill_heartbeat)
+        self.disp = commands.Dispatcher(self.app, layout, self.tx, table)
+        self.rx = bytearray(_RX)
+        self.sv = array("i", [0] * 4)
+        self.tseq = 0
+        self.n_steps = 0
+        self.n_frames = 0
+        self._telem_left = 0
+        self._hb_last = 0
+        self.running = True
+        # cached bound methods (no allocation when called in the loop)
+        self._step = self.app.step
+        self._feed = self.dec.feed
+        self._readinto = uart.readinto
+        self._ticks_us = self.hal.ticks_us
+        self._diff = self.hal.ticks_diff
+        self._timing = self.app.timing
+
+    def _ticks_ms(self):
+        return self.hal.ticks_ms()
+
+    # ---- input ----
+    def _on_frame(self, mid, step_now):
+        # a decoded frame; returns True if it was a sensor frame
+        self.n_frames += 1
+        seq = 0 if self.can else self.dec.seq
+        if mid == T.HIL_SENSOR:
+            sv = self.sv
+            self.layout.unpack(mid, self.pbuf, self.poff, sv, 0)
+            self.hal.on_sensor(sv[0], sv[1], sv[2], seq)
+            if step_now:
+                self._tick()
+            return True
+        self.disp.handle(mid, seq, self.pbuf, self.poff)
+        return False
+
+    def _drain(self, step_now):
+        # read and decode what is waiting; returns the byte count (0: nothing or hang-up)
+        n = self._readinto(self.rx, _RX)
+        rx = self.rx
+        feed = self._feed
+        for i in range(n):
+            mid = feed(rx[i])
+            if mid >= 0:
+                self._on_frame(mid, step_now)
+        return n
+
+    # ---- one control tick ----
+    def _tick(self):
+        # lockstep: one step for the sensor frame just latched, answered at once
+        self._step()
+        self.hal.end_tick()
+        self.n_steps += 1
+        self._periodic()
+
+    def _periodic(self):
+        # telemetry every telem_div steps, heartbeat every heartbeat_ms
+        div = self.app.param_get(T.P_TELEM_DIV)
+        if div > 0:
+            self._telem_left -= 1
+            if self._telem_left <= 0:
+                self._telem_left = div
+                self.tseq = (self.tseq + 1) & 0xFF
+                self.disp.send_telemetry(self.tseq)
+        self._heartbeat()
+
+    def _heartbeat(self):
+        hb = self.app.param_get(T.P_HEARTBEAT_MS)
+        if hb > 0:
+            now = self.hal.ticks_ms()
+            if self._diff(now, self._hb_last) >= hb:
+                self._hb_last = now
+                self.tseq = (self.tseq + 1) & 0xFF
+                self.disp.send_heartbeat(self.tseq)
+
+    # ---- the loops ----
+    def run_lockstep(self):
+        uart = self.uart
+        while self.running:
+            if not uart.wait(_IDLE_MS):
+                self._heartbeat()
+                continue
+            if self._drain(True) == 0 and self._hung_up():
+                return 0
+        return 0
+
+    def poll(self):
+        # real time, called by app.run() after each step: answer, periodic messages,
+        # then serve the link until _GUARD_US before the next step
+        self.hal.end_tick()
+        self.n_steps += 1
+        self._periodic()
+        uart = self.uart
+        deadline = self._timing.last_us + self.app.period_us
+        diff = self._diff
+        ticks = self._ticks_us
+        while True:
+            left = diff(deadline, ticks()) - _GUARD_US
+            if left <= 0:
+                break
+            if uart.wait(left // 1000):
+                if self._drain(False) == 0 and self._hung_up():
+                    raise HangUp()
+        if uart.any():
+            self._drain(False)
+
+    def run_realtime(self):
+        try:
+            self.app.run()
+        except HangUp:
+            pass
+        return 0
+
+    def _hung_up(self):
+        return getattr(self.uart, "hup", False)
+
+    def run(self):
+        if self.mode == "lockstep":
+            return self.run_lockstep()
+        return self.run_realtime()
+
+
+def main(port=None, link="serial", mode="lockstep", node=1, uart=None):
+    # port: tty path for the unix port; uart: a ready UART object (a board)
+    if uart is None:
+        from .uart_unix import UnixUART
+        uart = UnixUART(port)
+    m = HilMain(uart, link, mode, node)
+    try:
+        return m.run()
+    finally:
+        close = getattr(uart, "close", None)
+        if close is not None:
+            close()
