@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from array import array
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from proto_helpers import message_strategy
 ROOT = Path(__file__).resolve().parent.parent
 
 
+@functools.lru_cache(maxsize=1)
 def _db():
     return cantools.database.load_file(str(ROOT / "docs" / "upright.dbc"))
 
