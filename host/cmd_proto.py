@@ -7,6 +7,7 @@ Examples::
     upright proto encode param_get index=3 --can --node 1          # candump style 021#03
     upright proto decode 000b0b0203...00                           # serial bytes (any number of frames)
     upright proto decode 02C#03 --can                              # CAN id#data
+    upright proto dbc --node 3 > node3.dbc                           # CAN database for another node
     upright proto dump loop://            # or /dev/ttyACM0, can:socketcan:can0, can:serial:/dev/pts/3
 """
 
@@ -40,6 +41,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sp.add_argument("hex", nargs="+", help="hex bytes (spaces and ':' allowed), or ID#DATA with --can")
     _framing(sp)
     sp.set_defaults(_proto=_cmd_decode)
+
+    sp = sub.add_parser("dbc", help="print the CAN database (DBC) for a node id")
+    sp.add_argument("--node", type=int, default=None, help="CAN node id (default: the node_id parameter default)")
+    sp.set_defaults(_proto=_cmd_dbc)
 
     sp = sub.add_parser("dump", help="print every message received on a live link (like candump)")
     sp.add_argument("link", help="serial port/URL (loop://, /dev/ttyACM0) or can:INTERFACE:CHANNEL")
@@ -168,6 +173,15 @@ def _cmd_decode(args: argparse.Namespace) -> int:
     if dropped:
         print("dropped: " + ", ".join(f"{k}={v}" for k, v in dropped.items()), file=sys.stderr)
     return 0 if frames and not dropped else 1
+
+
+def _cmd_dbc(args: argparse.Namespace) -> int:
+    from host.dbc import render_dbc
+
+    if args.node is not None and not 0 <= args.node < 64:
+        raise ValueError(f"--node must be 0..63, got {args.node}")
+    sys.stdout.write(render_dbc(args.node))
+    return 0
 
 
 def _cmd_dump(args: argparse.Namespace) -> int:

@@ -83,3 +83,13 @@ def test_dump_a_live_pty(capsys):
     lines = out.splitlines()
     assert rc == 0 and len(lines) == 2
     assert "seq   0  heartbeat(state=2, faults=1" in lines[0] and "telem_state(x=0.0001m" in lines[1]
+
+
+def test_dbc_for_another_node(capsys):
+    import cantools
+
+    rc, out, _ = _out(capsys, ["proto", "dbc", "--node", "3"])
+    db = cantools.database.load_string(out, "dbc")
+    assert rc == 0 and db.get_message_by_name("heartbeat").frame_id == (3 << 5) | M.Heartbeat.ID
+    rc, _, err = _out(capsys, ["proto", "dbc", "--node", "64"])
+    assert rc == 1 and "0..63" in err
