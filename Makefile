@@ -11,7 +11,7 @@ OUT    ?= out
 PORT   ?= /dev/ttyACM0
 ARCH   ?= armv6m
 
-.PHONY: all setup test demo bench firmware flash generate check-generated clean help
+.PHONY: all setup test demo bench fuzz soak firmware flash generate clean help
 
 all: test
 
@@ -19,6 +19,8 @@ help:
 	@echo "make demo      set up, then run the main job and write plots to $(OUT)/"
 	@echo "make test      set up, then run the test suite"
 	@echo "make bench     speed figures, side by side in one run"
+	@echo "make fuzz      the long fuzz run of the firmware frame decoder and command handler (>= 1M inputs)"
+	@echo "make soak      one hour of simulated lockstep HIL: heap, timing drift, telemetry accounted for"
 	@echo "make generate  regenerate the generated sources (gain tables, DBC, protocol docs)"
 	@echo "make firmware  compile the firmware bundle with mpy-cross (ARCH=$(ARCH))"
 	@echo "make flash     copy the bundle to a board (PORT=$(PORT)) with mpremote"
@@ -47,6 +49,12 @@ demo: setup
 
 bench: setup
 	$(PY) -m host.bench --out $(OUT)/bench.json
+
+fuzz: setup
+	$(PY) -m host.bench --only proto_fuzz --out $(OUT)/fuzz.json
+
+soak: setup
+	$(PY) -m host.soak --sim-seconds 3600
 
 firmware: $(STAMP)
 	$(PY) -m host.bundle --arch $(ARCH) --out $(OUT)/firmware
