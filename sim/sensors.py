@@ -27,7 +27,11 @@ Noise models (:class:`NoiseModel`)
     variance of 1e-5 / 2e-3 = 5e-3 rad^2, a standard deviation of 0.0707 rad (4.1 deg) on the
     angle -- the same order as the report's observed +-4.5 deg oscillation.  ``sample_time``
     defaults to the control period; a longer one holds each sample for that many ticks (and
-    lowers the variance accordingly, as the Simulink block does).
+    lowers the variance accordingly, as the Simulink block does).  The report does not give
+    its block's sample time; the block's default is 0.1 s, with which the same power would
+    mean 0.01 rad rms held for 0.1 s -- ``sample_time = 0.1`` in a scenario reproduces that
+    reading.  (Modelica's ``BandLimitedWhiteNoise`` uses the same rule:
+    ``sigma = sqrt(noisePower / samplePeriod)``.)
 ``uniform``
     Independent samples uniform in ``[-amplitude, +amplitude]`` each tick (the report's
     "uniform random noise between -0.005 and 0.005"), variance ``amplitude**2 / 3``.
