@@ -156,7 +156,7 @@ class Link:
         LinkTimeout
         """
         cls = M.message_class(kind) if isinstance(kind, str) else kind
-        return self._wait(lambda m: isinstance(m, cls), timeout, f"no {cls.NAME} within {timeout} s")
+        return self._wait(lambda m, seq: isinstance(m, cls), timeout, f"no {cls.NAME} within {timeout} s")
 
     def _wait(self, match: Any, timeout: float, what: str) -> M.Message:
         deadline = time.monotonic() + timeout
@@ -165,7 +165,7 @@ class Link:
             while True:
                 while self._queue:
                     item = self._queue.popleft()
-                    if match(item[0]):
+                    if match(*item):
                         self.last_seq = item[1]
                         return item[0]
                     held.append(item)
@@ -213,7 +213,13 @@ class Link:
                 reply = _REPLY.get(msg.NAME, "ack")
         cls = M.message_class(reply) if isinstance(reply, str) else reply
 
-        def match(m: M.Message) -> bool:
+        sent: set[int] = set()
+
+        def match(m: M.Message, seq: int | None) -> bool:
+            # replies carry the seq of the request they answer (serial); a late reply
+            # to an earlier request stays queued for recv()
+            if seq is not None and seq not in sent:
+                return False
             if isinstance(m, M.BY_NAME["nack"]) and m.msg_id == msg.ID:
                 return True
             if isinstance(m, M.BY_NAME["ack"]):
@@ -223,7 +229,7 @@ class Link:
             return isinstance(m, cls)
 
         for attempt in range(retries + 1):
-            self.send(msg)
+            sent.add(self.send(msg))
             try:
                 m = self._wait(match, timeout, "")
             except LinkTimeout:

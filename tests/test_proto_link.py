@@ -194,3 +194,25 @@ def test_python_can_serial_garbage_is_dropped_not_fatal():
             assert link.drops["length"] == 1 and link.drops["other"] == 1
     finally:
         br.close()
+
+
+def test_late_reply_to_an_earlier_request_is_not_taken_as_the_answer():
+    import threading
+
+    br = PtyBridge()
+    try:
+        with L.SerialLink(br.a) as host, L.SerialLink(br.b) as board:
+            def serve():
+                req = board.recv(timeout=5.0)
+                seq = board.last_seq
+                board.write_raw(M.encode_serial(M.ParamValue(index=0, value=1), (seq + 100) & 0xFF))  # stale
+                board.write_raw(M.encode_serial(M.ParamValue(index=0, value=2), seq))
+                assert req == M.ParamGet(index=0)
+
+            t = threading.Thread(target=serve)
+            t.start()
+            assert host.param_get(0, timeout=2.0, retries=0) == 2
+            t.join()
+            assert host.recv(timeout=1.0) == M.ParamValue(index=0, value=1)
+    finally:
+        br.close()
