@@ -240,7 +240,7 @@ class Scenario:
     reference: Reference = field(default_factory=Reference)
     noise: NoiseModel = field(default_factory=NoiseModel)
     delay: float | None = None
-    param_overrides: Mapping[str, float] = field(default_factory=dict)
+    param_overrides: Mapping[str, float] = field(default_factory=dict, hash=False)
     expect: Expectation = field(default_factory=Expectation)
     source: str = "<dict>"
 

@@ -110,3 +110,9 @@ def test_params_overrides_and_delay_apply() -> None:
     p = s.apply(load_params())
     assert (p.M, p.R, p.delay) == (0.6, 2.5, 0.02)
     assert math.isclose(load_params().M, 0.5)
+
+
+def test_scenarios_are_hashable() -> None:
+    a = scenario_from_dict({**BASE, "params": {"M": 0.6}})
+    b = scenario_from_dict({**BASE, "params": {"M": 0.6}})
+    assert a == b and hash(a) == hash(b) and len({a, b, load_scenario("tilt_0p1")}) == 2
