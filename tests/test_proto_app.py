@@ -88,7 +88,10 @@ def test_gain_table_upload_to_the_app():
     assert _upload(disp, blob[:-4]) == T.R_BAD_LENGTH
     bad = bytearray(blob)
     bad[4 * 30 + 3] = 0x7F
-    assert _upload(disp, bytes(bad)) != T.OK
+    assert _upload(disp, bytes(bad)) == T.R_UNSTABLE  # a value beyond the proven bounds
+    shape = bytearray(blob)
+    shape[4] ^= 1  # header: another controller order
+    assert _upload(disp, bytes(shape)) == T.R_BAD_SHAPE
     assert _state(app) == before
     # armed: refused
     assert _send(disp, M.Arm()) == T.OK
