@@ -56,7 +56,7 @@ class App:
         self.table = array("i", flat)
         self.rate = flat[off["RATE"]]
         self.sensors = Sensors(flat, off, cfg.get("adc_sign", 1), cfg.get("enc_sign", 1), cfg.get("pot_offset"))
-        self.motor = Motor(flat, off, cfg.get("deadband", 0), cfg.get("backemf", True))
+        self.motor = Motor(flat, off, cfg.get("deadband"), cfg.get("backemf", True))
         self.sup = Supervisor()
         self.timing = Timing(1000000 // self.rate)
         self.boot = cfg.get("boot", 0) & 0xFF

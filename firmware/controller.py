@@ -81,6 +81,8 @@ class Controller:
         self.u = 0
         self.u_raw = 0
         self.vh = 0
+        # anti-windup by conditional integration (False only to show windup in tests)
+        self.aw = True
         self.load(flat)
 
     # ---- table handling (not in the loop) ----
@@ -176,6 +178,13 @@ class Controller:
             tot = self._term(tot, t[o["BD"] + i], ul)
             if tot < 0:
                 return R_UNSTABLE
+        # motor: KDU u + KDV vh, then the deadband
+        mo = o["MOT"]
+        tot = self._start(t[mo + 2])
+        tot = self._term(tot, t[mo], ul)
+        tot = self._term(tot, t[mo + 1], t[lim + 1])
+        if tot < 0 or t[mo + 3] < 0 or t[mo + 3] > 32767:
+            return R_UNSTABLE
         return OK
 
     def reset(self, yx, yp):
@@ -278,7 +287,7 @@ class Controller:
             # conditional integration: never push further into a saturated force
             inc = (r - x0 + _INTEG_HALF) >> _INTEG_SHIFT
             push = inc if ki > 0 else -inc
-            if not ((sat > 0 and push > 0) or (sat < 0 and push < 0)):
+            if not self.aw or not ((sat > 0 and push > 0) or (sat < 0 and push < 0)):
                 v = self.integ + inc
                 l = self.ilim
                 if v > l:

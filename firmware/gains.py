@@ -37,8 +37,8 @@ except ImportError:
 
 VERSION = const(1)
 DELAY = const(5)
-LENGTH = const(91)
-CRC = const(0x2ABA)
+LENGTH = const(92)
+CRC = const(0xE1D0)
 
 # (name, length) of each table in FLAT, in order
 LAYOUT = (
@@ -63,7 +63,7 @@ LAYOUT = (
     ('AD', 16),
     ('BD', 4),
     ('SA', 4),
-    ('MOT', 3),
+    ('MOT', 4),
     ('REF', 2),
     ('TILT', 2),
     ('ENCJ', 1),
@@ -73,7 +73,7 @@ LAYOUT = (
 
 FLAT = (
     # HDR
-    1, 5, 91,
+    1, 5, 92,
     # RATE
     500,
     # FMT
@@ -116,7 +116,7 @@ FLAT = (
     # SA
     22, 17, 19, 19,
     # MOT
-    6553, 9102, 13,
+    6553, 9102, 13, 0,
     # REF
     1000, 39270,
     # TILT

@@ -14,11 +14,13 @@ DUTY_MAX = const(32767)
 
 
 class Motor:
-    def __init__(self, t, off, deadband=0, backemf=True):
-        self.deadband = deadband
+    def __init__(self, t, off, deadband=None, backemf=True):
+        # deadband: duty counts added in the direction of the force (None: the table's)
         self.backemf = backemf
         self.max_duty = DUTY_MAX
         self.load(t, off)
+        if deadband is not None:
+            self.deadband = deadband
 
     def load(self, t, off):
         o = off["MOT"]
@@ -26,6 +28,7 @@ class Motor:
         self.kdv = t[o + 1]
         self.sd = t[o + 2]
         self.half = (1 << (self.sd - 1)) if self.sd > 0 else 0
+        self.deadband = t[o + 3]
 
     def duty(self, u, vh):
         # u: force (u LSB, clamped by the controller); vh: cart speed (xdot LSB, clamped)

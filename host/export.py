@@ -105,7 +105,7 @@ LAYOUT: tuple[tuple[str, int | str], ...] = (
     ("AD", 16),  # (Ad - I) in int units, row-major
     ("BD", 4),
     ("SA", 4),
-    ("MOT", 3),  # KDU, KDV, SD
+    ("MOT", 4),  # KDU, KDV, SD, deadband (duty counts)
     ("REF", 2),  # RMUL, RDIV: x LSB = (um * RMUL + RDIV // 2) // RDIV (RDIV = x LSB in nm)
     ("TILT", 2),  # TNUM, TSH: ADC counts = (mrad * TNUM) >> TSH
     ("ENCJ", 1),  # largest plausible encoder step per tick (counts)
@@ -354,7 +354,7 @@ def export(
         "AD": AD,
         "BD": BD,
         "SA": SA,
-        "MOT": [rm.gains[0], rm.gains[1], rm.shift],
+        "MOT": [rm.gains[0], rm.gains[1], rm.shift, int(deadband)],
         "REF": [1000, rdiv],
         "TILT": [rt.gains[0], rt.shift],
         "ENCJ": [encj],

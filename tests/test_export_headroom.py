@@ -49,8 +49,8 @@ def test_headroom_recomputed_from_the_tables(fd) -> None:
     for i in range(4):
         worst = sum(abs(AD[4 * i + j]) * LIM[j] for j in range(4)) + abs(BD[i]) * ULIM + 2 ** SA[i]
         assert worst <= SMALL
-    KDU, KDV, SD = _t(fd, "MOT")
-    assert abs(KDU) * ULIM + abs(KDV) * LIM[1] + 2 ** (SD - 1) <= SMALL
+    KDU, KDV, SD, DB = _t(fd, "MOT")
+    assert abs(KDU) * ULIM + abs(KDV) * LIM[1] + 2 ** (SD - 1) <= SMALL and 0 <= DB <= 4096
     RMUL, RDIV = _t(fd, "REF")
     assert RMUL * ex.REF_UM_MAX + RDIV // 2 <= SMALL
     assert RDIV * 1e-9 / RMUL * 1e3 == pytest.approx(fd.lsb["x"], rel=1e-4)
