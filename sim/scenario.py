@@ -122,6 +122,7 @@ class ScenarioError(ValueError):
 
     def __init__(self, key: str, message: str) -> None:
         self.key = key
+        self.message = message
         super().__init__(f"{key}: {message}" if key else message)
 
 
@@ -501,7 +502,7 @@ def load_scenario(path_or_name: str | Path) -> Scenario:
     try:
         return scenario_from_dict(data, source=str(p))
     except ScenarioError as exc:
-        raise ScenarioError(exc.key, f"{exc.args[0].split(': ', 1)[-1]} (in {p})") from None
+        raise ScenarioError(exc.key, f"{exc.message} (in {p})") from None
 
 
 def list_scenarios() -> list[str]:
