@@ -116,3 +116,10 @@ def test_scenarios_are_hashable() -> None:
     a = scenario_from_dict({**BASE, "params": {"M": 0.6}})
     b = scenario_from_dict({**BASE, "params": {"M": 0.6}})
     assert a == b and hash(a) == hash(b) and len({a, b, load_scenario("tilt_0p1")}) == 2
+
+
+@pytest.mark.parametrize("name", ["ref_step_20cm", "square_wave_20cm_2p2s", "tilt_0p1"])
+def test_scalar_reference_matches_vector(name: str) -> None:
+    ref = load_scenario(name).reference
+    t = np.arange(0, 12.0, 0.002)
+    assert [ref.at(float(v)) for v in t] == ref(t).tolist()
