@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import collections
 import importlib
+import select
 import time
 from typing import Any
 
@@ -334,6 +335,12 @@ class SerialLink(Link):
             raise LinkError(f"cannot open serial port {url!r}: {exc}") from exc
         self.url = url
         self.decoder = M.SerialStreamDecoder()
+        # the port stays non-blocking (timeout 0): waiting is a select() on its file
+        # descriptor when it has one (changing a pyserial timeout reconfigures the tty)
+        try:
+            self._fd: int | None = self._ser.fileno()
+        except (AttributeError, OSError, ValueError, serial.SerialException):
+            self._fd = None
 
     @property
     def drops(self) -> dict[str, int]:
@@ -347,14 +354,26 @@ class SerialLink(Link):
             raise LinkError(f"write to {self.url!r} failed: {exc}") from exc
 
     def _recv_internal(self, timeout: float | None) -> list[tuple[M.Message, int | None]]:
+        ser = self._ser
         try:
-            self._ser.timeout = timeout
-            data = self._ser.read(1)
-            if data:
-                n = self._ser.in_waiting
+            n = ser.in_waiting
+            if n:
+                data = ser.read(n)
+            elif timeout == 0:
+                return []
+            elif self._fd is not None:
+                if not select.select([self._fd], [], [], timeout)[0]:
+                    return []
+                data = ser.read(max(1, ser.in_waiting))
+            else:
+                if ser.timeout != timeout:
+                    ser.timeout = timeout
+                data = ser.read(1)
+                n = ser.in_waiting
                 if n:
-                    data += self._ser.read(n)
-        except (self._serial_mod.SerialException, OSError) as exc:
+                    data += ser.read(n)
+                ser.timeout = 0
+        except (self._serial_mod.SerialException, OSError, ValueError) as exc:
             raise LinkError(f"read from {self.url!r} failed: {exc}") from exc
         return list(self.decoder.feed(data))
 
