@@ -40,6 +40,7 @@ is PASS, FAIL or N/A, and is compared with the scenario's ``[expect]``.
 from __future__ import annotations
 
 import math
+import textwrap
 from dataclasses import asdict, dataclass
 from typing import Mapping, Sequence
 
@@ -82,6 +83,7 @@ class Metrics:
     duration: float
     noisy: bool = False
     settle_from: float = 0.0  # start (s) of the segment whose settling time is reported
+    peak_x: float = math.nan  # max |x| (m), for the track limit (information, not a report constraint)
 
     def as_dict(self) -> dict[str, float | bool]:
         """The metrics as a plain dict."""
@@ -115,6 +117,16 @@ class RunSummary:
     name: str
     metrics: Metrics
     checks: tuple[Check, ...]
+    note: str = ""  # the scenario's explanation of its expected outcomes
+
+    def as_dict(self) -> dict[str, object]:
+        """Plain-data form (JSON-ready): name, metrics, checks, note."""
+        return {
+            "name": self.name,
+            "metrics": self.metrics.as_dict(),
+            "checks": [{**asdict(c), "as_expected": c.as_expected} for c in self.checks],
+            "note": self.note,
+        }
 
     @property
     def passed(self) -> bool:
@@ -294,6 +306,7 @@ def compute_metrics(log: Mapping[str, np.ndarray], scenario: Scenario, params: R
         duration=end,
         noisy=scenario.noisy,
         settle_from=float(settle_from),
+        peak_x=float(np.max(np.abs(x))),
     )
 
 
@@ -334,18 +347,19 @@ def evaluate(log: Mapping[str, np.ndarray], scenario: Scenario, params: RobotPar
     """Metrics and constraint checks of a run in one call."""
     p = scenario.apply(params)
     m = compute_metrics(log, scenario, p)
-    return RunSummary(name or scenario.name, m, check_constraints(m, p, scenario))
+    return RunSummary(name or scenario.name, m, check_constraints(m, p, scenario), scenario.expect.note)
 
 
 def _f(v: float, fmt: str) -> str:
     return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
 
 
-def summary_table(runs: Sequence[RunSummary], *, title: str | None = None) -> str:
+def summary_table(runs: Sequence[RunSummary], *, title: str | None = None, notes: bool = False) -> str:
     """Render run summaries as a fixed-width terminal table with PASS/FAIL per constraint.
 
     A check whose outcome differs from the scenario's expectation is marked ``!``; an expected
-    FAIL (documented in the scenario's ``[expect] note``) is marked ``*``.
+    FAIL (documented in the scenario's ``[expect] note``) is marked ``*``.  With ``notes``,
+    the note of every run with a FAIL is printed under the table (wrapped to 100 columns).
     """
     cols = [
         ("scenario", 28, "<"), ("|phi|max", 8, ">"), ("settle", 6, ">"), ("overshoot", 9, ">"),
@@ -384,4 +398,10 @@ def summary_table(runs: Sequence[RunSummary], *, title: str | None = None) -> st
     lines.append("-" * len(head))
     lines.append(f"{len(runs)} runs, {n_fail} constraint FAIL(s) ({n_fail - n_unexp} expected and documented, marked *), "
                  f"{n_unexp} unexpected outcome(s) (marked !)")
+    if notes:
+        seen: set[str] = set()
+        for r in runs:
+            if r.note and not r.passed and r.note not in seen:
+                seen.add(r.note)
+                lines += textwrap.wrap(f"* {r.name}: {r.note}", 100, subsequent_indent="    ")
     return "\n".join(lines)

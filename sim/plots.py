@@ -255,6 +255,7 @@ def animate_run(
         # theta = pi + phi convention: the top leans towards -sin(phi)
         tx, ty = cx - length * math.sin(ph), cart_h / 2 + length * math.cos(ph)
         rod.set_data([cx, tx], [cart_h / 2, ty])
+        rod.set_color("tab:red" if abs(ph) >= params.phi_max else "0.2")  # beyond the tilt constraint
         cam.set_data([tx], [ty])
         ref.set_data([xr[k]], [-cart_h / 2 - 0.045])
         txt.set_text(f"t = {t[k]:5.2f} s   phi = {ph:+.3f} rad   x = {cx:+.3f} m")

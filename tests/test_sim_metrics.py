@@ -114,3 +114,11 @@ def test_summary_table_marks() -> None:
     assert "FAIL!" in badl and "FAIL*" in badl  # unexpected phi/settle, expected a_max
     assert "3 constraint FAIL(s) (1 expected" in lines[-1]
     assert runs[0].passed and not runs[1].passed and not runs[1].as_expected
+    runs[1] = RunSummary("bad", bad, runs[1].checks, "a long explanation " * 10)
+    with_notes = summary_table(runs, notes=True).splitlines()
+    assert with_notes[-3].startswith("* bad: a long explanation") and all(len(x) <= 100 for x in with_notes[-3:])
+    d = runs[1].as_dict()
+    assert d["checks"][2]["as_expected"] is True and d["metrics"]["peak_phi"] == 0.4
+    import json
+
+    json.dumps(d)
