@@ -183,7 +183,7 @@ class SweepConfig:
     drive : {"motor", "force"}
         Actuator model (see :func:`sim.batch.simulate_batch`).
     settle_band : float
-        Settling band on ``|phi|`` (rad).
+        Settling band on ``|phi|`` (rad), default 0.005.
     tilts : tuple of float, optional
         Tilt mode: run ``i`` is the nominal robot released at rest at ``tilts[i]`` (no
         parameter draw), with the cart acceleration limited to ``a_max``.
@@ -196,7 +196,7 @@ class SweepConfig:
     duration: float = 5.0
     noise: NoiseModel = field(default_factory=lambda: NoiseModel("uniform", amplitude=0.001))
     drive: str = "motor"
-    settle_band: float = 0.02
+    settle_band: float = 0.005
     tilts: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:

@@ -114,7 +114,7 @@ def test_metrics_are_consistent_with_the_traces(p, ctrl) -> None:
     settled = np.isfinite(m["settle"])
     assert settled[:2].all()
     after = tr["t"][:, None] >= m["settle"][None, :]
-    assert np.all(np.abs(tr["phi"])[after] <= 0.02)
+    assert np.all(np.abs(tr["phi"])[after] <= 0.005)
     # a settled run was out of the band shortly before settling
     for i in np.flatnonzero(settled & (m["settle"] > 0)):
         k = int(np.searchsorted(tr["t"], m["settle"][i]))

@@ -156,7 +156,7 @@ def test_tune_scores_designs_on_the_same_runs(p) -> None:
 
 def test_tilt_limits(p) -> None:
     assert physical_tilt_limit(p) == pytest.approx(math.atan(5.0 / 9.8))
-    rows, t = tilt(p, [Design("soft", R=1.0), Design("report")], step=0.1, hi=0.5, duration=3.0)
+    rows, t = tilt(p, [Design("soft", R=1.0), Design("report")], step=0.1, hi=0.5, duration=5.0)
     soft, rep = rows
     assert 0.2 <= soft["tilt_max"] < physical_tilt_limit(p)  # recovers well, never beyond physics
     assert rep["tilt_max"] < soft["tilt_max"]  # the aggressive design saturates and loses it
