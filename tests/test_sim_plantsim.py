@@ -232,3 +232,16 @@ def test_measured_init_starts_from_the_first_reading(p) -> None:
     assert abs(meas["u_cmd"][0]) < abs(zero["u_cmd"][0])
     with pytest.raises(ValueError, match="init"):
         run_scenario_float(sc, p, ctrl, init="guess")
+
+
+def test_fallen_pendulum_lies_on_the_ground(p) -> None:
+    sc = scenario_from_dict({"name": "f", "duration": 3.0, "initial": {"phi": 0.2}})
+    sim = PlantSim(p, sc)
+    free = PlantSim(p, sc, ground_stop=False)
+    while not sim.done:
+        sim.step(0)
+        free.step(0)
+    phi = sim.result()["phi"]
+    assert sim.fallen and not free.fallen
+    assert np.max(np.abs(phi)) == pytest.approx(math.pi / 2) and phi[-1] == pytest.approx(math.pi / 2)
+    assert np.max(np.abs(free.result()["phi"])) > 2.0  # the bare equations swing through
