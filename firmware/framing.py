@@ -3,7 +3,8 @@
 # frame (CRC bytes included) is then 0, which is what the decoder checks.
 # Encoder writes into a preallocated buffer; Decoder is a byte-at-a-time state
 # machine over a preallocated buffer that never raises and never allocates, drops
-# bad frames by cause and resynchronises at the next 0x00.
+# bad frames by cause and resynchronises at the next 0x00 (feed(b) per byte, or
+# scan(buf, start, end) over a received block).
 
 try:
     from micropython import const
@@ -84,6 +85,7 @@ class Decoder:
         self.mid = -1
         self.seq = 0
         self.plen = 0
+        self.next = 0
         self.reset()
 
     def reset(self):
@@ -158,6 +160,79 @@ class Decoder:
         if self.n_ok < _CMAX:
             self.n_ok += 1
         return mid
+
+    def scan(self, data, start, end):
+        # feed data[start:end] until a valid frame completes: returns its id and sets
+        # self.next to the index after its delimiter; returns -1 with self.next = end
+        # when the bytes run out.  Same results as feed() byte by byte, about twice as
+        # fast (the state lives in locals between delimiters).  Usage:
+        #   i = 0
+        #   while i < n:
+        #       mid = dec.scan(rx, i, n)
+        #       i = dec.next
+        #       if mid >= 0: ...
+        n = self._n
+        left = self._left
+        code = self._code
+        zero = self._zero
+        skip = self._skip
+        crc = self._crc
+        buf = self.buf
+        tab = self.table
+        i = start
+        while i < end:
+            b = data[i]
+            i += 1
+            if b == 0:
+                self._n = n
+                self._left = left
+                self._code = code
+                self._skip = skip
+                self._crc = crc
+                m = self._end()
+                if m >= 0:
+                    self.next = i
+                    return m
+                n = 0
+                left = 0
+                code = 0
+                zero = False
+                skip = False
+                crc = 0xFFFF
+                continue
+            if skip:
+                continue
+            if left == 0:
+                if zero:
+                    if n >= _MAX_FRAME:
+                        skip = True
+                        if self.n_overrun < _CMAX:
+                            self.n_overrun += 1
+                        continue
+                    buf[n] = 0
+                    n += 1
+                    crc = ((crc << 8) & 0xFFFF) ^ tab[(crc >> 8) & 0xFF]
+                code = b
+                left = b - 1
+                zero = b != 0xFF
+            else:
+                if n >= _MAX_FRAME:
+                    skip = True
+                    if self.n_overrun < _CMAX:
+                        self.n_overrun += 1
+                    continue
+                buf[n] = b
+                n += 1
+                crc = ((crc << 8) & 0xFFFF) ^ tab[((crc >> 8) ^ b) & 0xFF]
+                left -= 1
+        self._n = n
+        self._left = left
+        self._code = code
+        self._zero = zero
+        self._skip = skip
+        self._crc = crc
+        self.next = end
+        return -1
 
     def drops(self):
         return self.n_crc + self.n_length + self.n_unknown + self.n_overrun

@@ -50,11 +50,26 @@ def fw_encode(msg: M.Message, seq: int) -> bytes:
     return bytes(enc.out[: enc.frame(msg.ID, seq, n)])
 
 
-def fw_decode_stream(data: bytes) -> tuple[list[tuple[int, int, bytes]], dict[str, int]]:
-    """Run the firmware decoder (CPython) over ``data``: frames and drop counters."""
+def fw_decode_stream(data: bytes, block: int = 0) -> tuple[list[tuple[int, int, bytes]], dict[str, int]]:
+    """Run the firmware decoder (CPython) over ``data``: frames and drop counters.
+
+    ``block=0`` feeds byte by byte with ``feed``; otherwise ``scan`` over blocks of
+    that many bytes (as a UART read would deliver them).
+    """
     layout = codec.Layout()
     dec = framing.Decoder(layout)
     out = []
+    if block:
+        for s in range(0, len(data), block):
+            chunk = bytearray(data[s:s + block])
+            i = 0
+            while i < len(chunk):
+                m = dec.scan(chunk, i, len(chunk))
+                assert i < dec.next <= len(chunk)
+                i = dec.next
+                if m >= 0:
+                    out.append((m, dec.seq, bytes(dec.buf[2:2 + dec.plen])))
+        return out, {"crc": dec.n_crc, "length": dec.n_length, "unknown": dec.n_unknown, "overrun": dec.n_overrun}
     for b in data:
         m = dec.feed(b)
         if m >= 0:

@@ -88,6 +88,8 @@ def test_frames_in_garbage_recovered_and_firmware_agrees_with_host(parts):
             embedded.append((p[0].ID, p[1], p[0].payload()))
     stream += b"\x00"  # flush: the host counts a frame's drop at its delimiter
     fw_frames, fw_drops = fw_decode_stream(stream)
+    for block in (1, 7, 64):
+        assert fw_decode_stream(stream, block) == (fw_frames, fw_drops)
     host = M.SerialStreamDecoder()
     host_frames = [(m.ID, s, m.payload()) for m, s in host.feed(stream)]
     assert fw_frames == host_frames
