@@ -64,25 +64,28 @@ def test_decode_reports_drops(capsys):
 def test_dump_a_live_pty(capsys):
     br = PtyBridge()
     msgs = [M.Heartbeat(state=2, faults=1, boot=3, uptime_ms=4), M.TelemState(x=1, xdot=2, phi=3, phidot=4)]
+    stop = threading.Event()
 
     def board():
-        time.sleep(0.5)  # after the dump has opened its end
+        # repeat until the dump has what it wants (opening a port flushes its input)
         with serial.serial_for_url(br.b) as ser:
-            for i, m in enumerate(msgs):
-                ser.write(M.encode_serial(m, i))
-            ser.flush()
-            time.sleep(0.5)
+            while not stop.is_set():
+                ser.write(b"".join(M.encode_serial(m, i) for i, m in enumerate(msgs)))
+                ser.flush()
+                stop.wait(0.2)
 
     t = threading.Thread(target=board)
     t.start()
     try:
-        rc, out, _ = _out(capsys, ["proto", "dump", br.a, "--count", "2", "--duration", "10"])
+        rc, out, _ = _out(capsys, ["proto", "dump", br.a, "--count", "4", "--duration", "20"])
     finally:
+        stop.set()
         t.join()
         br.close()
     lines = out.splitlines()
-    assert rc == 0 and len(lines) == 2
-    assert "seq   0  heartbeat(state=2, faults=1" in lines[0] and "telem_state(x=0.0001m" in lines[1]
+    assert rc == 0 and len(lines) == 4
+    assert any("seq   0  heartbeat(state=2, faults=1, boot=3, uptime_ms=4ms)" in ln for ln in lines)
+    assert any("seq   1  telem_state(x=0.0001m, xdot=0.002m/s" in ln for ln in lines)
 
 
 def test_dbc_for_another_node(capsys):
