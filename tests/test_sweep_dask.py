@@ -58,3 +58,17 @@ def test_client_object_and_task_errors(cluster, cfg) -> None:
 def test_unreachable_scheduler_is_a_clear_error(cfg) -> None:
     with pytest.raises(DaskRunError, match="cannot reach"):
         run_on_dask(tasks_for(cfg, 1), "tcp://127.0.0.1:9", timeout=1.0)
+
+
+def test_cli_with_scheduler_writes_the_same_table(cluster, tmp_path) -> None:
+    import pyarrow.parquet as pq
+
+    from host import cli
+
+    common = ["sweep", "robustness", "--n", "5", "--chunk", "2", "--duration", "0.5", "--seed", "4", "--quiet", "--no-plots"]
+    assert cli.main([*common, "--out", str(tmp_path / "local")]) == 0
+    assert cli.main([*common, "--scheduler", cluster.scheduler_address, "--out", str(tmp_path / "dask")]) == 0
+    a = pq.read_table(tmp_path / "local" / "robustness.parquet")
+    b = pq.read_table(tmp_path / "dask" / "robustness.parquet")
+    assert a.equals(b)
+    assert (tmp_path / "local" / "robustness.csv").read_text() == (tmp_path / "dask" / "robustness.csv").read_text()
