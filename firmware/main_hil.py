@@ -87,6 +87,10 @@ class HilMain:
         self._telem_left = 0
         self._hb_last = 0
         self.running = True
+        # micropython module when the loop must run heap-locked (see main())
+        self._lock = None
+        # made now: raising it at the end must not allocate (the heap may be locked)
+        self._hangup = HangUp()
         # cached bound methods (no allocation when called in the loop)
         self._step = self.app.step
         self._feed = self.dec.feed
@@ -166,6 +170,10 @@ class HilMain:
     def poll(self):
         # real time, called by app.run() after each step: answer, periodic messages,
         # then serve the link until _GUARD_US before the next step
+        if self._lock is not None:
+            # app.run() has finished its set-up (it binds our poll): lock from here on
+            self._lock.heap_lock()
+            self._lock = None
         self.hal.end_tick()
         self.n_steps += 1
         self._periodic()
@@ -179,7 +187,7 @@ class HilMain:
                 break
             if uart.wait(left // 1000):
                 if self._drain(False) == 0 and self._hung_up():
-                    raise HangUp()
+                    raise self._hangup
         if uart.any():
             self._drain(False)
 
@@ -199,15 +207,28 @@ class HilMain:
         return self.run_realtime()
 
 
-def main(port=None, link="serial", mode="lockstep", node=1, uart=None):
-    # port: tty path for the unix port; uart: a ready UART object (a board)
+def main(port=None, link="serial", mode="lockstep", node=1, uart=None, heap_lock=False):
+    # port: tty path for the unix port; uart: a ready UART object (a board).
+    # heap_lock: run the loop under micropython.heap_lock() -- any allocation in it
+    # then raises MemoryError and ends the run (tests use it as the allocation proof).
     if uart is None:
         from .uart_unix import UnixUART
         uart = UnixUART(port)
     m = HilMain(uart, link, mode, node)
+    if heap_lock:
+        import gc
+        import micropython
+        gc.collect()
+        if mode == "realtime":
+            m._lock = micropython  # locked at the first poll(), after app.run()'s set-up
+        else:
+            micropython.heap_lock()
     try:
         return m.run()
     finally:
+        if heap_lock:
+            import micropython
+            micropython.heap_unlock()
         close = getattr(uart, "close", None)
         if close is not None:
             close()

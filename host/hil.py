@@ -57,7 +57,7 @@ import numpy as np
 from firmware import msgtable as T
 from host import messages as M
 from host.link import CanLink, CommandRefused, Link, LinkError, SerialLink
-from host.vport import PTMX, BoardExited, PortError, VirtualBoard, open_can, slave_of
+from host.vport import PTMX, BoardExited, PortError, VirtualBoard, open_can, set_realtime, slave_of
 from sim.params import RobotParams, load_params
 from sim.plantsim import PlantSim, write_csv
 from sim.scenario import REPORT_SCENARIOS, Scenario, list_scenarios, load_scenario
@@ -243,6 +243,13 @@ class HilSession:
         Fault-injection hooks on the host's byte stream (see :class:`FaultyPort`).
     heapsize : str, optional
         MicroPython heap of the virtual board.
+    rt_priority : int or None
+        Real time only: ``SCHED_FIFO`` priority of the virtual board's interpreter and of
+        the host's streaming loop during a run (see :func:`host.vport.set_realtime`);
+        ``None`` leaves both to the normal scheduler.
+    heap_lock : bool
+        Virtual board: run the firmware loop under ``micropython.heap_lock()`` (any
+        allocation ends the run, reported as :class:`~host.vport.BoardExited`).
 
     Raises
     ------
@@ -253,7 +260,7 @@ class HilSession:
     def __init__(self, port: str | None = None, *, link: str = "serial", mode: str = "lockstep", node: int = 1,
                  can_interface: str = "serial", baudrate: int = 115200, timeout: float = 2.0,
                  fault_tx: Callable[[bytes], bytes] | None = None, fault_rx: Callable[[bytes], bytes] | None = None,
-                 heapsize: str | None = None) -> None:
+                 heapsize: str | None = None, rt_priority: int | None = 20, heap_lock: bool = False) -> None:
         if link not in LINKS:
             raise ValueError(f"link must be one of {', '.join(LINKS)}, got {link!r}")
         if mode not in MODES:
@@ -270,6 +277,8 @@ class HilSession:
         self.baudrate = int(baudrate)
         self.timeout = float(timeout)
         self.heapsize = heapsize
+        self.rt_priority = rt_priority
+        self.heap_lock = bool(heap_lock)
         self._fault = (fault_tx, fault_rx)
         self.link: Link | None = None
         self.board: VirtualBoard | None = None
@@ -311,7 +320,8 @@ class HilSession:
                 fd = self.link._ser.fileno() if self.virtual else -1
             if self.virtual:
                 self.board = VirtualBoard(slave_of(fd), link=self.link_kind, mode=self.mode, node=self.node,
-                                          heapsize=self.heapsize)
+                                          heapsize=self.heapsize, heap_lock=self.heap_lock,
+                                          rt_priority=self.rt_priority if self.mode == "realtime" else None)
                 self.board.start()
             if any(self._fault):
                 _install_fault(self.link, *self._fault)
@@ -616,6 +626,20 @@ class HilSession:
                 else:
                     sink.other(m, want if want is not None else -1)
 
+        host_rt = set_realtime(self.rt_priority - 1) if self.rt_priority and self.rt_priority > 1 else False
+        try:
+            return self._realtime_loop(sim, sink, link, n, T_s, clock, adc0, enc0, fw_state, fw_faults, latency,
+                                       late, send_t, pll, state, x_ref_at, pump, sync_ticks, progress, scenario,
+                                       host_rt)
+        finally:
+            if host_rt:
+                set_realtime(None)
+
+    def _realtime_loop(self, sim: PlantSim, sink: "_Sink", link: Link, n: int, T_s: float, clock: Any, adc0: int,
+                       enc0: int, fw_state: np.ndarray, fw_faults: np.ndarray, latency: np.ndarray,
+                       late: np.ndarray, send_t: dict[int, float], pll: "_PhaseLock", state: dict[str, int],
+                       x_ref_at: Any, pump: Any, sync_ticks: int, progress: Any, scenario: Scenario,
+                       host_rt: bool) -> HilRun:
         t_next = clock() + 0.01
         # phase lock on the resting initial reading (disarmed, duty 0)
         for i in range(sync_ticks):
@@ -675,6 +699,8 @@ class HilSession:
             "latency_us_p99": float(np.percentile(lat, 99)) if lat.size else math.nan,
             "period_us": period_us,
             "wall_s": wall,
+            "fw_realtime_policy": bool(self.board.realtime_policy) if self.board is not None else None,
+            "host_realtime_policy": host_rt,
         })
         return HilRun(scenario, sim.params, log, "realtime", self.link_kind, wall, stats)
 

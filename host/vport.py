@@ -36,6 +36,7 @@ __all__ = [
     "open_serial",
     "open_can",
     "firmware_command",
+    "set_realtime",
     "VirtualBoard",
 ]
 
@@ -141,8 +142,33 @@ def _short(exc: BaseException) -> str:
     return msg[0] if msg else type(exc).__name__
 
 
+def set_realtime(priority: int | None, pid: int = 0) -> bool:
+    """Put a process (or, with ``pid=0``, the calling thread) under ``SCHED_FIFO``.
+
+    Parameters
+    ----------
+    priority : int or None
+        1..99; ``None`` or 0 restores ``SCHED_OTHER``.
+    pid : int
+        Process id (0: the calling thread).
+
+    Returns
+    -------
+    bool
+        True if the policy was applied (False where not permitted or not supported).
+    """
+    try:
+        if priority:
+            os.sched_setscheduler(pid, os.SCHED_FIFO, os.sched_param(int(priority)))
+        else:
+            os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
+    except (OSError, AttributeError):
+        return False
+    return True
+
+
 def firmware_command(port: str, *, link: str = "serial", mode: str = "lockstep", node: int = 1,
-                     heapsize: str | None = None) -> list[str]:
+                     heapsize: str | None = None, heap_lock: bool = False) -> list[str]:
     """The command line that runs :func:`firmware.main_hil.main` under the unix port.
 
     Parameters
@@ -157,6 +183,9 @@ def firmware_command(port: str, *, link: str = "serial", mode: str = "lockstep",
         CAN node id.
     heapsize : str, optional
         ``-X heapsize=`` value.
+    heap_lock : bool
+        Run the firmware's loop under ``micropython.heap_lock()``: one allocation ends
+        the run with ``MemoryError`` (the allocation-free proof of the HIL tests).
     """
     if link not in ("serial", "can"):
         raise ValueError(f"link must be 'serial' or 'can', got {link!r}")
@@ -164,7 +193,8 @@ def firmware_command(port: str, *, link: str = "serial", mode: str = "lockstep",
         raise ValueError(f"mode must be 'lockstep' or 'realtime', got {mode!r}")
     code = (
         "import sys\nfrom firmware import main_hil\n"
-        f"sys.exit(main_hil.main({port!r}, link={link!r}, mode={mode!r}, node={int(node)}))\n"
+        f"sys.exit(main_hil.main({port!r}, link={link!r}, mode={mode!r}, node={int(node)}, "
+        f"heap_lock={bool(heap_lock)}))\n"
     )
     cmd = [micropython_exe()]
     if heapsize:
@@ -192,6 +222,14 @@ class VirtualBoard:
     code : str, optional
         MicroPython source to run instead of the HIL main (tests and tools); it must open
         ``slave`` itself.
+    heap_lock : bool
+        See :func:`firmware_command`.
+    rt_priority : int, optional
+        Run the interpreter under the ``SCHED_FIFO`` real-time policy at this priority
+        (1..99), as a board's loop owns its CPU; a real-time-mode firmware sharing a busy
+        2-core machine with the host and other jobs otherwise misses deadlines whenever
+        the OS schedules something else.  Silently ignored where not permitted (the run
+        then shows the overruns, which is the truth about that machine).
 
     Examples
     --------
@@ -201,9 +239,12 @@ class VirtualBoard:
     """
 
     def __init__(self, slave: str, *, link: str = "serial", mode: str = "lockstep", node: int = 1,
-                 heapsize: str | None = None, startup_timeout: float = 10.0, code: str | None = None) -> None:
+                 heapsize: str | None = None, startup_timeout: float = 10.0, code: str | None = None,
+                 rt_priority: int | None = None, heap_lock: bool = False) -> None:
         self.slave = slave
-        self.cmd = firmware_command(slave, link=link, mode=mode, node=node, heapsize=heapsize)
+        self.rt_priority = rt_priority
+        self.realtime_policy = False
+        self.cmd = firmware_command(slave, link=link, mode=mode, node=node, heapsize=heapsize, heap_lock=heap_lock)
         if code is not None:
             self.cmd = [*self.cmd[:-1], code]
         self.startup_timeout = float(startup_timeout)
@@ -229,6 +270,8 @@ class VirtualBoard:
         self._err_fh = os.fdopen(fd, "w+b")
         self.proc = subprocess.Popen(self.cmd, cwd=ROOT, env=env, stdin=subprocess.DEVNULL,
                                      stdout=self._err_fh, stderr=subprocess.STDOUT)
+        if self.rt_priority is not None:
+            self.realtime_policy = set_realtime(self.rt_priority, self.proc.pid)
         deadline = time.monotonic() + self.startup_timeout
         while not self._slave_opened():
             if self.proc.poll() is not None:
