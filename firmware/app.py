@@ -9,7 +9,8 @@
 #             run() (serve the host link: decode commands, send telemetry).
 #     gains   optional gain module/object with LAYOUT and FLAT (default firmware.gains).
 #     config  optional dict: pot_offset (ADC counts upright), adc_sign/enc_sign (+-1),
-#             deadband (duty counts), backemf (bool), boot (int), and any msgtable PARAMS
+#             deadband (duty counts), backemf (bool), boot (int), emitter ("bytecode",
+#             "native" or "viper": how the controller step is compiled), and any msgtable PARAMS
 #             name (e.g. watchdog_ms) -- config values are not range-checked, so
 #             watchdog_ms=0 switches the watchdog off (bench/tests only).
 #   app.step()   one control tick (allocation-free): read sensors, supervise, estimate,
@@ -51,6 +52,15 @@ class App:
         layout = gains.LAYOUT
         flat = gains.FLAT
         self.ctrl = Controller(layout, flat)
+        # the controller step: bytecode, or the native/viper builds of firmware/fastpath.py
+        em = cfg.get("emitter", "bytecode")
+        if em == "native":
+            from .fastpath import step_native as cstep
+        elif em == "viper":
+            from .fastpath import step_viper as cstep
+        else:
+            cstep = Controller.step
+        self._cstep = cstep
         off = self.ctrl.off
         self.off = off
         self.table = array("i", flat)
@@ -134,7 +144,7 @@ class App:
             if start:
                 s.zero()
                 c.reset(s.yx, s.yp)
-            u = c.step(s.yx, s.yp, self.ref)
+            u = self._cstep(c, s.yx, s.yp, self.ref)
             duty = self.motor.duty(u, c.vh)
         self._set_motor(duty)
         self.duty = duty

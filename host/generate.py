@@ -18,6 +18,7 @@ ROOT = Path(__file__).resolve().parent.parent
 # path relative to the repository root -> renderer "module:function" (no arguments)
 GENERATED: dict[str, str] = {
     "firmware/gains.py": "host.export:render_default",
+    "firmware/fastpath.py": "host.export:render_fastpath",
     "docs/upright.dbc": "host.dbc:render_default",
     "docs/protocol.md": "host.protodoc:render_protocol_md",
 }

@@ -1,0 +1,102 @@
+"""The native and viper builds of the controller step (firmware/fastpath.py) equal the bytecode.
+
+Under the MicroPython unix port: the same scenario sequences and extreme inputs through
+Controller.step, fastpath.step_native and fastpath.step_viper give identical outputs,
+states and integrators, and a whole app.step() with the viper step allocates nothing.
+Under CPython the decorators fall back to plain functions with the same results.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from host import fwharness as H
+from host.export import export, render_fastpath
+from host.mpyrun import run_unix
+from sim.params import load_params
+
+P = load_params()
+FD = export(P, ki=40.0)
+
+
+@pytest.fixture(scope="module")
+def seq():
+    s = H.measurements(P, FD, [0, 0, 0.1, 0], 3.0, x_ref=lambda t: 0.3 if t > 1.0 else 0.0)
+    # append extremes: measurements far past the clamps, reference at its limit
+    ylx = FD.tables["YLIM"][0] << FD.fmt["QX"]
+    ylp = FD.tables["YLIM"][1] << FD.fmt["QP"]
+    rl = FD.tables["RLIM"][0]
+    ext = [(ylx, ylp, rl), (-ylx, -ylp, -rl), (ylx, -ylp, rl), (-ylx, ylp, -rl)] * 150
+    return s.yx + [e[0] for e in ext], s.yp + [e[1] for e in ext], s.r + [e[2] for e in ext]
+
+
+SCRIPT = """
+from firmware.controller import Controller
+from firmware import fastpath
+import micropython
+c0 = Controller(LAYOUT, FLAT)
+c1 = Controller(LAYOUT, FLAT)
+c2 = Controller(LAYOUT, FLAT)
+n = len(YX)
+bad = 0
+for k in range(n):
+    u0 = c0.step(YX[k], YP[k], R[k])
+    u1 = fastpath.step_native(c1, YX[k], YP[k], R[k])
+    u2 = fastpath.step_viper(c2, YX[k], YP[k], R[k])
+    if u0 != u1 or u0 != u2 or c0.vh != c1.vh or c0.vh != c2.vh or c0.integ != c2.integ:
+        bad += 1
+    for i in range(4):
+        if c0.p[i] != c2.p[i] or c0.p[i] != c1.p[i] or c0.rf[i] != c2.rf[i] or c0.ra[i] != c2.ra[i]:
+            bad += 1
+print('n', n)
+print('bad', bad)
+print('last', u0)
+""" + H.FAKE_HAL + """
+from firmware.app import App
+for em in ('native', 'viper'):
+    hal = Hal()
+    app = App(hal, config={'watchdog_ms': 0, 'emitter': em})
+    hal.adc = 2048
+    app.step()
+    app.cmd_arm()
+    app.step()
+    micropython.heap_lock()
+    try:
+        for k in range(3000):
+            hal.adc = 2048 + (k % 11) - 5
+            hal.enc = (65530 + (k % 9)) & 0xFFFF
+            app.step()
+        ok = 1
+    except MemoryError:
+        ok = 0
+    micropython.heap_unlock()
+    print('alloc_free_' + em, ok)
+    print('state_' + em, app.sup.state)
+"""
+
+
+def test_native_and_viper_equal_bytecode(seq) -> None:
+    yx, yp, r = seq
+    code = (H.INTS_SRC + f"LAYOUT = {tuple(H.layout_of(FD))!r}\nFLAT = tuple(ints({' '.join(map(str, FD.flat()))!r}))\n"
+            + f"YX = ints({H._ints(yx)!r})\nYP = ints({H._ints(yp)!r})\nR = ints({H._ints(r)!r})\n" + SCRIPT)
+    out = dict(line.split() for line in run_unix(code, timeout=120).splitlines() if line.strip())
+    assert int(out["n"]) == len(yx) and int(out["bad"]) == 0
+    assert out["alloc_free_native"] == "1" and out["alloc_free_viper"] == "1"
+    assert out["state_native"] == "2" and out["state_viper"] == "2"
+
+
+def test_cpython_fallback_equals_bytecode(seq) -> None:
+    from firmware import fastpath
+    from firmware.controller import Controller
+
+    yx, yp, r = seq
+    c0, c2 = Controller(H.layout_of(FD), FD.flat()), Controller(H.layout_of(FD), FD.flat())
+    for k in range(len(yx)):
+        assert c0.step(yx[k], yp[k], r[k]) == fastpath.step_viper(c2, yx[k], yp[k], r[k])
+        assert list(c0.p) == list(c2.p) and c0.integ == c2.integ
+
+
+def test_fastpath_is_generated_from_the_controller() -> None:
+    text = render_fastpath()
+    assert "do not edit" in text.splitlines()[0]
+    assert "@micropython.viper" in text and "@micropython.native" in text and "self" not in text
