@@ -21,7 +21,7 @@ def cluster():
 
 @pytest.fixture(scope="module")
 def cfg():
-    return SweepConfig(params=load_params(), seed=11, duration=1.0)
+    return SweepConfig(params=load_params(), seed=11, duration=0.4)
 
 
 def test_robustness_on_dask_equals_single_process(cluster, cfg) -> None:
@@ -41,8 +41,8 @@ def test_tune_and_tilt_on_dask_equal_single_process(cluster, cfg) -> None:
     assert rows_l == rows_r
     assert all(np.array_equal(t_l[k], t_r[k]) for k in t_l)
     p = cfg.params
-    a, _ = tilt(p, designs, step=0.15, hi=0.3, duration=1.0)
-    b, _ = tilt(p, designs, step=0.15, hi=0.3, duration=1.0, scheduler=cluster.scheduler_address)
+    a, _ = tilt(p, designs, step=0.15, hi=0.3, duration=0.4)
+    b, _ = tilt(p, designs, step=0.15, hi=0.3, duration=0.4, scheduler=cluster.scheduler_address)
     assert a == b
 
 
