@@ -30,8 +30,14 @@ def _lazy_module(name: str):  # noqa: ANN202 - returns a module
     return importlib.import_module(COMMANDS[name][0])
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """Build the top-level parser with one subparser per command.
+
+    Parameters
+    ----------
+    only : str, optional
+        Import and define the arguments of this command only (the others keep their
+        one-line help), so ``upright simulate ...`` does not import the HIL, the sweeps...
 
     Returns
     -------
@@ -46,6 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
         sp = sub.add_parser(name, help=help_, description=help_)
         sp.set_defaults(_command=name)
         # argument definitions are imported with the command's module
+        if only is not None and name != only:
+            continue
         try:
             _lazy_module(name).add_arguments(sp)
         except ModuleNotFoundError as exc:  # pragma: no cover - a command not built yet
@@ -68,7 +76,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     int
         Process exit status.
     """
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    chosen = next((a for a in argv if not a.startswith("-")), None)
+    parser = build_parser(only=chosen if chosen in COMMANDS else "")
     args = parser.parse_args(argv)
     if getattr(args, "_command", None) is None:
         parser.print_help()
