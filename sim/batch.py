@@ -104,12 +104,17 @@ class RunSet:
     values : mapping of str to ndarray (N,)
         True parameter values of each run for any of :data:`VARIED_KEYS`; a key not
         given is nominal in every run.
-    delay_ticks : ndarray of int, shape (N,)
-        Measurement delay of each run in whole control ticks (>= 0).
-    noise_seed : ndarray of int, shape (N,)
-        Seed of each run's noise generator (``default_rng(seed)``).
-    x_ref : ndarray, shape (N,)
-        Cart position reference (m), held for the run.
+    delay_ticks : ndarray of int, shape (N,), optional
+        Measurement delay of each run in whole control ticks (>= 0; default 0).
+    noise_seed : ndarray of int, shape (N,), optional
+        Seed of each run's noise generator, ``default_rng(seed)`` (default ``0..N-1``).
+    x_ref : float or ndarray, shape (N,), optional
+        Cart position reference (m), held for the run (default 0).
+
+    Raises
+    ------
+    BatchError
+        On a wrong shape, an unknown or non-physical parameter, a negative delay or seed.
     """
 
     x0: np.ndarray
@@ -120,15 +125,18 @@ class RunSet:
 
     def __post_init__(self) -> None:
         x0 = np.atleast_2d(np.asarray(self.x0, dtype=float))
-        if x0.ndim != 2 or x0.shape[1] != 4:
-            raise BatchError(f"x0 must have shape (N, 4), got {np.shape(self.x0)}")
+        if x0.ndim != 2 or x0.shape[1] != 4 or not np.all(np.isfinite(x0)):
+            raise BatchError(f"x0 must be finite with shape (N, 4), got shape {np.shape(self.x0)}")
         n = x0.shape[0]
         object.__setattr__(self, "x0", x0)
         vals = {}
         for k, v in dict(self.values).items():
             if k not in VARIED_KEYS:
                 raise BatchError(f"cannot vary {k!r} per run (variable: {', '.join(VARIED_KEYS)})")
-            a = np.broadcast_to(np.asarray(v, dtype=float), (n,)).copy()
+            try:
+                a = np.broadcast_to(np.asarray(v, dtype=float), (n,)).copy()
+            except ValueError as exc:
+                raise BatchError(f"per-run {k} must be a number or {n} numbers, got shape {np.shape(v)}") from exc
             if not np.all(np.isfinite(a)) or np.any(a <= 0) and k != "b" or np.any(a < 0):
                 raise BatchError(f"per-run {k} must be finite and positive")
             vals[k] = a
@@ -141,7 +149,10 @@ class RunSet:
         if s.shape != (n,) or not np.issubdtype(s.dtype, np.integer) or np.any(s < 0):
             raise BatchError(f"noise_seed must be {n} non-negative ints")
         object.__setattr__(self, "noise_seed", s)
-        r = np.zeros(n) if self.x_ref is None else np.broadcast_to(np.asarray(self.x_ref, dtype=float), (n,)).copy()
+        try:
+            r = np.zeros(n) if self.x_ref is None else np.broadcast_to(np.asarray(self.x_ref, dtype=float), (n,)).copy()
+        except ValueError as exc:
+            raise BatchError(f"x_ref must be a number or {n} numbers") from exc
         object.__setattr__(self, "x_ref", r)
 
     def __len__(self) -> int:

@@ -156,3 +156,12 @@ def test_bad_inputs_are_rejected(p, ctrl) -> None:
         simulate_batch(p, ctrl, runs, duration=0.0)
     with pytest.raises(BatchError, match="drive"):
         closed_loop_iosys(p, ctrl, runs.true_params(p, 0), 0, drive="jet")
+
+
+def test_shape_errors_are_batch_errors() -> None:
+    with pytest.raises(BatchError, match="3 numbers"):
+        RunSet(x0=np.zeros((3, 4)), values={"M": [0.5, 0.6]})
+    with pytest.raises(BatchError, match="x_ref"):
+        RunSet(x0=np.zeros((3, 4)), x_ref=[0.0, 0.1])
+    with pytest.raises(BatchError, match="finite"):
+        RunSet(x0=np.array([[0.0, 0.0, np.nan, 0.0]]))
