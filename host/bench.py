@@ -22,6 +22,7 @@ BENCHES: dict[str, str] = {
     "batch": "host.bench_batch:bench",
     "proto": "host.bench_proto:bench_throughput",
     "proto_fuzz": "host.bench_proto:bench_fuzz",
+    "firmware": "host.bench_firmware:bench",
 }
 
 
