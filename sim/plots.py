@@ -10,7 +10,7 @@ machine and in CI.
   float reference on top of the HIL run) and a marker at the settling time.
 * :func:`animate_run` -- the cart on its track and the pendulum, with the reference marked,
   written as a GIF with :class:`matplotlib.animation.PillowWriter`; frames are decimated to
-  ``fps`` (default 20/s) and capped at ``max_frames`` so a run renders in seconds.
+  ``fps`` (default 15/s) and capped at ``max_frames`` (default 120) so a run renders in ~2 s.
 """
 
 from __future__ import annotations
@@ -177,8 +177,8 @@ def animate_run(
     params: RobotParams,
     *,
     title: str = "",
-    fps: int = 20,
-    max_frames: int = 150,
+    fps: int = 15,
+    max_frames: int = 120,
     speed: float = 1.0,
 ) -> Path:
     """Write an animated GIF of the cart and the pendulum.
@@ -194,7 +194,7 @@ def animate_run(
     title : str
         Text at the top.
     fps : int
-        Target frames per second of the GIF (the log is decimated to this rate times
+        Target frames per second of the GIF (default 15) (the log is decimated to this rate times
         ``speed``).
     max_frames : int
         Upper bound on the number of frames: a longer run is decimated further (and the GIF
