@@ -151,9 +151,14 @@ def plot_run(
     if "f_dist" in log and np.any(np.asarray(log["f_dist"]) != 0):
         ax_f.plot(t, log["f_dist"], color="tab:purple", lw=0.9, label="disturbance")
     fs = float(stall_force(params))
-    ax_f.axhline(fs, color="0.5", lw=0.8, ls="--", label=f"stall force {fs:.0f} N")
-    ax_f.axhline(-fs, color="0.5", lw=0.8, ls="--")
-    _ylim(ax_f, [lg["force"] for lg in runs.values()], None)
+    peak_f = max(float(np.nanmax(np.abs(np.asarray(lg["force"], dtype=float)))) for lg in runs.values())
+    if fs <= 1.5 * peak_f:  # the drive's limit is shown when the force comes near it
+        ax_f.axhline(fs, color="0.5", lw=0.8, ls="--", label=f"stall force {fs:.0f} N")
+        ax_f.axhline(-fs, color="0.5", lw=0.8, ls="--")
+        _ylim(ax_f, [lg["force"] for lg in runs.values()], fs)
+    else:
+        ax_f.plot([], [], color="0.5", lw=0.8, ls="--", label=f"stall force {fs:.0f} N (off scale)")
+        _ylim(ax_f, [lg["force"] for lg in runs.values()], None)
     ax_f.set_ylabel("force (N)")
     # acceleration
     _ylim(ax_a, [lg["xddot"] for lg in runs.values()], params.a_max)
