@@ -6,7 +6,7 @@
 #             If the HAL counts host frames in an attribute n_sensor (hal_hil.HilHal),
 #             every new frame feeds the command watchdog.
 #     link    optional object with poll(): called once per tick after the control step by
-#             run() (serve the host link: decode commands, send telemetry).
+#             run() (serve the host link: decode commands, send telemetry); or set_link(link).
 #     gains   optional gain module/object with LAYOUT and FLAT (default firmware.gains).
 #     config  optional dict: pot_offset (ADC counts upright), adc_sign/enc_sign (+-1),
 #             deadband (duty counts), backemf (bool), boot (int), emitter ("bytecode",
@@ -47,7 +47,7 @@ class App:
             gains = _g
         cfg = config if config is not None else {}
         self.hal = hal
-        self.link = link
+        self.set_link(link)
         self.version = gains.VERSION
         layout = gains.LAYOUT
         flat = gains.FLAT
@@ -157,13 +157,18 @@ class App:
         self.step_us = tm.end(t0, self._ticks())
         return duty
 
+    def set_link(self, link):
+        # attach the host link (an object with poll()); its bound method is cached here
+        # so that run() allocates nothing
+        self.link = link
+        self._poll = link.poll if link is not None else None
+
     def run(self, n=0):
         # real-time mode: one step every period_us (busy-wait on the HAL clock)
         ticks = self._ticks
         diff = fixmath.ticks_diff
         step = self._step
-        link = self.link
-        poll = link.poll if link is not None else None
+        poll = self._poll
         deadline = ticks()
         k = 0
         while n == 0 or k < n:

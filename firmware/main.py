@@ -18,7 +18,7 @@ def main():
     hal = HalPico(board)
     try:
         app = App(hal, config=board.config())
-        app.link = SerialLink(hal.uart(), app)
+        app.set_link(SerialLink(hal.uart(), app))
         app.run()
     finally:
         hal.off()

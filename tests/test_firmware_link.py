@@ -1,0 +1,161 @@
+"""The board's real-time loop with its host link: App.run() + SerialLink under heap_lock.
+
+A scripted UART (MicroPython unix port) delivers COBS frames at given ticks -- set the
+telemetry divider, arm, set a reference, then keep-alive requests -- and decodes what
+the board writes back.  The whole run (pacing, control, byte parsing, dispatch,
+telemetry, heartbeats) executes under micropython.heap_lock(); the keep-alives stop at
+tick 1000 and the command watchdog must cut the motor 250 ms later.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from host import fwharness as H
+from host.mpyrun import run_unix
+
+SCRIPT = H.FAKE_HAL + """
+import micropython
+from array import array
+from firmware import codec, crc16, framing
+from firmware import msgtable as T
+from firmware.app import App
+from firmware.link_serial import SerialLink
+
+layout = codec.Layout()
+table = crc16.make_table()
+enc = framing.Encoder(layout, table)
+STREAM = bytearray(4096)
+REL = array('i', [0] * 64)   # release tick of each frame
+END = array('i', [0] * 64)   # end offset of each frame in STREAM
+NF = 0
+pos = 0
+vals = array('i', [0] * 4)
+def add(tick, mid, a=0, b=0):
+    global NF, pos
+    vals[0] = a
+    vals[1] = b
+    n = enc.encode(mid, NF & 0xFF, vals, 0)
+    STREAM[pos:pos + n] = enc.out[:n]
+    pos += n
+    REL[NF] = tick
+    END[NF] = pos
+    NF += 1
+add(2, T.PARAM_SET, T.P_TELEM_DIV, 50)
+add(3, T.ARM)
+add(5, T.SET_REFERENCE, 100000)
+for k in range(1, 11):
+    add(100 * k, T.REQUEST, T.TIMING)
+
+class FakeUart:
+    def __init__(s, app):
+        s.app = app
+        s.rd = 0
+        s.frame = 0
+        s.dec = framing.Decoder(layout, table)
+        s.count = array('i', [0] * 32)
+        s.nbytes = 0
+    def any(s):
+        return 1 if s.frame < NF and REL[s.frame] <= s.app.tick else 0
+    def readinto(s, buf, n):
+        # at most 5 bytes per call: frames arrive in pieces
+        if not s.any():
+            return 0
+        end = END[s.frame]
+        k = end - s.rd
+        if k > 5:
+            k = 5
+        if k > n:
+            k = n
+        for i in range(k):
+            buf[i] = STREAM[s.rd + i]
+        s.rd += k
+        if s.rd >= end:
+            s.frame += 1
+        return k
+    def write(s, mv):
+        n = len(mv)
+        s.nbytes += n
+        for i in range(n):
+            mid = s.dec.feed(mv[i])
+            if mid >= 0:
+                s.count[mid] += 1
+
+hal = Hal()
+app = App(hal)
+uart = FakeUart(app)
+app.set_link(SerialLink(uart, app))
+STATE = array('i', [0] * 1300)
+FAULTS = array('i', [0] * 1300)
+class Rec:
+    def __init__(s):
+        s.link = app.link
+    def poll(s):
+        s.link.poll()
+        t = app.tick
+        if t < 1300:
+            STATE[t] = app.sup.state
+            FAULTS[t] = app.sup.faults
+app.set_link(Rec())
+ok = 0
+err = None
+micropython.heap_lock()
+try:
+    app.run(1250)
+    ok = 1
+except MemoryError as e:
+    err = e
+micropython.heap_unlock()
+if err is not None:
+    import sys
+    sys.print_exception(err)
+print('alloc_free', ok)
+print('ticks', app.tick)
+print('state_10', STATE[10])
+print('state_999', STATE[999])
+first_fault = -1
+for t in range(1300):
+    if FAULTS[t] and first_fault < 0:
+        first_fault = t
+print('first_fault_tick', first_fault)
+print('faults', app.sup.faults)
+print('ref', app.ref_um)
+print('telem_state', uart.count[T.TELEM_STATE])
+print('telem_ctrl', uart.count[T.TELEM_CTRL])
+print('timing', uart.count[T.TIMING])
+print('heartbeat', uart.count[T.HEARTBEAT])
+print('ack', uart.count[T.ACK])
+print('param_value', uart.count[T.PARAM_VALUE])
+print('nack', uart.count[T.NACK])
+print('crc_drops', uart.dec.drops())
+print('motor_final', hal.duty)
+print('step_max', app.timing.step_max)
+"""
+
+
+@pytest.fixture(scope="module")
+def obs() -> dict[str, int]:
+    out = run_unix(SCRIPT, timeout=120)
+    return {k: int(v) for k, v in (line.split() for line in out.splitlines() if line.strip())}
+
+
+def test_run_with_link_allocates_nothing(obs) -> None:
+    assert obs["alloc_free"] == 1 and obs["ticks"] == 1250
+
+
+def test_commands_arrive_in_pieces_and_are_obeyed(obs) -> None:
+    assert obs["state_10"] == 2 and obs["state_999"] == 2  # armed at tick 3, balancing at once
+    assert obs["ref"] == 100000
+    assert obs["ack"] == 2 and obs["param_value"] == 1 and obs["nack"] == 0
+    assert obs["timing"] == 10 and obs["crc_drops"] == 0
+
+
+def test_telemetry_and_heartbeat_are_sent(obs) -> None:
+    assert 24 <= obs["telem_state"] == obs["telem_ctrl"] <= 27  # every 50 ticks
+    assert 24 <= obs["heartbeat"] <= 26  # every 100 ms = 50 ticks of 2 ms, over 1250 ticks
+
+
+def test_watchdog_after_the_host_goes_quiet(obs) -> None:
+    # last keep-alive at tick 1000; 250 ms = 125 ticks later the motor is cut
+    assert 1120 <= obs["first_fault_tick"] <= 1130
+    assert obs["faults"] == 2 and obs["motor_final"] == 0
