@@ -270,7 +270,7 @@ def _tilt(args: argparse.Namespace, params: Any, out: Path, bar: ProgressBar, no
         raise ValueError(f"--step must be > 0, got {args.step}")
     designs = [replace(d, u_max=args.u_max) if args.u_max is not None else d for d in default_tilt_designs(params)]
     rows, table = tilt(params, designs, step=args.step, duration=args.duration, noise=noise, drive=args.drive,
-                       seed=args.seed, scheduler=args.scheduler, progress=bar)
+                       seed=args.seed, chunk=args.chunk, scheduler=args.scheduler, progress=bar)
     print(f"largest recoverable initial tilt, cart acceleration limited to {params.a_max:g} m/s^2 "
           f"(physical limit atan(a_max/g) = {rows[0]['physical_limit']:.4f} rad = {rows[0]['physical_limit_deg']:.1f} deg):")
     print(_fmt_table(rows, ("design", "tilt_max", "tilt_max_deg", "tilt_max_track", "physical_limit", "physical_limit_deg")))

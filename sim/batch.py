@@ -220,6 +220,21 @@ def estimator_rows(ctrl: Any) -> tuple[np.ndarray, np.ndarray] | None:
     return ce[1].copy(), de[1].copy()
 
 
+def _linear_part(ctrl: Any, drive: str) -> tuple[np.ndarray, np.ndarray]:
+    # one matrix for the whole linear part: rows [u; xdot_est; z'] from columns [z; v]
+    Ac, Bc, Cc, Dc, Bu = _ctrl_matrices(ctrl)
+    nz = Ac.shape[0]
+    G = np.zeros((nz + 2, nz + 3))
+    G[0, :nz], G[0, nz:] = Cc, Dc
+    if drive == "motor":
+        est = estimator_rows(ctrl)
+        if est is None:
+            raise BatchError("drive='motor' needs the controller's speed estimate (Ad, Bd, C, M)")
+        G[1, :nz], G[1, nz:] = est
+    G[2:, :nz], G[2:, nz:] = Ac, Bc
+    return G, Bu
+
+
 def _ctrl_matrices(ctrl: Any) -> tuple[np.ndarray, ...]:
     Ac = np.asarray(ctrl.Ac, dtype=float)
     n = Ac.shape[0]
@@ -300,6 +315,7 @@ def simulate_batch(
     accel_limit: float | None = None,
     record: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    ctrl_index: np.ndarray | None = None,
 ) -> BatchResult:
     """Simulate every run of ``runs`` in closed loop with the discrete controller.
 
@@ -308,8 +324,10 @@ def simulate_batch(
     params : RobotParams
         Nominal parameters: the firmware's (sensor conversion, motor inversion, loop
         rate) and the defaults of every run's true plant.
-    ctrl : DiscreteController
-        The controller (``Ac, Bc, Cc, Dc, Bu, Ts, u_max``), see :mod:`host.discrete`.
+    ctrl : DiscreteController or sequence of them
+        The controller (``Ac, Bc, Cc, Dc, Bu, Ts, u_max``), see :mod:`host.discrete`; or
+        several (same period and state size) with ``ctrl_index`` choosing one per run,
+        so that many designs run in one batch.
     runs : RunSet
         Per-run parameters, delays, seeds, initial states, references.
     duration : float
@@ -334,6 +352,8 @@ def simulate_batch(
         Keep per-tick traces (memory ``~ 10 * T * N`` floats).
     progress : callable, optional
         ``progress(ticks_done, ticks_total)`` called now and then.
+    ctrl_index : ndarray of int, shape (N,), optional
+        With a sequence of controllers: the controller of each run.
 
     Returns
     -------
@@ -349,19 +369,37 @@ def simulate_batch(
     if not (duration > 0 and plant_rate > 0 and settle_band > 0 and window > 0):
         raise BatchError("duration, plant_rate, settle_band and window must be > 0")
     noise = NoiseModel() if noise is None else noise
-    Ac, Bc, Cc, Dc, Bu = _ctrl_matrices(ctrl)
-    nz = Ac.shape[0]
-    Ts = float(ctrl.Ts)
-    u_max = float(ctrl.u_max)
-    est = estimator_rows(ctrl) if drive == "motor" else None
-    if drive == "motor" and est is None:
-        raise BatchError("drive='motor' needs the controller's speed estimate (Ad, Bd, C, M)")
-    # one matrix for the whole linear part: rows [u; xdot_est; z'] from columns [z; v]
-    G = np.zeros((nz + 2, nz + 3))
-    G[0, :nz], G[0, nz:] = Cc, Dc
-    if est is not None:
-        G[1, :nz], G[1, nz:] = est
-    G[2:, :nz], G[2:, nz:] = Ac, Bc
+    stacked = isinstance(ctrl, (list, tuple))
+    ctrls = list(ctrl) if stacked else [ctrl]
+    if not ctrls:
+        raise BatchError("no controller given")
+    Gs, Bus = [], []
+    for c in ctrls:
+        G, Bu = _linear_part(c, drive)
+        if Gs and G.shape != Gs[0].shape:
+            raise BatchError("stacked controllers must have the same number of states (same delay_steps)")
+        Gs.append(G)
+        Bus.append(Bu)
+    Ts = float(ctrls[0].Ts)
+    if any(float(c.Ts) != Ts for c in ctrls):
+        raise BatchError("stacked controllers must share the sample period")
+    nz = Bus[0].shape[0]
+    u_maxes = np.array([float(c.u_max) for c in ctrls])
+    if stacked:
+        idx = np.asarray(ctrl_index) if ctrl_index is not None else None
+        if idx is None or idx.shape != (len(runs),) or not np.issubdtype(idx.dtype, np.integer) \
+                or np.any(idx < 0) or np.any(idx >= len(ctrls)):
+            raise BatchError(f"ctrl_index must give each of the {len(runs)} runs a controller index < {len(ctrls)}")
+        # per-run matrices, batch axis last: the same arithmetic for a run whatever the batch
+        Gt = np.ascontiguousarray(np.stack(Gs)[idx].transpose(1, 2, 0))
+        Bu_col = np.ascontiguousarray(np.stack(Bus)[idx].T)
+        u_max: float | np.ndarray = u_maxes[idx]
+    else:
+        if ctrl_index is not None:
+            raise BatchError("ctrl_index needs a sequence of controllers")
+        G = Gs[0]
+        Bu_col = Bus[0][:, None]
+        u_max = float(u_maxes[0])
     N = len(runs)
     n_ticks = int(round(duration / Ts))
     sub = max(1, math.ceil(Ts * plant_rate - 1e-9))
@@ -431,15 +469,15 @@ def simulate_batch(
         W[nz] = enc_total / cpm
         W[nz + 1] = adc_to_phi(flat_adc[idx], sens)
         # --- controller (einsum: the same arithmetic for a run whatever the batch)
-        out = np.einsum("ij,jn->in", G, W)
+        out = np.einsum("ijn,jn->in", Gt, W) if stacked else np.einsum("ij,jn->in", G, W)
         us = np.clip(out[0], -u_max, u_max)
-        duty = duty_from_force(us, out[1], motor_nom) if est is not None else None
+        duty = duty_from_force(us, out[1], motor_nom) if drive == "motor" else None
         if tr is not None:
             for name, val in (("x", X[0]), ("xdot", X[1]), ("phi", X[2]), ("phidot", X[3]), ("u_sat", us), ("x_meas", W[nz]), ("phi_meas", W[nz + 1])):
                 tr[name][k] = val
             tr["duty"][k] = 0 if duty is None else duty
             tr["force"][k] = rhs(X, duty, us)[1]
-        W[:nz] = out[2:] + Bu[:, None] * us
+        W[:nz] = out[2:] + Bu_col * us
         if k == n_ticks:
             break
         # --- plant: RK4 sub-steps with the duty (or force) held

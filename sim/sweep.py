@@ -187,6 +187,12 @@ class SweepConfig:
     tilts : tuple of float, optional
         Tilt mode: run ``i`` is the nominal robot released at rest at ``tilts[i]`` (no
         parameter draw), with the cart acceleration limited to ``a_max``.
+    designs : tuple of Design, optional
+        Several designs in one sweep (tune, tilt): sweep index ``g`` is run
+        ``g % per_design`` of design ``g // per_design`` -- every design sees the same
+        runs (common random numbers) and a task simulates all its designs in one batch.
+    per_design : int
+        Runs per design when ``designs`` is given.
     """
 
     params: RobotParams
@@ -198,8 +204,16 @@ class SweepConfig:
     drive: str = "motor"
     settle_band: float = 0.005
     tilts: tuple[float, ...] | None = None
+    designs: tuple[Design, ...] = ()
+    per_design: int = 0
 
     def __post_init__(self) -> None:
+        if self.designs:
+            if self.per_design < 1:
+                raise SweepError("per_design must be >= 1 with several designs")
+            names = [d.name for d in self.designs]
+            if len(set(names)) != len(names):
+                raise SweepError(f"design names must be unique, got {names}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
             raise SweepError(f"seed must be a non-negative integer, got {self.seed!r}")
         if not self.duration > 0:
@@ -207,19 +221,21 @@ class SweepConfig:
 
     @property
     def size(self) -> int | None:
-        """Number of runs fixed by the config (tilt mode), else ``None``."""
+        """Number of runs fixed by the config (tilt mode, several designs), else ``None``."""
+        if self.designs:
+            return len(self.designs) * self.per_design
         return None if self.tilts is None else len(self.tilts)
 
 
 Task = tuple[SweepConfig, int, int]
 
 
-def _run_seeds(seed: int, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
-    """Uniforms (n, 8) for the parameter draw and a 63-bit noise seed per run."""
-    u = np.empty((stop - start, 8))
-    s = np.empty(stop - start, dtype=np.int64)
-    for j, i in enumerate(range(start, stop)):
-        ss = np.random.SeedSequence(seed, spawn_key=(i,))
+def _run_seeds(seed: int, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Uniforms (n, 8) for the parameter draw and a 63-bit noise seed per run index."""
+    u = np.empty((len(index), 8))
+    s = np.empty(len(index), dtype=np.int64)
+    for j, i in enumerate(index):
+        ss = np.random.SeedSequence(seed, spawn_key=(int(i),))
         p_ss, n_ss = ss.spawn(2)
         u[j] = np.random.default_rng(p_ss).random(8)
         s[j] = int(n_ss.generate_state(1, np.uint64)[0] >> np.uint64(1))
@@ -240,16 +256,16 @@ def sample_runs(cfg: SweepConfig, start: int, stop: int) -> tuple[RunSet, dict[s
         ``M, m_cam, m_shaft, I, b, R, kt`` (robot-file values, replayable as scenario
         ``[params]``).
     """
-    if not 0 <= start <= stop:
-        raise SweepError(f"bad run range {start}..{stop}")
+    if not 0 <= start <= stop or (cfg.size is not None and stop > cfg.size):
+        raise SweepError(f"bad run range {start}..{stop} (sweep size {cfg.size})")
     p = cfg.params
     n = stop - start
-    u, noise_seed = _run_seeds(int(cfg.seed), start, stop)
+    g = np.arange(start, stop, dtype=np.int64)
+    index = g % cfg.per_design if cfg.designs else g  # the run of each sweep index
+    u, noise_seed = _run_seeds(int(cfg.seed), index)
     rate = p.rate
     if cfg.tilts is not None:
-        if stop > len(cfg.tilts):
-            raise SweepError(f"tilt sweep has {len(cfg.tilts)} runs, asked for {start}..{stop}")
-        phi0 = np.asarray(cfg.tilts[start:stop], dtype=float)
+        phi0 = np.asarray(cfg.tilts, dtype=float)[index]
         rows: list[dict[str, float]] = [{} for _ in range(n)]
         dticks = np.full(n, delay_steps(p.delay, rate), dtype=np.int64)
     else:
@@ -283,13 +299,15 @@ def sample_runs(cfg: SweepConfig, start: int, stop: int) -> tuple[RunSet, dict[s
     x0[:, 2] = phi0
     runs = RunSet(x0=x0, values=values, delay_ticks=dticks, noise_seed=noise_seed)
     table: dict[str, np.ndarray] = {
-        "run": np.arange(start, stop, dtype=np.int64),
+        "run": index,
         "noise_seed": noise_seed,
         "delay": dticks / rate,
         "phi0": phi0,
     }
     for k in _SAMPLED:
         table[k] = np.array([getattr(r, k) for r in robots])
+    if cfg.designs:
+        table["design"] = np.array([cfg.designs[int(i)].name for i in g // cfg.per_design])
     return runs, table
 
 
@@ -300,11 +318,17 @@ def run_task(cfg: SweepConfig, start: int, stop: int) -> dict[str, np.ndarray]:
     """
     p = cfg.params
     runs, table = sample_runs(cfg, start, stop)
-    ctrl = cfg.design.controller(p)
+    if cfg.designs:
+        which = np.arange(start, stop) // cfg.per_design
+        used, ctrl_index = np.unique(which, return_inverse=True)
+        ctrl: Any = [cfg.designs[int(i)].controller(p) for i in used]
+    else:
+        ctrl, ctrl_index = cfg.design.controller(p), None
     res = simulate_batch(
         p,
         ctrl,
         runs,
+        ctrl_index=ctrl_index,
         duration=cfg.duration,
         noise=cfg.noise,
         drive=cfg.drive,
@@ -499,7 +523,6 @@ def tune(cfg: SweepConfig, designs: Sequence[Design], n: int, *, chunk: int = 10
         ``pareto`` flag) and the per-run table of every design (``design`` column).
         Designs the design code rejects get a row with ``error`` and no runs.
     """
-    tasks: list[Task] = []
     rows: list[dict[str, Any]] = []
     valid: list[Design] = []
     for d in designs:
@@ -509,17 +532,13 @@ def tune(cfg: SweepConfig, designs: Sequence[Design], n: int, *, chunk: int = 10
             rows.append({**d.as_dict(), "error": str(exc)})
             continue
         valid.append(d)
-        tasks += tasks_for(replace(cfg, design=d), n, chunk)
-    tables = run_tasks(tasks, scheduler=scheduler, progress=progress)
-    per: dict[str, list[dict[str, np.ndarray]]] = {}
-    for (c, _, _), t in zip(tasks, tables):
-        per.setdefault(c.design.name, []).append(t)
-    all_tables = []
+    if not valid:
+        raise SweepError("no valid design to tune")
+    multi = replace(cfg, designs=tuple(valid), per_design=n)
+    table = concat(run_tasks(tasks_for(multi, len(valid) * n, chunk), scheduler=scheduler, progress=progress))
     for d in valid:
-        t = concat(per[d.name])
-        t["design"] = np.array([d.name] * len(t["run"]))
-        all_tables.append(t)
-        s = summarise(t)
+        sel = table["design"] == d.name
+        s = summarise({k: v[sel] for k, v in table.items()})
         rows.append({
             **d.as_dict(),
             "success_rate": s["success_rate"],
@@ -538,7 +557,7 @@ def tune(cfg: SweepConfig, designs: Sequence[Design], n: int, *, chunk: int = 10
     for r in rows:
         r.setdefault("pareto", False)
     rows.sort(key=lambda r: (bool(r["error"]), -r.get("success_rate", 0.0), r.get("settle_p50", math.inf)))
-    return rows, concat(all_tables)
+    return rows, table
 
 
 def pareto_front(points: Sequence[Sequence[float]]) -> set[int]:
@@ -570,7 +589,7 @@ def physical_tilt_limit(params: RobotParams) -> float:
 
 def tilt(params: RobotParams, designs: Sequence[Design], *, step: float = 0.005, hi: float | None = None,
          duration: float = 5.0, noise: NoiseModel | None = None, drive: str = "motor", seed: int = 0,
-         scheduler: str | None = None, progress: Callable[[int, int], None] | None = None,
+         chunk: int = 1000, scheduler: str | None = None, progress: Callable[[int, int], None] | None = None,
          ) -> tuple[list[dict[str, Any]], dict[str, np.ndarray]]:
     """Largest initial tilt each design recovers from with the cart acceleration limited to ``a_max``.
 
@@ -596,29 +615,24 @@ def tilt(params: RobotParams, designs: Sequence[Design], *, step: float = 0.005,
     noise = NoiseModel() if noise is None else noise
     u_lim = (params.M + params.m) * params.a_max
     designs = [d if d.u_max is not None else replace(d, u_max=u_lim) for d in designs]
-    tasks: list[Task] = []
+    cfg = SweepConfig(params=params, uncertainty=Uncertainty.none(), seed=seed, duration=duration, noise=noise,
+                      drive=drive, tilts=tilts, designs=tuple(designs), per_design=len(tilts))
+    t = concat(run_tasks(tasks_for(cfg, len(designs) * len(tilts), chunk), scheduler=scheduler, progress=progress))
+    rec = ~t["fallen"] & np.isfinite(t["settle"])
+    t["recovered"] = rec
+    rows = []
     for d in designs:
-        cfg = SweepConfig(params=params, design=d, uncertainty=Uncertainty.none(), seed=seed, duration=duration,
-                          noise=noise, drive=drive, tilts=tilts)
-        tasks.append((cfg, 0, len(tilts)))
-    tables = run_tasks(tasks, scheduler=scheduler, progress=progress)
-    rows, all_tables = [], []
-    for d, t in zip(designs, tables):
-        rec = ~t["fallen"] & np.isfinite(t["settle"])
-        rec_track = rec & (t["x_max"] <= params.track)
-        t["recovered"] = rec
-        t["design"] = np.array([d.name] * len(tilts))
-        all_tables.append(t)
+        sel = t["design"] == d.name
         rows.append({
             "design": d.name,
-            "tilt_max": _contiguous(t["phi0"], rec),
-            "tilt_max_track": _contiguous(t["phi0"], rec_track),
+            "tilt_max": _contiguous(t["phi0"][sel], rec[sel]),
+            "tilt_max_track": _contiguous(t["phi0"][sel], (rec & (t["x_max"] <= params.track))[sel]),
             "physical_limit": lim,
         })
     for r in rows:
         for k in ("tilt_max", "tilt_max_track", "physical_limit"):
             r[k + "_deg"] = math.degrees(r[k])
-    return rows, concat(all_tables)
+    return rows, t
 
 
 def _contiguous(tilts: np.ndarray, ok: np.ndarray) -> float:

@@ -165,3 +165,24 @@ def test_shape_errors_are_batch_errors() -> None:
         RunSet(x0=np.zeros((3, 4)), x_ref=[0.0, 0.1])
     with pytest.raises(BatchError, match="finite"):
         RunSet(x0=np.array([[0.0, 0.0, np.nan, 0.0]]))
+
+
+def test_several_controllers_in_one_batch(p, ctrl) -> None:
+    soft = controller_ss(p, R=0.1, u_max=4.0)
+    runs = _runs(p, 4)
+    idx = np.array([1, 0, 1, 0])
+    noise = NoiseModel("uniform", amplitude=0.002)
+    both = simulate_batch(p, [ctrl, soft], runs, ctrl_index=idx, noise=noise, duration=0.6).metrics
+    for c, k in ((ctrl, 0), (soft, 1)):
+        alone = simulate_batch(p, c, runs.subset(idx == k), noise=noise, duration=0.6).metrics
+        for name in ("phi_max", "force_max", "xddot_max", "phi_rms"):
+            np.testing.assert_allclose(both[name][idx == k], alone[name], rtol=1e-12, atol=1e-15)
+    # the designs really differ: the soft runs would have asked for more force from the other
+    hard = simulate_batch(p, ctrl, runs.subset(idx == 1), noise=noise, duration=0.6).metrics
+    assert np.all(hard["force_max"] > both["force_max"][idx == 1])
+    with pytest.raises(BatchError, match="ctrl_index"):
+        simulate_batch(p, [ctrl, soft], runs, ctrl_index=np.array([0, 1, 2, 0]), duration=0.1)
+    with pytest.raises(BatchError, match="ctrl_index"):
+        simulate_batch(p, ctrl, runs, ctrl_index=idx, duration=0.1)
+    with pytest.raises(BatchError, match="same number of states"):
+        simulate_batch(p, [ctrl, controller_ss(p, delay=0.004)], runs, ctrl_index=idx, duration=0.1)

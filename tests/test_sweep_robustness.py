@@ -162,3 +162,14 @@ def test_tilt_limits(p) -> None:
     assert rep["tilt_max"] < soft["tilt_max"]  # the aggressive design saturates and loses it
     assert t["xddot_max"].max() <= p.a_max + 1e-9
     assert soft["tilt_max_deg"] == pytest.approx(math.degrees(soft["tilt_max"]))
+
+
+def test_tune_table_does_not_depend_on_chunking(p) -> None:
+    cfg = SweepConfig(params=p, seed=9, duration=0.4)
+    designs = [Design("a", R=0.1), Design("b"), Design("c", observer=3.0)]
+    r1, t1 = tune(cfg, designs, 3, chunk=2)
+    r2, t2 = tune(cfg, designs, 3, chunk=100)
+    assert r1 == r2
+    assert all(np.array_equal(t1[k], t2[k]) for k in t1)
+    with pytest.raises(SweepError, match="unique"):
+        tune(cfg, [Design("a"), Design("a", R=0.1)], 2)
