@@ -161,9 +161,16 @@ class DiscreteController:
         """Number of controller states (4 + delay_steps)."""
         return self.Ac.shape[0]
 
-    def initial_state(self) -> np.ndarray:
-        """The zero state (estimate at rest upright, empty input buffer)."""
-        return np.zeros(self.n)
+    def initial_state(self, v: Sequence[float] | None = None) -> np.ndarray:
+        """Start state: at rest, empty input buffer; upright at 0 unless measurements ``v``.
+
+        With ``v = [x_meas, phi_meas, ...]`` the estimate starts at the measured position
+        and tilt, as the firmware does when balancing starts.
+        """
+        z = np.zeros(self.n)
+        if v is not None:
+            z[0], z[2] = float(v[0]), float(v[1])
+        return z
 
     def output(self, z: np.ndarray, v: Sequence[float]) -> float:
         """Unsaturated force command ``u = Cc z + Dc v`` (N)."""
@@ -318,6 +325,7 @@ def simulate_loop(
     quantise: bool = False,
     substeps: int = 2,
     disturbance: Callable[[float], float] | None = None,
+    start_from_measurement: bool = False,
 ) -> dict[str, np.ndarray]:
     """Close the nonlinear plant around a discrete controller, with delay and saturation.
 
@@ -346,6 +354,9 @@ def simulate_loop(
         RK4 steps per tick.
     disturbance : callable, optional
         Extra force ``disturbance(t)`` (N) at the cart.
+    start_from_measurement : bool
+        Start the float controller's estimate at the first measurement (as the firmware
+        does when balancing starts) instead of at zero.
 
     Returns
     -------
@@ -374,6 +385,8 @@ def simulate_loop(
             ym = round(ym / m_per_count) * m_per_count
             phm = round(phm / rad_per_count) * rad_per_count
         r = float(x_ref(t)) if callable(x_ref) else float(x_ref)
+        if k == 0 and start_from_measurement:
+            z = ctrl.initial_state([ym, phm])
         if controller is None:
             _, us, z = ctrl.tick(z, [ym, phm, r])
         else:

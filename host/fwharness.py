@@ -198,3 +198,132 @@ def fixed_controller(params: RobotParams, fd: FixedDesign) -> Callable[[int, flo
 def default_design() -> FixedDesign:
     """The design of the generated ``firmware/gains.py``."""
     return export()
+
+
+APP_LOOP = """
+import sys
+from firmware.app import App
+class LoopHal:
+    def __init__(s):
+        s.adc = 2048
+        s.enc = 0
+        s.duty = 0
+        s.t = 0
+    def read_angle_raw(s):
+        return s.adc
+    def read_encoder(s):
+        return s.enc
+    def set_motor(s, d):
+        s.duty = d
+    def ticks_us(s):
+        s.t = (s.t + 250) & 0x3FFFFFFF
+        return s.t
+hal = LoopHal()
+app = App(hal, config=CONFIG)
+hal.adc = ADC0
+hal.enc = ENC0
+app.step()
+app.cmd_set_reference(REF_UM)
+app.cmd_arm()
+while True:
+    line = sys.stdin.readline()
+    if not line:
+        break
+    w = line.split()
+    hal.adc = int(w[0])
+    hal.enc = int(w[1])
+    if len(w) > 2:
+        app.cmd_set_reference(int(w[2]))
+    app.step()
+    sys.stdout.write('%d %d %d %d\\n' % (hal.duty, app.ctrl.u, app.sup.state, app.sup.faults))
+"""
+
+
+class MicroPythonApp:
+    """The whole firmware app in a MicroPython unix-port process, stepped over a pipe.
+
+    Each :meth:`step` sends one sensor reading (ADC counts, 16-bit encoder counter,
+    optionally a new reference in um) and returns ``(duty, u_lsb, state, faults)``.
+    The app is armed at start (watchdog off) so it balances as soon as the tilt is
+    inside the arming window.  Use as a context manager.
+    """
+
+    def __init__(self, adc0: int, enc0: int, ref_um: int = 0, config: dict | None = None) -> None:
+        import os
+        import subprocess
+
+        from host.mpyrun import ROOT, micropython_exe
+
+        cfg = {"watchdog_ms": 0, **(config or {})}
+        code = f"CONFIG = {cfg!r}\nADC0 = {adc0}\nENC0 = {enc0}\nREF_UM = {ref_um}\n" + APP_LOOP
+        env = dict(os.environ, MICROPYPATH=f"{ROOT}:.frozen")
+        self.proc = subprocess.Popen([micropython_exe(), "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True, bufsize=1, env=env, cwd=ROOT)
+
+    def step(self, adc: int, enc: int, ref_um: int | None = None) -> tuple[int, int, int, int]:
+        """One control tick; returns ``(duty, u_lsb, state, faults)``."""
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(f"{adc} {enc}\n" if ref_um is None else f"{adc} {enc} {ref_um}\n")
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        if not line:
+            err = self.proc.stderr.read() if self.proc.stderr else ""
+            raise RuntimeError(f"MicroPython app stopped: {err}")
+        a, b, c, d = (int(v) for v in line.split())
+        return a, b, c, d
+
+    def close(self) -> None:
+        """End the interpreter."""
+        if self.proc.stdin:
+            self.proc.stdin.close()
+        self.proc.wait(timeout=10)
+
+    def __enter__(self) -> "MicroPythonApp":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def app_closed_loop(params: RobotParams, x0: Sequence[float], duration: float, *, x_ref: float = 0.0,
+                    rate: float | None = None, substeps: int = 2, config: dict | None = None) -> dict[str, np.ndarray]:
+    """The nonlinear plant closed around the firmware app running under MicroPython.
+
+    Sensors as ``sim/sensors.py`` (ADC counts, 16-bit encoder, ``delay`` ticks late, no
+    noise), the duty through the DC-motor model ``sim/motor.py`` (back EMF included).
+    The arming window is widened to 0.15 rad so a run may start from the report's 0.1 rad.
+    """
+    from sim import motor as smotor
+    from sim import sensors as ssens
+    from sim.plant import dynamics, rk4_step
+
+    rate = float(params.rate if rate is None else rate)
+    Ts = 1.0 / rate
+    d = int(round(params.delay * rate))
+    n = int(round(duration / Ts))
+    phys = params.physical
+    x = np.asarray(x0, dtype=float).copy()
+    hist = [x.copy()] * (d + 1)
+
+    def f(xx: np.ndarray, uu: float) -> np.ndarray:
+        return dynamics(0.0, xx, np.array([uu]), phys)
+
+    def meas(xx: np.ndarray) -> tuple[int, int]:
+        return int(ssens.phi_to_adc(xx[2], params)), int(ssens.x_to_encoder(xx[0], params))
+
+    cols = {k: np.zeros(n) for k in ("t", "x", "xdot", "phi", "phidot", "duty", "force", "state")}
+    adc0, enc0 = meas(x)
+    cfg = {"arm_tilt_mrad": 150, **(config or {})}
+    with MicroPythonApp(adc0, enc0, int(round(x_ref * 1e6)), cfg) as fw:
+        for k in range(n):
+            adc, enc = meas(hist[0])
+            duty, _, state, _ = fw.step(adc, enc)
+            F = float(smotor.force_from_duty(duty, x[1], params))
+            cols["t"][k] = k * Ts
+            for j, name in enumerate(("x", "xdot", "phi", "phidot")):
+                cols[name][k] = x[j]
+            cols["duty"][k], cols["force"][k], cols["state"][k] = duty, F, state
+            for _ in range(substeps):
+                x = rk4_step(f, x, F, Ts / substeps)
+            hist = hist[1:] + [x.copy()]
+    return cols

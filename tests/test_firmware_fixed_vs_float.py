@@ -87,3 +87,15 @@ def test_32bit_port_gives_the_same_numbers(sequences) -> None:
     u_w, v_w = H.mp_controller_run(FD, s.yx[:n], s.yp[:n], s.r[:n], runner="wasm")
     u_py, v_py = H.py_controller_run(FD, s.yx[:n], s.yp[:n], s.r[:n])
     assert u_w == u_py and v_w == v_py
+
+
+@pytest.mark.parametrize("x0, ref", [([0, 0, 0.1, 0], 0.0), ([0, 0, 0, 0], 0.2)], ids=["tilt_0.1", "ref_step_0.2"])
+def test_closed_loop_with_the_micropython_app_in_the_loop(x0, ref) -> None:
+    # the whole firmware app (sensors, supervisor, controller, motor mapping) under the
+    # MicroPython unix port, stepped over a pipe against the nonlinear plant, the sensor
+    # models and the DC-motor model; the float reference drives force directly
+    fw = H.app_closed_loop(P, x0, 4.0, x_ref=ref)
+    fl = simulate_loop(P, FD.ctrl, x0, 4.0, x_ref=ref, quantise=True, start_from_measurement=True)
+    assert set(fw["state"]) == {2.0}  # balancing throughout, no fault
+    assert np.max(np.abs(fw["phi"] - fl["phi"])) <= 0.005
+    assert abs(fw["x"][-1] - ref) < 0.005
