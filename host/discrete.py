@@ -56,6 +56,8 @@ __all__ = [
     "delay_steps",
     "force_limit",
     "simulate_loop",
+    "delayed_plant",
+    "closed_loop_poles",
     "Q_DEFAULT",
     "R_DEFAULT",
 ]
@@ -219,6 +221,7 @@ def controller_ss(
     Q: Sequence[float] | None = None,
     R: float | None = None,
     K: Sequence[float] | None = None,
+    poles: Sequence[complex] | None = None,
     u_max: float | None = None,
     sigma_force: float = SIGMA_FORCE,
     sigma_acc: Sequence[float] = SIGMA_ACC,
@@ -234,15 +237,19 @@ def controller_ss(
         Loop rate in Hz (default ``params.rate``).
     delay : float, optional
         Measurement delay in s (default ``params.delay``); rounded to whole ticks.
-    design : {"lqr", "gain"}
+    design : {"lqr", "place", "gain"}
         ``"lqr"``: dlqr with continuous weights ``Q`` (diagonal), ``R`` mapped as
-        ``Q Ts``, ``R Ts``.  ``"gain"``: use the given state-feedback row ``K``.
+        ``Q Ts``, ``R Ts``.  ``"place"``: discrete pole placement at ``exp(s Ts)`` of the
+        continuous ``poles`` (default: the report's).  ``"gain"``: use the given
+        state-feedback row ``K``.
     Q : sequence of 4 float, optional
         Diagonal of the continuous state weight (default ``Q_DEFAULT``).
     R : float, optional
         Continuous input weight (default ``R_DEFAULT``).
     K : sequence of 4 float, optional
         State feedback for ``design="gain"`` (``u = -K x``).
+    poles : sequence of 4 complex, optional
+        Continuous closed-loop poles for ``design="place"``.
     u_max : float, optional
         Force saturation (N); default :func:`force_limit`.
     sigma_force, sigma_acc, sigma_meas
@@ -260,6 +267,8 @@ def controller_ss(
     """
     Ad, Bd, C, Ts = discretise(params, rate)
     d = delay_steps(params, rate, delay)
+    if poles is not None and design != "place":
+        raise ValueError("poles are only used with design='place'")
     if design == "lqr":
         if K is not None:
             raise ValueError("K is only used with design='gain'")
@@ -269,12 +278,21 @@ def controller_ss(
             raise ValueError(f"Q must be 4 non-negative weights and R > 0, got Q={q}, R={r}")
         Kd, _, _ = ct.dlqr(Ad, Bd, np.diag(q) * Ts, np.array([[r * Ts]]))
         Kd = np.asarray(Kd, dtype=float).reshape(1, 4)
+    elif design == "place":
+        if Q is not None or R is not None:
+            raise ValueError("design='place' takes poles (or the report's), not Q/R")
+        from host.design import REPORT_PLACE_POLES
+
+        sp = np.asarray(REPORT_PLACE_POLES if poles is None else poles, dtype=complex)
+        if sp.shape != (4,) or np.any(sp.real >= 0):
+            raise ValueError(f"place needs 4 stable continuous poles, got {poles!r}")
+        Kd = np.asarray(ct.place(Ad, Bd, np.exp(sp * Ts)), dtype=float).reshape(1, 4)
     elif design == "gain":
         if K is None or Q is not None or R is not None:
             raise ValueError("design='gain' takes K (and no Q/R)")
         Kd = np.asarray(K, dtype=float).reshape(1, 4)
     else:
-        raise ValueError(f"unknown design {design!r} (expected 'lqr' or 'gain')")
+        raise ValueError(f"unknown design {design!r} (expected 'lqr', 'place' or 'gain')")
     if np.max(np.abs(np.linalg.eigvals(Ad - Bd @ Kd))) >= 1.0:
         raise ValueError("the state feedback does not stabilise the discrete plant")
     M = _kalman_gain(Ad, Bd, C, Ts, sigma_force, sigma_acc, sigma_meas)
@@ -312,6 +330,57 @@ def controller_ss(
         Ac=Ac, Bc=Bc, Cc=Cc, Dc=Dc, Bu=Bu, Ts=Ts, delay_steps=d, u_max=umax,
         Ad=Ad, Bd=Bd, C=C, K=Kd, M=M, kr=kr, Kf=Kf, kb=kb, design=design,
     )
+
+
+def delayed_plant(params: RobotParams, rate: float | None = None,
+                  delay: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int]:
+    """The discrete plant with the measurement delay as extra states.
+
+    State ``[x (4), y[k-1], ..., y[k-d]]`` (``y = [x, phi]``, 2 per delayed sample); the
+    output is the oldest sample ``y[k-d]``, which is what the controller sees at tick k.
+
+    Returns
+    -------
+    A : ndarray (4 + 2d, 4 + 2d)
+    B : ndarray (4 + 2d, 1)
+    C : ndarray (2, 4 + 2d)
+    Ts : float
+    d : int
+    """
+    Ad, Bd, C, Ts = discretise(params, rate)
+    d = delay_steps(params, rate, delay)
+    n = 4 + 2 * d
+    A = np.zeros((n, n))
+    A[:4, :4] = Ad
+    B = np.zeros((n, 1))
+    B[:4] = Bd
+    Cd = np.zeros((2, n))
+    if d == 0:
+        Cd[:, :4] = C
+        return A, B, Cd, Ts, d
+    A[4:6, :4] = C  # y[k] enters the delay line
+    for i in range(1, d):
+        A[4 + 2 * i : 6 + 2 * i, 2 + 2 * i : 4 + 2 * i] = np.eye(2)
+    Cd[:, n - 2 :] = np.eye(2)
+    return A, B, Cd, Ts, d
+
+
+def closed_loop_poles(params: RobotParams, ctrl: DiscreteController) -> np.ndarray:
+    """Eigenvalues of the linear loop: delayed plant and controller (no saturation).
+
+    With the exact predictor they are the state-feedback poles ``eig(Ad - Bd K)``, the
+    filter poles ``eig(Ad (I - M C))`` and zeros (pure delays).
+    """
+    A, B, C, _, d = delayed_plant(params, 1.0 / ctrl.Ts, ctrl.delay_steps * ctrl.Ts)
+    n, m = A.shape[0], ctrl.n
+    # v = [y, r] with r = 0; u = Cc z + Dc[:, :2] C xp
+    Dy = ctrl.Dc[:, :2]
+    Acl = np.zeros((n + m, n + m))
+    Acl[:n, :n] = A + B @ Dy @ C
+    Acl[:n, n:] = B @ ctrl.Cc
+    Acl[n:, :n] = ctrl.Bc[:, :2] @ C + ctrl.Bu @ Dy @ C
+    Acl[n:, n:] = ctrl.Ac + ctrl.Bu @ ctrl.Cc
+    return np.linalg.eigvals(Acl)
 
 
 def simulate_loop(

@@ -112,3 +112,36 @@ def test_zoh_matches_python_control(params) -> None:
     sd = ct.c2d(ct.ss(A, B, C0, D), Ts)
     np.testing.assert_allclose(Ad, sd.A, atol=1e-12)
     np.testing.assert_allclose(Bd, sd.B, atol=1e-12)
+
+
+@pytest.mark.parametrize("design", ["lqr", "place"])
+def test_separation_with_the_delay_as_states(params, design) -> None:
+    from host.discrete import closed_loop_poles, delayed_plant
+
+    c = controller_ss(params, design=design)
+    A, B, C, Ts, d = delayed_plant(params)
+    assert d == 5 and A.shape == (14, 14) and C.shape == (2, 14)
+    ev = closed_loop_poles(params, c)
+    assert np.max(np.abs(ev)) < 1.0
+    # the exact predictor: feedback poles and filter poles, the rest pure delays (zeros,
+    # numerically spread by the repeated root)
+    want = np.concatenate([np.linalg.eigvals(c.Ad - c.Bd @ c.K), np.linalg.eigvals(c.Ad @ (np.eye(4) - c.M @ c.C))])
+    big = ev[np.argsort(-np.abs(ev))[:8]]
+    np.testing.assert_allclose(np.sort_complex(big), np.sort_complex(want), atol=1e-6)
+    assert np.all(np.abs(ev[np.argsort(-np.abs(ev))[8:]]) < 0.05)
+
+
+def test_place_design_balances(params) -> None:
+    c = controller_ss(params, design="place")
+    # the report's poles [-4.774 +- 5.9172j, -10.1, -10.2] mapped by exp(s Ts)
+    s = np.sort_complex(np.log(np.linalg.eigvals(c.Ad - c.Bd @ c.K).astype(complex)) / c.Ts)
+    np.testing.assert_allclose(s, np.sort_complex([-4.774 + 5.9172j, -4.774 - 5.9172j, -10.1, -10.2]), rtol=1e-6)
+    r = simulate_loop(params, c, [0, 0, 0.1, 0], 4.0, quantise=True)
+    assert np.max(np.abs(r["phi"])) < 0.3 and abs(r["phi"][-1]) < 0.01
+
+
+def test_start_from_measurement(params, ctrl) -> None:
+    z = ctrl.initial_state([0.05, 0.1, 0.0])
+    assert z[0] == 0.05 and z[2] == 0.1 and not np.any(z[4:])
+    with pytest.raises(ValueError):
+        controller_ss(params, poles=[-1, -2, -3, -4])  # poles only with place
