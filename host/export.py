@@ -436,6 +436,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ki", type=float, default=0.0, help="integral gain on cart position, N/(m*s)")
     parser.add_argument("--deadband", type=int, default=0, help="motor deadband compensation, duty counts")
     parser.add_argument("--rate", type=float, default=None, help="loop rate in Hz (default: from the parameters)")
+    parser.add_argument("--design", choices=("lqr", "place"), default="lqr",
+                        help="discrete design: dlqr (weights --Q/--R) or pole placement (the report's poles)")
     parser.add_argument("--Q", type=float, nargs=4, default=None, metavar="q", help="LQR state weights (diagonal)")
     parser.add_argument("--R", type=float, default=None, help="LQR input weight")
 
@@ -443,7 +445,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Export the fixed-point tables (``upright export``)."""
     p = load_params(args.params)
-    c = controller_ss(p, rate=args.rate, Q=args.Q, R=args.R)
+    c = controller_ss(p, rate=args.rate, design=args.design, Q=args.Q, R=args.R)
     fd = export(p, c, ki=args.ki, deadband=args.deadband)
     text = render(fd)
     if args.out:

@@ -132,3 +132,6 @@ def test_cli_export(tmp_path) -> None:
     assert cli.main(["export", "--out", str(out), "--blob", str(blob), "--ki", "5"]) == 0
     assert "do not edit" in out.read_text()
     assert len(blob.read_bytes()) % 4 == 0
+    assert cli.main(["export", "--design", "place", "--out", str(out)]) == 0
+    assert "design=place" in out.read_text()
+    assert cli.main(["export", "--design", "place", "--Q", "1", "0", "1", "0"]) == 1  # clear error, exit 1
