@@ -89,6 +89,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="motor: duty through the DC motor model; force: ideal force actuator")
     parser.add_argument("--tilt0", type=float, default=0.03, help="robustness: initial tilt range +-rad")
     parser.add_argument("--u-max", type=float, default=None, dest="u_max", help="controller force saturation (N)")
+    parser.add_argument("--q-x", type=float, default=None, dest="q_x", help="design: LQR weight on x (robustness, tilt)")
+    parser.add_argument("--q-phi", type=float, default=None, dest="q_phi", help="design: LQR weight on phi")
+    parser.add_argument("--r", type=float, default=None, help="design: LQR input weight R")
+    parser.add_argument("--observer", type=float, default=1.0, help="design: observer speed factor (>1 faster)")
     parser.add_argument("--worst", type=int, default=5, help="robustness: worst runs exported as scenarios")
     parser.add_argument("--search", choices=("grid", "random"), default="grid", help="tune: grid or random search")
     parser.add_argument("--designs", type=_positive_int, default=20, help="tune --search random: number of designs")
@@ -188,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     bar = ProgressBar(f"sweep {args.kind}", enabled=not args.quiet)
-    base = SweepConfig(params=params, design=Design(u_max=args.u_max), uncertainty=Uncertainty(tilt=args.tilt0),
+    base = SweepConfig(params=params, design=_chosen_design(args), uncertainty=Uncertainty(tilt=args.tilt0),
                        seed=args.seed, duration=args.duration, noise=noise, drive=args.drive)
     where = f"on Dask at {args.scheduler}" if args.scheduler else "in this process"
     print(f"upright sweep {args.kind}: seed {args.seed}, noise {args.noise}, drive {args.drive}, {where}")
@@ -197,6 +201,26 @@ def run(args: argparse.Namespace) -> int:
     if args.kind == "tune":
         return _tune(args, base, out, bar)
     return _tilt(args, params, out, bar, noise)
+
+
+def _custom(args: argparse.Namespace) -> bool:
+    return args.q_x is not None or args.q_phi is not None or args.r is not None or args.observer != 1.0
+
+
+def _chosen_design(args: argparse.Namespace) -> Any:
+    """The design given by --q-x/--q-phi/--r/--observer/--u-max (default: the report's LQR)."""
+    from host.discrete import Q_DEFAULT, R_DEFAULT
+    from sim.sweep import Design
+
+    if not args.observer > 0:
+        raise ValueError(f"--observer must be > 0, got {args.observer}")
+    if not _custom(args):
+        return Design("lqr", u_max=args.u_max)
+    qx = Q_DEFAULT[0] if args.q_x is None else args.q_x
+    qphi = Q_DEFAULT[2] if args.q_phi is None else args.q_phi
+    r = R_DEFAULT if args.r is None else args.r
+    return Design(f"qx{qx:g}_qphi{qphi:g}_r{r:g}_obs{args.observer:g}", Q=(qx, 0.0, qphi, 0.0), R=r,
+                  observer=args.observer, u_max=args.u_max)
 
 
 def _robustness(args: argparse.Namespace, cfg: Any, out: Path, bar: ProgressBar) -> int:
@@ -268,7 +292,10 @@ def _tilt(args: argparse.Namespace, params: Any, out: Path, bar: ProgressBar, no
 
     if not args.step > 0:
         raise ValueError(f"--step must be > 0, got {args.step}")
-    designs = [replace(d, u_max=args.u_max) if args.u_max is not None else d for d in default_tilt_designs(params)]
+    if _custom(args):
+        designs = [_chosen_design(args)]
+    else:
+        designs = [replace(d, u_max=args.u_max) if args.u_max is not None else d for d in default_tilt_designs(params)]
     rows, table = tilt(params, designs, step=args.step, duration=args.duration, noise=noise, drive=args.drive,
                        seed=args.seed, chunk=args.chunk, scheduler=args.scheduler, progress=bar)
     print(f"largest recoverable initial tilt, cart acceleration limited to {params.a_max:g} m/s^2 "

@@ -49,10 +49,21 @@ def test_bad_arguments_are_clear_errors(tmp_path, capsys) -> None:
     assert cli.main(["sweep", "robustness", "--noise", "pink:1", "--out", str(tmp_path)]) == 1
     assert "--noise" in capsys.readouterr().err
     assert cli.main(["sweep", "robustness", "--duration", "-1", "--out", str(tmp_path)]) == 1
+    assert cli.main(["sweep", "robustness", "--r", "-1", "--quiet", "--out", str(tmp_path)]) == 1
+    assert "R > 0" in capsys.readouterr().err
+    assert cli.main(["sweep", "robustness", "--observer", "0", "--quiet", "--out", str(tmp_path)]) == 1
     with pytest.raises(SystemExit):
         cli.main(["sweep", "robustness", "--n", "0"])
     with pytest.raises(SystemExit):
         cli.main(["sweep", "wobble"])
+
+
+def test_a_chosen_design_is_swept(tmp_path, capsys) -> None:
+    assert cli.main(["sweep", "robustness", "--n", "3", "--duration", "0.4", "--q-x", "1", "--r", "0.1",
+                     "--observer", "0.5", "--worst", "1", "--quiet", "--no-plots", "--out", str(tmp_path)]) == 0
+    capsys.readouterr()
+    s = load_scenario(next((tmp_path / "scenarios").glob("*.toml")))
+    assert "design qx1_qphi0.8_r0.1_obs0.5" in s.expect.note
 
 
 def test_parse_noise() -> None:
