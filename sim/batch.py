@@ -20,7 +20,13 @@ shape ``(N,)`` handed to the broadcasting models of :mod:`sim.plant` and :mod:`s
 Randomness is per run, never per batch: run ``i`` draws its noise from
 ``numpy.random.default_rng(noise_seed[i])`` exactly as a single-run
 :class:`sim.sensors.NoiseSource` would, so a run's result does not depend on which
-batch, chunk or machine simulated it (the Dask scale-out relies on this).
+batch, chunk or machine simulated it (the Dask scale-out relies on this).  For the same
+reason the controller's linear algebra is an ``einsum`` and not a BLAS product: BLAS
+kernels round a column differently depending on where it sits in the matrix.
+
+The firmware side (count conversion, motor inversion, controller) always uses the
+*nominal* parameters; only the plant and the motor that turns duty into force are the
+run's true ones -- that is what parameter uncertainty means for the real robot.
 
 :func:`closed_loop_iosys` is the same loop for one run as a python-control discrete-time
 ``nlsys`` (scalar code written independently of the batch code); :func:`simulate_run`
