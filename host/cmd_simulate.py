@@ -12,6 +12,11 @@ The pendulum falling from 0.05 rad with no force::
 The report's LQR design holding a 0.2 N push for 5 s::
 
     upright simulate --design lqr --push 0.2 --push-duration 5 --duration 8 --csv lqr.csv
+
+A scenario (``sim/scenarios/*.toml`` or a path) with the discrete controller the firmware
+runs, in float, through the motor, sensor, delay and noise models; with a summary and plot::
+
+    upright simulate --scenario ref_step_20cm --csv step.csv --plot step.png
 """
 
 from __future__ import annotations
@@ -54,6 +59,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     mode = parser.add_mutually_exclusive_group(required=True)
     mode.add_argument("--open-loop", action="store_true", help="no controller: only the force profile acts")
     mode.add_argument("--design", choices=DESIGNS, help="close the loop around this design (continuous-time, sampled at --dt)")
+    mode.add_argument(
+        "--scenario",
+        metavar="NAME",
+        help="run a scenario (name in sim/scenarios or a TOML path) with the firmware's discrete controller in float",
+    )
     parser.add_argument("--params", metavar="TOML", help="parameter file (default: the report's robot)")
     parser.add_argument("--x0", type=float, default=0.0, help="initial cart position (m)")
     parser.add_argument("--phi0", type=float, default=0.0, help="initial tilt from upright (rad)")
@@ -66,10 +76,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--substeps", type=int, default=4, help="RK4 steps per sample")
     parser.add_argument("--u-limit", type=float, default=None, help="saturate the controller force (N)")
     parser.add_argument("--csv", default="-", help="output CSV path ('-' for stdout, the default)")
+    parser.add_argument("--plot", metavar="PNG", help="with --scenario: write the run's plot here")
+
+
+def run_scenario(args: argparse.Namespace) -> int:
+    """``--scenario``: the float closed loop of a scenario, CSV + summary (+ plot)."""
+    from host.discrete import controller_ss
+    from sim.metrics import evaluate, summary_table
+    from sim.plantsim import run_scenario_float
+    from sim.scenario import load_scenario
+
+    params = load_params(args.params)
+    scenario = load_scenario(args.scenario)
+    log = run_scenario_float(scenario, params, controller_ss(params), init="measured")
+    write_csv(args.csv, {"force": log["force"], **{k: log[k] for k in ("t", "x", "xdot", "phi", "phidot")}})
+    summary = evaluate(log, scenario, params, name=scenario.name)
+    print(summary_table([summary], title="Float simulation of the firmware's discrete controller"), file=sys.stderr)
+    if args.plot:
+        from sim.plots import plot_run
+
+        plot_run(log, args.plot, params, title=f"{scenario.name}: float simulation", metrics=summary.metrics)
+        print(f"plot: {args.plot}", file=sys.stderr)
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the simulation and write the CSV."""
+    if args.scenario:
+        return run_scenario(args)
     params = load_params(args.params)
     if args.duration <= 0 or args.dt <= 0 or args.substeps < 1:
         raise ValueError("--duration, --dt and --substeps must be positive")
