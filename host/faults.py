@@ -59,11 +59,13 @@ __all__ = [
     "FrameFaults",
     "StreamFaults",
     "BusFaults",
+    "Tap",
     "SensorFault",
     "ActuatorFault",
     "SeqAccount",
     "LossyRun",
     "run_lossy",
+    "stream_realtime",
     "ProbeSession",
     "SENSOR_KINDS",
 ]
@@ -120,6 +122,9 @@ class FrameFaults:
         swallowed while cut).
     cut : bool
         While True every frame is swallowed (link loss).
+    enabled : bool
+        While False every frame passes (counted); set it to start the faults after a
+        clean set-up.
     """
 
     def __init__(self, *, seed: int = 0, flip: float = 0.0, drop: float = 0.0, drop_byte: float = 0.0,
@@ -139,6 +144,7 @@ class FrameFaults:
         self._rng = random.Random(self.seed)
         self._held: bytes | None = None
         self.cut = False
+        self.enabled = True
         self.counts = {k: 0 for k in ("frames", "passed", "dropped", "flipped", "byte_dropped",
                                       "duplicated", "reordered", "cut")}
 
@@ -159,6 +165,9 @@ class FrameFaults:
         if self.cut:
             c["cut"] += 1
             return []
+        if not self.enabled:
+            c["passed"] += 1
+            return [frame]
         r = self._rng.random()
         out: list[bytes] = []
         lim = self.drop
@@ -305,6 +314,85 @@ class BusFaults:
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._bus, name)
+
+
+class Tap:
+    """A byte-stream hook that passes data on and decodes a copy (what the host received).
+
+    Use it as a ``fault_rx`` hook (alone, or chained after a fault hook with ``inner``) to
+    see every frame the board sent, with the host's receive time, even while the runner's
+    own loop consumes them.
+
+    Parameters
+    ----------
+    link : {"serial", "can"}
+        Framing of the stream (CAN: python-can ``serial``-interface frames).
+    inner : callable, optional
+        A hook applied first (e.g. :class:`StreamFaults`); the tap sees its output.
+    cut : bool
+        Start with the stream cut (nothing passes) -- see :attr:`cut`.
+
+    Attributes
+    ----------
+    messages : list of (float, Message, int or None)
+        ``(time.monotonic(), message, seq)`` of every decoded frame.
+    cut : bool
+        While True nothing passes (and nothing is recorded): link loss on this direction.
+    """
+
+    def __init__(self, link: str = "serial", inner: Callable[[bytes], bytes] | None = None,
+                 cut: bool = False) -> None:
+        if link not in ("serial", "can"):
+            raise FaultError(f"link must be 'serial' or 'can', got {link!r}")
+        self.link = link
+        self.inner = inner
+        self.cut = bool(cut)
+        self.messages: list[tuple[float, Any, int | None]] = []
+        self._dec = M.SerialStreamDecoder()
+        self._buf = bytearray()
+
+    def __call__(self, data: bytes) -> bytes:
+        if self.cut:
+            return b""
+        if self.inner is not None:
+            data = self.inner(data)
+        now = time.monotonic()
+        if self.link == "serial":
+            for m, seq in self._dec.feed(data):
+                self.messages.append((now, m, seq))
+        else:
+            b = self._buf
+            b += data
+            while True:
+                i = b.find(0xAA)
+                if i < 0:
+                    b.clear()
+                    break
+                del b[:i]
+                if len(b) < 6:
+                    break
+                dlc = b[5]
+                if dlc > 8:
+                    del b[:1]
+                    continue
+                need = 11 + dlc
+                if len(b) < need:
+                    break
+                if b[need - 1] == 0xBB:
+                    cid = int.from_bytes(b[6:10], "little")
+                    try:
+                        _, m = M.decode_can(cid & 0x7FF, bytes(b[10:10 + dlc]))
+                        self.messages.append((now, m, None))
+                    except M.FrameError:
+                        pass
+                    del b[:need]
+                else:
+                    del b[:1]
+        return data
+
+    def of(self, name: str) -> list[tuple[float, Any, int | None]]:
+        """The recorded frames of one message name (``"heartbeat"``, ...)."""
+        return [r for r in self.messages if r[1].NAME == name]
 
 
 # ---------------------------------------------------------------- sensor / actuator faults
@@ -558,9 +646,26 @@ def run_lossy(session: HilSession, scenario: Scenario, params: RobotParams | Non
     params = params or load_params()
     sim = PlantSim(params, scenario, seed=seed, x0=x0)
     acc = SeqAccount()
-    nacks: list[str] = []
     if prepare:
         session.prepare(sim)
+    # python-can's serial interface ignores recv()'s timeout and waits for its port's read
+    # timeout (0.1 s) instead: shorten it for the run, or each lost answer costs 0.1 s
+    port = getattr(getattr(link, "bus", None), "_ser", None) if isinstance(link, CanLink) else None
+    old_timeout = port.timeout if port is not None else None
+    if port is not None:
+        port.timeout = answer_timeout
+    try:
+        return _lossy_loop(session, link, sim, scenario, acc, sensor, actuator, answer_timeout, on_tick)
+    finally:
+        if port is not None:
+            port.timeout = old_timeout
+
+
+def _lossy_loop(session: HilSession, link: Any, sim: PlantSim, scenario: Scenario, acc: SeqAccount,
+                sensor: Callable[[int, int, int], tuple[int, int]] | None,
+                actuator: Callable[[int, int], int] | None, answer_timeout: float,
+                on_tick: Callable[[int], None] | None) -> LossyRun:
+    nacks: list[str] = []
     n = sim.n_ticks
     fw_state = np.full(n, -1, dtype=np.int64)
     fw_faults = np.full(n, -1, dtype=np.int64)
@@ -629,6 +734,67 @@ def run_lossy(session: HilSession, scenario: Scenario, params: RobotParams | Non
                              "nacks": nacks}
     stats.update(acc.stats())
     return LossyRun(log, stats)
+
+
+def stream_realtime(session: HilSession, seconds: float, *, adc: int, enc: int = 0, start_tick: int = 0,
+                    at: Sequence[tuple[float, Callable[[], None]]] = ()) -> int:
+    """Stream a constant sensor reading to a real-time board for ``seconds`` (wall clock).
+
+    The board paces itself; the host sends one ``hil_sensor`` frame per loop period and a
+    reader thread drains whatever comes back (record it with a :class:`Tap` as the
+    session's ``fault_rx`` hook).  ``at`` lists ``(t, action)`` pairs: ``action()`` is
+    called once ``t`` seconds into the stream (cut the link, restore it...).  This is the
+    bare minimum a link-loss test needs -- no plant, so nothing can fall and trip another
+    fault -- and it does not depend on :meth:`HilSession.run_realtime`.
+
+    Returns
+    -------
+    int
+        The next tick number.
+    """
+    import threading
+
+    if session.mode != "realtime":
+        raise HilError("stream_realtime needs a real-time session")
+    link = session._link()
+    period = 1.0 / int(load_params().rate)
+    stop = threading.Event()
+    errors: list[BaseException] = []
+
+    def reader() -> None:
+        while not stop.is_set():
+            try:
+                link.recv(0.02)
+            except LinkError as exc:  # pragma: no cover - reported below
+                errors.append(exc)
+                return
+            except Exception as exc:  # noqa: BLE001 - python-can on a half-read frame
+                errors.append(exc)
+                return
+
+    th = threading.Thread(target=reader, daemon=True)
+    th.start()
+    actions = sorted(at, key=lambda a: a[0])
+    t0 = time.perf_counter()
+    k = start_tick
+    try:
+        while True:
+            now = time.perf_counter() - t0
+            if now >= seconds:
+                break
+            while actions and actions[0][0] <= now:
+                actions.pop(0)[1]()
+            link.send(_SENSOR(tick=k & 0x3FFFFFFF, adc=int(adc), enc=int(enc) & 0xFFFF))
+            k += 1
+            nxt = t0 + (k - start_tick) * period
+            while (left := nxt - time.perf_counter()) > 0:
+                time.sleep(left if left < 0.001 else left - 0.0005)
+    finally:
+        stop.set()
+        th.join(1.0)
+    if errors:
+        raise HilError(f"receive failed while streaming: {errors[0]}")
+    return k
 
 
 # ---------------------------------------------------------------- the probed virtual board
