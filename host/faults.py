@@ -409,6 +409,8 @@ class SensorFault:
         (readings ``delay`` ticks older than they should be).
     start : int
         First tick affected.
+    stop : int, optional
+        First tick no longer affected (default: never); an encoder jump keeps its offset.
     params : RobotParams, optional
         For the ADC range (``adc_bits``); default ``sim/robot.toml``.
     seed : int
@@ -424,8 +426,8 @@ class SensorFault:
         Readings changed so far.
     """
 
-    def __init__(self, kind: str, start: int, *, params: RobotParams | None = None, seed: int = 0,
-                 jump: int = 4000, delay: int = 25) -> None:
+    def __init__(self, kind: str, start: int, *, stop: int | None = None, params: RobotParams | None = None,
+                 seed: int = 0, jump: int = 4000, delay: int = 25) -> None:
         if kind not in SENSOR_KINDS:
             raise FaultError(f"unknown sensor fault {kind!r}; known: {', '.join(SENSOR_KINDS)}")
         if int(start) < 0:
@@ -435,6 +437,9 @@ class SensorFault:
         p = params or load_params()
         self.kind = kind
         self.start = int(start)
+        self.stop = None if stop is None else int(stop)
+        if self.stop is not None and self.stop <= self.start:
+            raise FaultError(f"stop ({stop}) must be after start ({start})")
         self.adc_max = (1 << int(p.adc_bits)) - 1
         self.jump = int(jump)
         self.delay = int(delay)
@@ -450,7 +455,9 @@ class SensorFault:
             self._hist.append((adc, enc))
             if len(self._hist) > self.delay + 1:
                 self._hist.pop(0)
-        if tick < self.start:
+        if tick < self.start or (self.stop is not None and tick >= self.stop):
+            if k == "enc_jump" and self.stop is not None and tick >= self.stop:
+                return adc, (enc + self.jump) & 0xFFFF
             return adc, enc
         self.applied += 1
         if k == "adc_low":
