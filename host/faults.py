@@ -606,8 +606,9 @@ class LossyRun:
     stats : dict
         ``ticks``, ``answered``, ``lost``, ``stale`` (answers that came too late or for a
         tick not sent now), ``bad_tick`` (answers for a tick never sent: must stay 0),
-        ``host_drops`` (the host decoder's counters), the :class:`SeqAccount` stats, and
-        ``nacks`` (list of str).
+        ``host_drops`` (the host decoder's counters), the :class:`SeqAccount` stats,
+        ``nacks`` (list of str) and ``replies`` (``(tick, message)`` of every ACK, NACK and
+        PARAM_VALUE received during the run).
     """
 
     log: dict[str, np.ndarray]
@@ -675,6 +676,7 @@ def _lossy_loop(session: HilSession, link: Any, sim: PlantSim, scenario: Scenari
                 actuator: Callable[[int, int], int] | None, answer_timeout: float,
                 on_tick: Callable[[int], None] | None) -> LossyRun:
     nacks: list[str] = []
+    replies: list[tuple[int, Any]] = []
     n = sim.n_ticks
     fw_state = np.full(n, -1, dtype=np.int64)
     fw_faults = np.full(n, -1, dtype=np.int64)
@@ -723,6 +725,9 @@ def _lossy_loop(session: HilSession, link: Any, sim: PlantSim, scenario: Scenari
             acc.add(m, link.last_seq)
             if type(m).NAME == "nack":
                 nacks.append(f"tick {k}: {m}")
+                replies.append((k, m))
+            elif type(m).NAME in ("ack", "param_value"):
+                replies.append((k, m))
         fw_state[k], fw_faults[k], duty_fw[k] = st, fl, duty
         sim.step(actuator(k, duty) if actuator is not None else duty)
     # collect what is still in flight
@@ -740,7 +745,7 @@ def _lossy_loop(session: HilSession, link: Any, sim: PlantSim, scenario: Scenari
                adc_sent=adc_s, enc_sent=enc_s)
     stats: dict[str, Any] = {"ticks": n, "answered": int(answered.sum()), "lost": int(n - answered.sum()),
                              "stale": stale, "bad_tick": bad_tick, "host_drops": dict(link.drops),
-                             "nacks": nacks}
+                             "nacks": nacks, "replies": replies}
     stats.update(acc.stats())
     return LossyRun(log, stats)
 
