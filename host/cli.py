@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "proto": ("host.cmd_proto", "encode/decode protocol messages (serial or CAN framing) and dump a live link"),
     "hil": ("host.cmd_hil", "close the firmware in a hardware-in-the-loop run with the simulated plant"),
     "sweep": ("host.cmd_sweep", "batch Monte Carlo: robustness, weight tuning, largest recoverable tilt"),
+    "soak": ("host.soak", "long lockstep HIL run: firmware heap, timing drift, telemetry accounted for, metrics stable"),
     "demo": ("host.cmd_demo", "the main job: the report's scenarios balanced by the firmware, summary and plots"),
 }
 
