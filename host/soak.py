@@ -13,8 +13,8 @@ heap
     is read from the virtual board's exit report.)
 timing drift
     the board's uptime (from heartbeats requested at the start and the end) must advance
-    by exactly one loop period per tick; its step time (telemetry ``step_us``) must not
-    grow from chunk to chunk.
+    by exactly one loop period per tick; its step time (telemetry ``step_us``, median per chunk)
+    must not grow from chunk to chunk.
 accounting
     every tick answered with its own tick number (a lost or repeated tick stops the run);
     every telemetry frame accounted for: on serial by sequence number (no gap, no
@@ -66,8 +66,8 @@ class SoakResult:
     ----------
     chunks : list of dict
         Per chunk: ``t0``, ``t1`` (s), ``rms_phi`` (rad), ``peak_phi`` (rad),
-        ``rms_err`` (m, x - x_ref), ``peak_duty``, ``step_us_mean``, ``step_us_max`` (from
-        telemetry), ``telemetry`` (pairs received), ``ticks_per_s`` (host wall rate),
+        ``rms_err`` (m, x - x_ref), ``peak_duty``, ``step_us_mean``, ``step_us_median``,
+        ``step_us_max`` (from telemetry), ``telemetry`` (pairs received), ``ticks_per_s`` (host wall rate),
         ``not_balancing`` (ticks answered in another state).
     stats : dict
         Whole-run figures: ticks, telemetry accounting, firmware probe, uptime.
@@ -222,6 +222,7 @@ def _run(sess: ProbeSession, scen: Any, params: RobotParams, chunk_s: float, res
                 "rms_phi": float(np.sqrt(np.mean(log["phi"] ** 2))), "peak_phi": float(np.max(np.abs(log["phi"]))),
                 "rms_err": float(np.sqrt(np.mean(err ** 2))), "peak_duty": float(np.max(np.abs(log["duty"]))),
                 "step_us_mean": float(st.mean()) if st.size else math.nan,
+                "step_us_median": float(np.median(st)) if st.size else math.nan,
                 "step_us_max": float(st.max()) if st.size else math.nan,
                 "telemetry": float(telemetry - c_tel), "ticks_per_s": cnt / max(now - c_wall, 1e-9),
                 "not_balancing": float(np.count_nonzero(states[:cnt] != _BALANCING)),
@@ -289,8 +290,10 @@ def _check(res: SoakResult, probe: dict[str, int], tol: float) -> None:
         for key, floor in (("rms_phi", 1e-4), ("rms_err", 1e-3), ("peak_duty", 50.0)):
             if abs(c[key] - ref[key]) > tol * ref[key] + floor:
                 f.append(f"chunk {i}: {key} {c[key]:.4g} vs {ref[key]:.4g} in the first chunk")
-        if c["step_us_mean"] > 1.5 * ref["step_us_mean"] + 10:
-            f.append(f"chunk {i}: firmware step {c['step_us_mean']:.1f} us, first chunk {ref['step_us_mean']:.1f} us")
+        # the median: a step the OS preempted (another process on the machine) is not drift
+        if c["step_us_median"] > 2.0 * ref["step_us_median"] + 10:
+            f.append(f"chunk {i}: firmware step (median) {c['step_us_median']:.1f} us, first chunk "
+                     f"{ref['step_us_median']:.1f} us")
     for i, c in enumerate(res.chunks):
         if c["not_balancing"]:
             f.append(f"chunk {i}: {c['not_balancing']:.0f} ticks not balancing")

@@ -199,11 +199,13 @@ def test_bad_robot_toml_names_the_key(tmp_path: Path) -> None:
 def test_fd_port_is_a_transparent_line() -> None:
     # the helper the crash test relies on: a link on a bare descriptor talks to a board
     ser = open_serial(PTMX, timeout=1.0)
+    board = VirtualBoard(slave_of(ser.fileno()))
+    board.start()
     try:
-        with VirtualBoard(slave_of(ser.fileno())):
-            link = serial_link_on_fd(os.dup(ser.fileno()), own=True)
-            hb = link.query("heartbeat")
-            assert hb.state in (DISARMED, FAULT)
-            link.close()
+        link = serial_link_on_fd(os.dup(ser.fileno()), own=True)
+        hb = link.query("heartbeat")
+        assert hb.state in (DISARMED, FAULT)
+        link.close()
     finally:
-        ser.close()
+        ser.close()  # the board sees the hang-up and exits
+        board.stop()

@@ -31,7 +31,7 @@ def test_short_soak(link: str, seconds: float) -> None:
 
 def _fake(**over) -> SoakResult:
     chunk = {"t0": 0.0, "t1": 4.4, "rms_phi": 0.04, "peak_phi": 0.1, "rms_err": 0.1, "peak_duty": 12000.0,
-             "step_us_mean": 14.0, "step_us_max": 40.0, "telemetry": 220.0, "ticks_per_s": 1e4, "not_balancing": 0.0}
+             "step_us_mean": 14.0, "step_us_median": 13.0, "step_us_max": 40.0, "telemetry": 220.0, "ticks_per_s": 1e4, "not_balancing": 0.0}
     r = SoakResult(chunks=[dict(chunk), dict(chunk, t0=4.4, t1=8.8)])
     r.stats = {"ticks": 4400, "period_ms": 2.0, "uptime0_ms": 10, "uptime1_ms": 10 + 8800, "faults_seen": 0,
                "state_end": 2, "telem_div": 10, "telemetry": 440, "seq_lost": 0, "duplicates": 0, "half_pairs": 0,
@@ -56,7 +56,7 @@ PROBE = {"locked": 1, "alloc0": 100, "alloc1": 100, "n_crc": 0}
     ({"seq_lost": 1}, PROBE, "sequence"),
     ({"faults_seen": 2}, PROBE, "left balancing"),
     ({"chunk1": {"rms_phi": 0.06}}, PROBE, "rms_phi"),
-    ({"chunk1": {"step_us_mean": 40.0}}, PROBE, "firmware step"),
+    ({"chunk1": {"step_us_median": 40.0}}, PROBE, "firmware step"),
 ])
 def test_soak_checks_can_fail(over, probe, needle: str) -> None:
     good = _fake()
