@@ -63,7 +63,7 @@ def test_link_loss_watchdog_cuts_motor_within_timeout(link: str) -> None:
     # and it did fire, within the timeout (+ one heartbeat period to be reported, + slack)
     first = next(m for m in after if m.state != BALANCING)
     assert first.state == FAULT and first.faults == F_WATCHDOG, first
-    assert first.uptime_ms <= u_hi + WD_MS + HB_MS + 20, (u_hi, first)
+    assert first.uptime_ms <= u_hi + WD_MS + HB_MS + 50, (u_hi, first)
     # motor off from the first faulted answer on (the answers are what drives the motor)
     acts = [m for _, m, _ in rx.of("hil_actuator")]
     assert any(a.state == BALANCING for a in acts)
