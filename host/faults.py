@@ -45,7 +45,6 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from firmware import msgtable as T
 from host import messages as M
 from host.hil import HilError, HilSession, _install_fault
 from host.link import CanLink, LinkError, SerialLink

@@ -10,6 +10,8 @@ pty, serial and CAN framing, faults injected on the host side (host/faults.py).
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -45,7 +47,7 @@ def test_link_loss_watchdog_cuts_motor_within_timeout(link: str) -> None:
 
     def cut() -> None:
         tx.cut = True
-        marks["cut"] = __import__("time").monotonic()
+        marks["cut"] = time.monotonic()
 
     with HilSession(link=link, mode="realtime", fault_tx=tx, fault_rx=rx) as s:
         _prepare_realtime(s)
@@ -79,7 +81,7 @@ def test_link_loss_fault_reported_on_return_and_resume_needs_clear_and_rearm(lin
 
     def restore() -> None:
         tx.cut = rx.cut = False
-        t_restore.append(__import__("time").monotonic())
+        t_restore.append(time.monotonic())
 
     with HilSession(link=link, mode="realtime", fault_tx=tx, fault_rx=rx) as s:
         _prepare_realtime(s)
