@@ -50,7 +50,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -414,14 +414,17 @@ class HilSession:
         self._gains_label = label
         return label
 
-    def prepare(self, sim: PlantSim, sink: "_Sink | None" = None, *, arm: bool = True) -> None:
+    def prepare(self, sim: PlantSim, sink: "_Sink | None" = None, *, arm: bool = True,
+                fw_params: Mapping[str | int, int] | None = None) -> None:
         """Bring the board to a clean start for a run (see the module docstring).
 
         If the scenario puts measurement noise on the cart position that the firmware's
         encoder plausibility check (largest step per tick) would take for lost counts,
         the design's gain table is uploaded with that limit widened
         (:func:`encoder_jump_limit`); the next scenario without such noise gets the
-        default limit back.
+        default limit back.  ``fw_params`` sets firmware parameters (name or index ->
+        value, see ``firmware.msgtable.PARAMS``) before arming; they stay set for the
+        session.
         """
         link = self._link()
         sink = sink or _Sink()
@@ -437,6 +440,8 @@ class HilSession:
         self._request(link.clear_faults)
         self.gains = self._ensure_gains(encoder_jump_limit(sim.scenario, sim.params))
         self._request(link.param_set, T.P_ARM_TILT, _ARM_TILT_MAX)
+        for key, value in (fw_params or {}).items():
+            self._request(link.param_set, key, int(value))
         self._request(link.set_reference, sim.x_ref())
         if arm:
             self._request(link.arm)
@@ -456,7 +461,7 @@ class HilSession:
     # ------------------------------------------------------------------ lockstep
     def run_lockstep(self, scenario: Scenario, params: RobotParams | None = None, *, pipeline: int | None = None,
                      progress: Callable[[int, int], None] | None = None, seed: int | None = None,
-                     x0: Sequence[float] | None = None) -> HilRun:
+                     x0: Sequence[float] | None = None, fw_params: Mapping[str | int, int] | None = None) -> HilRun:
         """Run one scenario in lockstep (deterministic; see the module docstring).
 
         Parameters
@@ -474,6 +479,8 @@ class HilSession:
             Noise seed overriding the scenario's.
         x0 : sequence of 4 float, optional
             Initial state overriding the scenario's.
+        fw_params : mapping, optional
+            Firmware parameters to set first (see :meth:`prepare`).
 
         Raises
         ------
@@ -487,7 +494,7 @@ class HilSession:
         params = params or load_params()
         sim = PlantSim(params, scenario, seed=seed, x0=x0)
         sink = _Sink()
-        self.prepare(sim, sink)
+        self.prepare(sim, sink, fw_params=fw_params)
         d = sim.sensor_model.delay_steps
         depth = d if pipeline is None else max(0, min(int(pipeline), d))
         n = sim.n_ticks
@@ -517,9 +524,11 @@ class HilSession:
                 send(_SENSOR(tick=sent, adc=int(adc), enc=int(enc)))
                 sent += 1
             c1 = time.perf_counter()
+            deadline = c1 + timeout
             while True:
                 try:
-                    m = recv(timeout)
+                    # heartbeats keep coming while the firmware waits: bound the whole wait
+                    m = recv(max(0.0, deadline - time.perf_counter()))
                 except LinkError as exc:
                     self._check_board()
                     raise HilError(f"link failed at tick {k}: {exc}") from exc
@@ -557,7 +566,8 @@ class HilSession:
     # ------------------------------------------------------------------ real time
     def run_realtime(self, scenario: Scenario, params: RobotParams | None = None, *, lead: float = 0.5,
                      sync_ticks: int = 100, progress: Callable[[int, int], None] | None = None,
-                     seed: int | None = None, x0: Sequence[float] | None = None) -> HilRun:
+                     seed: int | None = None, x0: Sequence[float] | None = None,
+                     fw_params: Mapping[str | int, int] | None = None) -> HilRun:
         """Run one scenario in real time (the firmware paces itself; see the module docstring).
 
         Parameters
@@ -572,7 +582,7 @@ class HilSession:
         sync_ticks : int
             Periods streamed before the scenario (board disarmed, initial reading) to lock
             the phase.
-        progress, seed, x0
+        progress, seed, x0, fw_params
             As for :meth:`run_lockstep`.
         """
         if self.mode != "realtime":
@@ -583,10 +593,8 @@ class HilSession:
         sim = PlantSim(params, scenario, seed=seed, x0=x0)
         sink = _Sink()
         link = self._link()
-        self.prepare(sim, sink)
-        # the arm above happened while the firmware was stepping on stale readings: go
-        # back to disarmed, lock the phase on the initial reading, then arm in the stream
-        self._request(link.disarm)
+        # armed later, in the stream, once the phase is locked on the initial reading
+        self.prepare(sim, sink, arm=False, fw_params=fw_params)
         n = sim.n_ticks
         T_s = sim.Ts
         clock = time.perf_counter
@@ -650,6 +658,9 @@ class HilSession:
             pump(t_next + T_s * 0.9, None)
             t_next += T_s + pll.correction()
         send_t.clear()
+        # start the firmware's timing statistics afresh (its TIMING reply resets them)
+        # and arm, both in the stream: the scenario's first frame follows
+        link.send(M.BY_NAME["request"](msg_id=T.TIMING))
         link.send(M.BY_NAME["arm"]())
         t0 = clock()
         ref_prev = sim.x_ref()

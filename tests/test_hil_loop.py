@@ -1,0 +1,274 @@
+"""The firmware in the loop (issue 5): the real firmware under the MicroPython unix port on a pty,
+closed with the simulated plant, over serial and over CAN frames.
+
+Every report scenario runs at full length once per link (module fixtures, the firmware's
+loop heap-locked so that one allocation would end the run); the tests then check the
+report's constraints, the agreement with the float design in pure simulation, determinism
+and the tick sequence.  Real-time, saturation and cut-off tests follow.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from firmware import msgtable as T
+from host import messages as M
+from host.hil import (
+    PRIME_TICK,
+    HilSession,
+    TickError,
+    encoder_jump_limit,
+    float_reference,
+)
+from sim.metrics import evaluate
+from sim.params import load_params
+from sim.scenario import REPORT_SCENARIOS, load_scenario, scenario_from_dict
+
+PARAMS = load_params()
+TOL_PHI = 0.01  # rad, HIL vs float design (issue 5)
+
+# The report's white noise of power 1e-5 puts 7 cm (sigma) of noise on the cart position at
+# every 2 ms tick.  The float design rides it out; the fixed-point firmware clamps its
+# filtered cart-speed estimate at the declared bound of its headroom proof (2x the no-load
+# speed, 3.6 m/s) from tick 15 on, and then loses the pendulum.  Strict: this test starts
+# failing (XPASS) the day the firmware's bounds cover that noise.
+WHITE = "white_noise_1e-5_delay10ms"
+KNOWN = {WHITE: "fixed-point cart-speed estimate clamps at 3.6 m/s under 7 cm/tick position noise (firmware bound)"}
+
+
+def _cases() -> list:
+    return [pytest.param(n, marks=pytest.mark.xfail(strict=True, reason=KNOWN[n])) if n in KNOWN else n
+            for n in REPORT_SCENARIOS]
+
+
+@pytest.fixture(scope="module")
+def references() -> dict:
+    return {n: float_reference(load_scenario(n), PARAMS) for n in REPORT_SCENARIOS}
+
+
+def _run_all(link: str) -> dict:
+    runs = {}
+    with HilSession(link=link, heap_lock=True) as sess:
+        for n in REPORT_SCENARIOS:
+            runs[n] = sess.run_lockstep(load_scenario(n), PARAMS)
+        assert sess.board.alive, sess.board.output_tail()
+    # the firmware exits cleanly (status 0) once the host hangs up: had its heap-locked
+    # loop allocated, it would have died with MemoryError
+    assert sess.board.returncode == 0, sess.board.output()
+    return runs
+
+
+@pytest.fixture(scope="module")
+def serial_runs() -> dict:
+    return _run_all("serial")
+
+
+@pytest.fixture(scope="module")
+def can_runs() -> dict:
+    return _run_all("can")
+
+
+def _check(run, ref) -> None:
+    s = run.summary()
+    bad = [f"{c.label}: {c.status} (expected {c.expected})" for c in s.checks if not c.as_expected]
+    assert not bad, f"{run.name}: {bad}"
+    n = len(ref["phi"])
+    assert len(run.log["phi"]) == n
+    err = float(np.max(np.abs(run.log["phi"] - ref["phi"])))
+    assert err <= TOL_PHI, f"{run.name}: |phi_hil - phi_float| = {err:.4f} rad"
+    # the firmware balanced from the first tick to the last, no fault
+    assert np.all(run.log["fw_state"] == 2) and np.all(run.log["fw_faults"] == 0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", _cases())
+def test_serial_loop_meets_constraints_and_agrees_with_float(serial_runs, references, name) -> None:
+    _check(serial_runs[name], references[name])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", _cases())
+def test_can_loop_meets_constraints_and_agrees_with_float(can_runs, references, name) -> None:
+    _check(can_runs[name], references[name])
+
+
+@pytest.mark.slow
+def test_lockstep_is_bit_identical_across_links_and_runs(serial_runs, can_runs) -> None:
+    # serial and CAN carry the same numbers: the logs must be identical, bit for bit
+    for n in REPORT_SCENARIOS:
+        a, b = serial_runs[n].log, can_runs[n].log
+        for col in a:
+            assert np.array_equal(a[col], b[col], equal_nan=True), f"{n}: column {col} differs"
+    # and a fresh firmware gives the same run again
+    with HilSession() as sess:
+        again = sess.run_lockstep(load_scenario("tilt_0p3"), PARAMS)
+    ref = serial_runs["tilt_0p3"].log
+    for col in ref:
+        assert np.array_equal(ref[col], again.log[col], equal_nan=True), col
+
+
+@pytest.mark.slow
+def test_every_tick_answered_once_and_telemetry_complete(serial_runs) -> None:
+    for n, run in serial_runs.items():
+        st = run.stats
+        assert st["ticks"] == len(run.log["t"]) == round(run.scenario.duration * PARAMS.rate)
+        # telemetry every telem_div (10) firmware steps (the priming step counts too, so
+        # the phase of the divider moves by one per run): nothing lost
+        assert abs(st["telemetry"] - st["ticks"] / 10) <= 1, (n, st["telemetry"])
+        assert not st["nacks"], st["nacks"]
+
+
+def test_noise_scenarios_widen_only_the_encoder_limit() -> None:
+    assert encoder_jump_limit(load_scenario("tilt_0p1"), PARAMS) is None
+    u = encoder_jump_limit(load_scenario("uniform_noise_0p005"), PARAMS)
+    w = encoder_jump_limit(load_scenario(WHITE), PARAMS)
+    assert u is not None and w is not None and 48 < u < w < 32768
+
+
+# ---------------------------------------------------------------- tick checks can fail
+class _TickFault:
+    # drop or duplicate the serial frame that carries sensor tick `tick`
+    def __init__(self, tick: int, action: str) -> None:
+        self.tick = tick
+        self.action = action
+        self.done = False
+
+    def __call__(self, data: bytes) -> bytes:
+        if self.done:
+            return data
+        try:
+            msg, _ = M.decode_serial(data.strip(b"\x00"))
+        except M.ProtocolError:
+            return data
+        if msg.ID == T.HIL_SENSOR and msg.tick == self.tick:
+            self.done = True
+            return b"" if self.action == "drop" else data + data
+        return data
+
+
+@pytest.mark.parametrize("action, word", [("drop", "lost"), ("duplicate", "repeated")])
+def test_lost_or_repeated_tick_is_detected(action, word) -> None:
+    fault = _TickFault(300, action)
+    sc = scenario_from_dict({"name": "short", "duration": 1.0, "initial": {"phi": 0.05}})
+    with HilSession(fault_tx=fault) as sess:
+        with pytest.raises(TickError, match=word):
+            sess.run_lockstep(sc, PARAMS)
+    assert fault.done
+
+
+def test_priming_tick_is_out_of_the_scenario_range() -> None:
+    assert PRIME_TICK == 2**30 - 1
+
+
+# ---------------------------------------------------------------- saturation
+@pytest.mark.slow
+def test_large_tilt_saturates_recovers_without_windup() -> None:
+    sc = scenario_from_dict({"name": "tilt_0p4", "duration": 4.0, "initial": {"phi": 0.4}})
+    with HilSession(heap_lock=True) as sess:
+        run = sess.run_lockstep(sc, PARAMS)
+    duty = run.log["duty"]
+    # the actuator limit is active (full supply voltage) and never exceeded
+    assert np.all(np.abs(duty) <= 32767)
+    sat = np.abs(duty) >= 32767
+    assert sat.sum() >= 10
+    # it recovers: balancing all along, upright and still at the end
+    assert np.all(run.log["fw_state"] == 2)
+    assert abs(run.log["phi"][-1]) < 0.005 and np.max(np.abs(run.log["phi"][-500:])) < 0.01
+    # no wind-up: the motor leaves saturation within 0.5 s and never returns to it; the
+    # firmware follows the float design (which feeds the saturated force back) closely
+    last_sat = int(np.nonzero(sat)[0][-1])
+    assert run.log["t"][last_sat] < 0.5
+    ref = float_reference(sc, PARAMS)
+    assert np.max(np.abs(run.log["phi"] - ref["phi"])) <= TOL_PHI
+
+
+def _tilt_counts(limit_mrad: int) -> int:
+    # the firmware's own threshold (ADC counts) for a tilt limit, computed by its code
+    from firmware.app import App
+
+    class _Hal:
+        def read_angle_raw(self) -> int:
+            return 2048
+
+        def read_encoder(self) -> int:
+            return 0
+
+        def set_motor(self, duty: int) -> None:
+            pass
+
+        def ticks_us(self) -> int:
+            return 0
+
+    app = App(_Hal())
+    assert app.param_set(T.P_TILT_LIMIT, limit_mrad) == T.OK
+    return app.sup.tilt_counts
+
+
+def test_tilt_past_cutoff_turns_motor_off_within_one_tick() -> None:
+    limit = 100  # mrad: the pendulum, kicked at 1.5 rad/s, swings past it while balancing
+    sc = scenario_from_dict({"name": "cutoff", "duration": 1.0, "initial": {"phidot": 1.5}})
+    with HilSession(heap_lock=True) as sess:
+        run = sess.run_lockstep(sc, PARAMS, fw_params={"tilt_limit_mrad": limit})
+    log = run.log
+    counts = np.abs(log["adc"] - PARAMS.pot_offset)
+    over = np.nonzero(counts > _tilt_counts(limit))[0]
+    assert over.size, "the reading never crossed the cut-off"
+    k = int(over[0])
+    assert np.all(log["fw_state"][:k] == 2) and np.all(log["duty"][k - 5:k] != 0)
+    # the step that reads the crossing already cuts the motor and latches F_TILT
+    assert log["fw_state"][k] == 3 and log["fw_faults"][k] & 1
+    assert np.all(log["duty"][k:] == 0) and np.all(log["fw_state"][k:] == 3)
+
+
+# ---------------------------------------------------------------- real time
+RT_BOUNDS = {
+    # generous bounds, documented in the report: this is a shared 2-core VM whose vCPUs
+    # are sometimes descheduled by the hypervisor (steal time, ~10 ms); the firmware runs
+    # SCHED_FIFO so nothing in the guest delays it
+    "latency_p99_periods": 1.0,  # sensor-to-actuator latency, 99th percentile
+    "late_fraction": 0.01,  # ticks whose answer missed the plant step
+    "overrun_fraction": 0.01,  # firmware overruns (period > 1.5 T or step > T) per step
+    "period_max_periods": 10.0,  # longest period between two step starts
+}
+
+
+@pytest.mark.slow
+def test_realtime_loop_timing_over_ten_seconds() -> None:
+    sc = scenario_from_dict({
+        "name": "rt_10s", "duration": 10.0, "initial": {"phi": 0.1},
+        "force": [{"kind": "push", "start": 3.0, "duration": 4.0, "amplitude": 0.2}],
+        "expect": {"a_max": "fail"},
+    })
+    with HilSession(mode="realtime", heap_lock=True) as sess:
+        run = sess.run_realtime(sc, PARAMS)
+    st = run.stats
+    n = st["ticks"]
+    T_us = st["period_us"]
+    assert n == 5000
+    # it balanced, within the report's constraints as expected
+    assert evaluate(run.log, sc, PARAMS).as_expected
+    assert np.all(run.log["fw_faults"] == 0)
+    # the firmware's own statistics: every step fits its period with room to spare
+    assert 0 < st["fw_step_max_us"] < T_us / 2, st
+    assert st["fw_overruns"] <= RT_BOUNDS["overrun_fraction"] * n, st
+    assert st["fw_period_max_us"] <= RT_BOUNDS["period_max_periods"] * T_us, st
+    # the host's measurements: latency at most one period, answers in time
+    assert st["latency_us_p99"] <= RT_BOUNDS["latency_p99_periods"] * T_us, st
+    assert st["late"] <= RT_BOUNDS["late_fraction"] * n, st
+    assert st["answered"] >= (1 - RT_BOUNDS["late_fraction"]) * n
+    assert math.isfinite(st["latency_us_mean"]) and st["latency_us_mean"] < T_us
+
+
+def test_silent_firmware_is_an_error_not_a_hang() -> None:
+    # a dropped frame with nothing in flight: the firmware never answers (it only sends
+    # heartbeats); the runner must give up after its timeout
+    from host.hil import HilError
+
+    fault = _TickFault(100, "drop")
+    sc = scenario_from_dict({"name": "short", "duration": 1.0})
+    with HilSession(fault_tx=fault, timeout=1.0) as sess:
+        with pytest.raises(HilError, match="no answer"):
+            sess.run_lockstep(sc, PARAMS, pipeline=0)
