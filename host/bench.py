@@ -23,6 +23,7 @@ BENCHES: dict[str, str] = {
     "proto": "host.bench_proto:bench_throughput",
     "proto_fuzz": "host.bench_proto:bench_fuzz",
     "firmware": "host.bench_firmware:bench",
+    "hil": "host.bench_hil:bench_hil",
 }
 
 

@@ -516,8 +516,10 @@ class HilSession:
             c0 = time.perf_counter()
             while sent < n and sent - k <= depth:
                 j = sent - k
+                p0 = time.perf_counter()
                 adc, enc = sim.read() if j == 0 else _peek(sim, j)
                 ref = float(x_ref_at(sent * Ts))
+                t_plant += time.perf_counter() - p0
                 if ref != ref_prev:
                     send(_SET_REF(x_um=int(round(ref * 1e6))))
                     ref_prev = ref
@@ -546,8 +548,8 @@ class HilSession:
             fw_faults[k] = m.faults
             sim.step(m.duty)
             c3 = time.perf_counter()
-            t_plant += (c1 - c0) + (c3 - c2)
-            t_link += c2 - c1
+            t_plant += c3 - c2
+            t_link += c2 - c0
             if progress is not None and k % 250 == 0:
                 progress(k, n)
         wall = time.perf_counter() - t0
