@@ -1,0 +1,53 @@
+"""`upright hil` and `upright demo` end to end (virtual board), and their one-line errors."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import host.hil
+from host.cli import main
+from host.mpyrun import ROOT
+from sim.scenario import scenario_from_dict
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "host.cli", *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=120)
+
+
+def test_hil_cli_runs_a_scenario_and_writes_outputs(tmp_path: Path) -> None:
+    r = _cli("hil", "--virtual", "--scenario", "tilt_0p1", "--no-gif", "--out", str(tmp_path))
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "tilt_0p1" in r.stdout and "PASS" in r.stdout and "|dphi| vs float" in r.stdout
+    assert "100%" in r.stderr  # progress
+    assert (tmp_path / "tilt_0p1.csv").stat().st_size > 0
+    assert (tmp_path / "tilt_0p1.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("args, needle", [
+    (("--port", "/dev/does-not-exist-upright"), "/dev/does-not-exist-upright"),
+    (("--port", "/dev/does-not-exist-upright", "--link", "can", "--can-interface", "serial"), "CAN channel"),
+    (("--port", "can9", "--link", "can", "--can-interface", "no-such-interface"), "CAN channel"),
+    (("--scenario", "no_such_scenario"), "no_such_scenario"),
+])
+def test_hil_cli_bad_port_or_scenario_is_one_line(args, needle, tmp_path: Path) -> None:
+    r = _cli("hil", *args, "--out", str(tmp_path), "--quiet")
+    assert r.returncode != 0
+    err = r.stderr.strip()
+    assert "Traceback" not in err and len(err.splitlines()) == 1, err
+    assert needle in err
+
+
+def test_demo_runs_and_writes_an_index(tmp_path: Path, monkeypatch, capsys) -> None:
+    short = scenario_from_dict({"name": "demo_short", "description": "a short tilt", "duration": 1.0,
+                                "initial": {"phi": 0.05}, "expect": {"a_max": "any"}})
+    monkeypatch.setattr(host.hil, "resolve_scenarios", lambda spec: [short])
+    assert main(["demo", "--out", str(tmp_path), "--no-design", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "demo_short" in out and "index.html" in out
+    page = (tmp_path / "demo" / "index.html").read_text()
+    assert "demo_short.gif" in page and "demo_short.png" in page
