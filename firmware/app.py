@@ -9,7 +9,8 @@
 #             run() (serve the host link: decode commands, send telemetry); or set_link(link).
 #     gains   optional gain module/object with LAYOUT and FLAT (default firmware.gains).
 #     config  optional dict: pot_offset (ADC counts upright), adc_sign/enc_sign (+-1),
-#             deadband (duty counts), backemf (bool), boot (int), emitter ("bytecode",
+#             deadband (duty counts), backemf (bool), boot (int), stall_ms/stall_duty
+#             (opt-in no-motion check, F_STALL; off by default), emitter ("bytecode",
 #             "native" or "viper": how the controller step is compiled), and any msgtable PARAMS
 #             name (e.g. watchdog_ms) -- config values are not range-checked, so
 #             watchdog_ms=0 switches the watchdog off (bench/tests only).
@@ -89,6 +90,9 @@ class App:
                 self.params[p[0]] = cfg[p[1]]
         self.params[T.P_LOOP_RATE] = cfg.get("loop_rate_hz", self.rate)
         self._apply_params()
+        # opt-in no-motion check (F_STALL): stall_ms > 0 enables it, stall_duty its threshold
+        self.sup.stall_ticks = (cfg.get("stall_ms", 0) * self.rate) // 1000
+        self.sup.stall_duty = cfg.get("stall_duty", 8000)
         # a table the firmware's own check rejects is latched as a fault
         if self.ctrl.validate(self.table, len(self.table), self.version) != T.OK:
             self.sup.faults |= F_GAINS
@@ -137,7 +141,7 @@ class App:
             if n != self._frames:
                 self._frames = n
                 sup.wd_count = 0
-        start = sup.update(s.counts, s.pos, s.rail, s.jump)
+        start = sup.update(s.counts, s.pos, s.rail, s.jump, s.delta, self.duty)
         duty = 0
         if sup.state == BALANCING:
             c = self.ctrl

@@ -9,6 +9,27 @@ except ImportError:
         return x
 
 
+_BOOT_FILE = "boot_count"
+
+
+def boot_count(path=_BOOT_FILE):
+    # increment and return the persisted boot counter (mod 256) for HEARTBEAT.boot, so
+    # the host sees a reset; one small flash write per start-up
+    n = 0
+    try:
+        with open(path) as f:
+            n = int(f.read())
+    except (OSError, ValueError):
+        n = 0
+    n = (n + 1) & 0xFF
+    try:
+        with open(path, "w") as f:
+            f.write(str(n))
+    except OSError:
+        pass
+    return n
+
+
 def main():
     from . import board
     from .app import App
@@ -17,7 +38,9 @@ def main():
 
     hal = HalPico(board)
     try:
-        app = App(hal, config=board.config())
+        cfg = board.config()
+        cfg["boot"] = boot_count()
+        app = App(hal, config=cfg)
         app.set_link(SerialLink(hal.uart(), app))
         app.run()
     finally:

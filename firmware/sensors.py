@@ -36,6 +36,7 @@ class Sensors:
         self.yp = 0
         self.rail = False
         self.jump = False
+        self.delta = 0
         self.primed = False
 
     def load(self, t, off):
@@ -84,6 +85,7 @@ class Sensors:
         self.last = enc
         if self.enc_sign < 0:
             dl = -dl
+        self.delta = dl
         self.jump = dl > self.encj or dl < -self.encj
         v = self.pos + dl
         if v > _POS_MAX:

@@ -11,6 +11,8 @@ F_ADC_RAIL = 4   # angle ADC at 0 or full scale: potentiometer open, shorted or 
 F_ENC_JUMP = 8   # encoder step larger than the cart can move in one tick: noise/lost counts
 F_TRACK = 16     # cart beyond the track (1.25 x the reference limit) while balancing
 F_GAINS = 32     # the gain table failed its check at start-up (controller not usable)
+F_STALL = 64     # |duty| >= stall_duty for stall_ms with no encoder count while balancing:
+                 # driver dead, motor or encoder disconnected, encoder stuck (opt-in check)
 
 try:
     from micropython import const
@@ -36,6 +38,9 @@ class Supervisor:
         self.track_counts = 0  # |encoder counts| that trips F_TRACK
         self.wd_ticks = 0  # watchdog in ticks (0: off)
         self.wd_count = 0
+        self.stall_ticks = 0  # no-motion check in ticks (0: off)
+        self.stall_duty = 8000  # |duty| that must move the cart
+        self.stall_count = 0
 
     def arm(self):
         if self.faults or self.state == FAULT:
@@ -61,8 +66,9 @@ class Supervisor:
     def feed(self):
         self.wd_count = 0
 
-    def update(self, counts, pos, rail, jump):
-        # one tick: check the sensors; returns True on the tick balancing starts
+    def update(self, counts, pos, rail, jump, delta=0, duty=0):
+        # one tick: check the sensors; returns True on the tick balancing starts.
+        # delta: encoder counts since the last tick; duty: the duty of the last tick
         f = 0
         if rail:
             f |= F_ADC_RAIL
@@ -75,6 +81,13 @@ class Supervisor:
                 f |= F_TILT
             if pos > self.track_counts or pos < -self.track_counts:
                 f |= F_TRACK
+            if self.stall_ticks > 0:
+                if delta != 0:
+                    self.stall_count = 0
+                elif duty >= self.stall_duty or duty <= -self.stall_duty:
+                    self.stall_count += 1
+                    if self.stall_count > self.stall_ticks:
+                        f |= F_STALL
         if (st == ARMED or st == BALANCING) and self.wd_ticks > 0:
             self.wd_count += 1
             if self.wd_count > self.wd_ticks:
@@ -90,5 +103,6 @@ class Supervisor:
             return False
         if st == ARMED and -self.arm_counts < counts < self.arm_counts:
             self.state = BALANCING
+            self.stall_count = 0
             return True
         return False

@@ -74,6 +74,17 @@ def test_no_floats_in_the_firmware(mod) -> None:
     assert not bad, f"{mod}: true division (float result)"
 
 
+def test_boot_counter_persists_and_wraps(tmp_path) -> None:
+    from firmware.main import boot_count
+
+    f = tmp_path / "boot_count"
+    assert [boot_count(str(f)) for _ in range(3)] == [1, 2, 3]
+    f.write_text("255")
+    assert boot_count(str(f)) == 0
+    f.write_text("garbage")
+    assert boot_count(str(f)) == 1
+
+
 def test_bundle(tmp_path) -> None:
     assert bundle.main(["--arch", "armv6m", "--out", str(tmp_path / "fw")]) == 0
     files = {p.name for p in (tmp_path / "fw" / "firmware").iterdir()}

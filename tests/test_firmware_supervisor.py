@@ -185,6 +185,28 @@ chk('disarm_state', app.sup.state)
 chk('disarm_duty', hal.duty)
 chk('disarm_in_fault_keeps_fault', 0)
 
+# --- opt-in no-motion check: large duty, encoder frozen ---
+for cfg_ms in (0, 100):
+    hal, app = fresh(stall_ms=cfg_ms)
+    balance(hal, app)
+    hal.adc = {counts(0.2)}
+    first = -1
+    for k in range(300):
+        app.step()
+        if first < 0 and app.sup.state == S.FAULT:
+            first = k
+    chk('stall%d_state' % cfg_ms, app.sup.state)
+    chk('stall%d_faults' % cfg_ms, app.sup.faults)
+    chk('stall%d_first' % cfg_ms, first)
+    chk('stall%d_duty' % cfg_ms, hal.duty)
+hal, app = fresh(stall_ms=100)
+balance(hal, app)
+hal.adc = {counts(0.2)}
+for k in range(300):
+    hal.enc = (hal.enc + (1 if k & 1 else -1)) & 0xFFFF
+    app.step()
+chk('stall_moving_state', app.sup.state)
+
 # --- reference out of range ---
 hal, app = fresh()
 chk('ref_out_of_range', app.cmd_set_reference(900000))
@@ -260,6 +282,13 @@ def test_disarm_cuts_the_motor_at_once(obs) -> None:
     assert obs["disarm_before_duty_nonzero"] == 1
     assert obs["disarm_reply"] == OK and obs["disarm_duty_now"] == 0
     assert obs["disarm_state"] == DIS and obs["disarm_duty"] == 0
+
+
+def test_no_motion_check_is_opt_in(obs) -> None:
+    assert obs["stall0_state"] == BAL and obs["stall0_faults"] == 0
+    assert obs["stall100_state"] == FLT and obs["stall100_faults"] == 64 and obs["stall100_duty"] == 0
+    assert 50 <= obs["stall100_first"] <= 60  # 100 ms = 50 ticks of large duty without a count
+    assert obs["stall_moving_state"] == BAL  # the encoder moves: no fault
 
 
 def test_reference_limits(obs) -> None:
