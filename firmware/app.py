@@ -274,7 +274,9 @@ class App:
 
     def _tel(self, v, j):
         t = self.table
-        v = (v * t[self.off["TEL"] + j] + 8192) >> 14
+        o = self.off["TEL"]
+        s = t[o + 5]
+        v = (v * t[o + j] + (1 << (s - 1))) >> s
         if v > _I16:
             return _I16
         if v < -_I16:

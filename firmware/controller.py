@@ -178,6 +178,13 @@ class Controller:
             tot = self._term(tot, t[o["BD"] + i], ul)
             if tot < 0:
                 return R_UNSTABLE
+        # telemetry conversions: 5 gains on the state limits and the force limit
+        to = o["TEL"]
+        for j in range(5):
+            tot = self._start(t[to + 5])
+            tot = self._term(tot, t[to + j], ul if j == 4 else t[lim + j])
+            if tot < 0 or t[to + 5] < 1:
+                return R_UNSTABLE
         # motor: KDU u + KDV vh, then the deadband
         mo = o["MOT"]
         tot = self._start(t[mo + 2])

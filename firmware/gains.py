@@ -37,8 +37,8 @@ except ImportError:
 
 VERSION = const(1)
 DELAY = const(5)
-LENGTH = const(92)
-CRC = const(0xE1D0)
+LENGTH = const(93)
+CRC = const(0x5938)
 
 # (name, length) of each table in FLAT, in order
 LAYOUT = (
@@ -68,12 +68,12 @@ LAYOUT = (
     ('TILT', 2),
     ('ENCJ', 1),
     ('CAL', 2),
-    ('TEL', 5),
+    ('TEL', 6),
 )
 
 FLAT = (
     # HDR
-    1, 5, 92,
+    1, 5, 93,
     # RATE
     500,
     # FMT
@@ -126,5 +126,5 @@ FLAT = (
     # CAL
     2048, 4095,
     # TEL
-    6434, 1000, 5890, 8000, 3200,
+    6434, 1000, 5890, 8000, 3200, 14,
 )

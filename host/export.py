@@ -77,7 +77,7 @@ SHIFT_MAX = 24  # longest shift used (keeps 2**(S-1) and the gains modest)
 MARGIN = 2**16  # headroom kept below 2**30-1 so the firmware's conservative re-check agrees
 DUTY_MAX = 32767
 INTEG_SHIFT = 6  # the integrator accumulates (r - x) >> 6 per tick
-TEL_SHIFT = 14  # telemetry conversion shift
+TEL_SHIFT = 14  # longest telemetry conversion shift
 REF_UM_MAX = 1_000_000  # largest |reference| in um the firmware converts (1 m)
 TILT_MRAD_MAX = 1500  # largest tilt limit parameter (mrad)
 TELEM_UNITS = (1e-4, 1e-3, 1e-4, 1e-3, 1e-2)  # msgtable TELEM_STATE x, xdot, phi, phidot; TELEM_CTRL force
@@ -110,7 +110,7 @@ LAYOUT: tuple[tuple[str, int | str], ...] = (
     ("TILT", 2),  # TNUM, TSH: ADC counts = (mrad * TNUM) >> TSH
     ("ENCJ", 1),  # largest plausible encoder step per tick (counts)
     ("CAL", 2),  # ADC counts with the pendulum upright (pot_offset), ADC full scale
-    ("TEL", 5),  # telemetry: unit = (v * TEL[j]) >> TEL_SHIFT
+    ("TEL", 6),  # telemetry: unit = (v * TEL[j] + 2**(S-1)) >> S, S = TEL[5]
 )
 
 
@@ -232,6 +232,8 @@ def export(
     *,
     ki: float = 0.0,
     deadband: int = 0,
+    v_limit: float | None = None,
+    w_limit: float = 30.0,
 ) -> FixedDesign:
     """Quantise a discrete controller into the firmware's integer tables.
 
@@ -245,6 +247,12 @@ def export(
         Integral gain on the cart position error, N/(m*s) (0: no integral action).
     deadband : int
         Motor deadband compensation in duty counts, added in the direction of the force.
+    v_limit : float, optional
+        Clamp of the cart-speed estimate, m/s (default: twice the no-load speed).  Very
+        noisy position measurements can drive the estimate beyond the physical speed;
+        a wider limit keeps it linear at the cost of a coarser LSB.
+    w_limit : float
+        Clamp of the tilt-rate estimate, rad/s.
 
     Returns
     -------
@@ -265,7 +273,10 @@ def export(
     m_per_count = 2 * math.pi * p.r_wheel / p.enc_cpr
     rad_per_count = p.pot_range / 2**p.adc_bits
     no_load = p.V_supply * p.r_wheel / (p.kt * p.gear)
-    lim_si = (2.0 * p.track, 2.0 * no_load, math.pi / 2, 30.0)
+    vlim = 2.0 * no_load if v_limit is None else float(v_limit)
+    if not (math.isfinite(vlim) and vlim > 0 and math.isfinite(w_limit) and w_limit > 0):
+        raise ValueError(f"v_limit and w_limit must be finite and > 0, got {v_limit!r}, {w_limit!r}")
+    lim_si = (2.0 * p.track, vlim, math.pi / 2, float(w_limit))
 
     QX = _pow2_lsb(lim_si[0] / m_per_count)
     QP = _pow2_lsb(lim_si[2] / rad_per_count)
@@ -323,15 +334,18 @@ def export(
     tel_b = LIM + [ULIM]
     tel_s = list(s) + [su]
     TEL = []
+    tsh = TEL_SHIFT
+    while tsh > 0 and any(
+        Row("t", (int(round(tel_s[j] / TELEM_UNITS[j] * 2**tsh)),), (tel_b[j],), tsh).worst > SMALL_MAX for j in range(5)
+    ):
+        tsh -= 1
     for j in range(5):
-        g = int(round(tel_s[j] / TELEM_UNITS[j] * 2**TEL_SHIFT))
-        row = Row(f"telemetry[{j}]", (g,), (tel_b[j],), TEL_SHIFT, (tel_s[j] / TELEM_UNITS[j],))
-        if row.worst > SMALL_MAX:
-            raise ValueError(f"telemetry[{j}] overflows")
-        rows.append(row)
+        g = int(round(tel_s[j] / TELEM_UNITS[j] * 2**tsh))
+        rows.append(Row(f"telemetry[{j}]", (g,), (tel_b[j],), tsh, (tel_s[j] / TELEM_UNITS[j],)))
         TEL.append(g)
+    TEL.append(tsh)
     counts_per_m = p.enc_cpr / (2 * math.pi * p.r_wheel)
-    encj = int(math.ceil(lim_si[1] * Ts * counts_per_m)) + 2
+    encj = int(math.ceil(2.0 * no_load * Ts * counts_per_m)) + 2
     tables = {
         "HDR": [VERSION, d, 0],
         "RATE": [int(round(1.0 / Ts))],
@@ -435,6 +449,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--blob", default=None, help="also write the upload bytes (int32 LE) to this file")
     parser.add_argument("--ki", type=float, default=0.0, help="integral gain on cart position, N/(m*s)")
     parser.add_argument("--deadband", type=int, default=0, help="motor deadband compensation, duty counts")
+    parser.add_argument("--v-limit", type=float, default=None, help="clamp of the cart-speed estimate, m/s")
+    parser.add_argument("--w-limit", type=float, default=30.0, help="clamp of the tilt-rate estimate, rad/s")
     parser.add_argument("--rate", type=float, default=None, help="loop rate in Hz (default: from the parameters)")
     parser.add_argument("--design", choices=("lqr", "place"), default="lqr",
                         help="discrete design: dlqr (weights --Q/--R) or pole placement (the report's poles)")
@@ -446,7 +462,7 @@ def run(args: argparse.Namespace) -> int:
     """Export the fixed-point tables (``upright export``)."""
     p = load_params(args.params)
     c = controller_ss(p, rate=args.rate, design=args.design, Q=args.Q, R=args.R)
-    fd = export(p, c, ki=args.ki, deadband=args.deadband)
+    fd = export(p, c, ki=args.ki, deadband=args.deadband, v_limit=args.v_limit, w_limit=args.w_limit)
     text = render(fd)
     if args.out:
         Path(args.out).write_text(text)

@@ -135,3 +135,21 @@ def test_cli_export(tmp_path) -> None:
     assert cli.main(["export", "--design", "place", "--out", str(out)]) == 0
     assert "design=place" in out.read_text()
     assert cli.main(["export", "--design", "place", "--Q", "1", "0", "1", "0"]) == 1  # clear error, exit 1
+
+
+def test_wider_estimate_limits_option() -> None:
+    from host import fwharness as H
+
+    p = load_params()
+    fd = ex.export(p, v_limit=16.0, w_limit=120.0)
+    assert all(r.worst <= SMALL for r in fd.rows)
+    assert fd.lsb["xdot"] * fd.tables["LIM"][1] == pytest.approx(16.0, rel=1e-3)
+    # telemetry conversions use the table's own shift and still fit
+    *tel, tsh = fd.tables["TEL"]
+    bounds = fd.tables["LIM"] + fd.tables["ULIM"]
+    assert all(abs(g) * b + 2 ** (tsh - 1) <= SMALL for g, b in zip(tel, bounds))
+    s = H.measurements(p, fd, [0, 0, 0.1, 0], 2.0)
+    u, _ = H.py_controller_run(fd, s.yx, s.yp, s.r)
+    assert max(abs(a * fd.lsb["u"] - b) for a, b in zip(u, s.u_float)) <= 0.002 * fd.ctrl.u_max
+    with pytest.raises(ValueError):
+        ex.export(p, v_limit=-1.0)
