@@ -4,6 +4,7 @@
 # board in HIL mode (hand it the board's machine.UART):
 #   from firmware import main_hil; main_hil.main("/dev/pts/3", link="serial", mode="lockstep")
 #   main_hil.main(uart=machine.UART(0, 1000000), mode="realtime")
+# (a machine.UART is wrapped in BoardUART; a board's main.py can also pass heap_lock=True)
 #
 # link  "serial": COBS frames (framing.py); "can": python-can `serial`-interface frames
 #       (canframe.py) on the same byte stream, node id `node`.
@@ -42,6 +43,50 @@ _GUARD_US = const(250)
 class HangUp(Exception):
     # the host closed the link (ends app.run(); raised once, at the very end)
     pass
+
+
+class BoardUART:
+    # machine.UART -> the surface HilMain uses: wait(timeout_ms), any(), readinto(buf, n),
+    # write(buf, n).  machine.UART.write takes a whole buffer, so the slices of the
+    # (single) transmit buffer are made once, the first time it is seen.
+    def __init__(self, uart):
+        import select
+        self.uart = uart
+        self.hup = False
+        self._poll = select.poll()
+        self._poll.register(uart, select.POLLIN)
+        for _ in self._poll.ipoll(0):
+            pass
+        self._buf = None
+        self._views = None
+
+    def wait(self, timeout_ms):
+        for _ in self._poll.ipoll(timeout_ms):
+            return True
+        return False
+
+    def any(self):
+        return self.uart.any()
+
+    def readinto(self, buf, nbytes=-1):
+        if nbytes < 0:
+            nbytes = len(buf)
+        n = self.uart.readinto(buf, nbytes)
+        return 0 if n is None else n
+
+    def write(self, buf, nbytes=-1):
+        if nbytes < 0:
+            return self.uart.write(buf)
+        if buf is not self._buf:
+            self._slices(buf)
+        return self.uart.write(self._views[nbytes])
+
+    def _slices(self, buf):
+        # (its own method: a comprehension's closure would make write() allocate a
+        # cell on every call)
+        mv = memoryview(buf)
+        self._views = [mv[:i] for i in range(len(buf) + 1)]
+        self._buf = buf
 
 
 class HilMain:
@@ -214,6 +259,8 @@ def main(port=None, link="serial", mode="lockstep", node=1, uart=None, heap_lock
     if uart is None:
         from .uart_unix import UnixUART
         uart = UnixUART(port)
+    elif not hasattr(uart, "wait"):
+        uart = BoardUART(uart)
     m = HilMain(uart, link, mode, node)
     if heap_lock:
         import gc
