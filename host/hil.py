@@ -80,6 +80,7 @@ PRIME_TICK = (1 << 30) - 1
 """Tick number of the priming sensor frame sent before each scenario."""
 
 LINKS = ("serial", "can")
+_CAN_PTY_TIMEOUT = 0.0005
 MODES = ("lockstep", "realtime")
 
 _SENSOR = M.BY_NAME["hil_sensor"]
@@ -306,7 +307,9 @@ class HilSession:
         try:
             if self.link_kind == "can":
                 if self.virtual:
-                    self._bus = open_can(PTMX, interface="serial")
+                    # python-can's serial interface ignores recv()'s timeout and waits the
+                    # port's own: keep it short, or every idle recv() costs 0.1 s
+                    self._bus = open_can(PTMX, interface="serial", timeout=_CAN_PTY_TIMEOUT)
                 else:
                     self._bus = open_can(self.port, interface=self.can_interface)
                 self.link = CanLink(self._bus, node_id=self.node)
@@ -445,8 +448,7 @@ class HilSession:
         self._request(link.set_reference, sim.x_ref())
         if arm:
             self._request(link.arm)
-        while (m := link.recv(0.0)) is not None:
-            sink.other(m)
+        _drain(link, sink, -1)
 
     def finish(self) -> dict[str, int]:
         """Disarm after a run and read the firmware's timing statistics."""
@@ -556,8 +558,7 @@ class HilSession:
         if progress is not None:
             progress(n, n)
         stats = self.finish()
-        while (m := link.recv(0.0)) is not None:
-            sink.other(m, n)
+        _drain(link, sink, n)
         log = sim.result()
         log["fw_state"] = fw_state
         log["fw_faults"] = fw_faults
@@ -695,8 +696,7 @@ class HilSession:
             progress(n, n)
         pump(clock() + 0.02, None)
         stats = self.finish()
-        while (m := link.recv(0.0)) is not None:
-            sink.other(m, n)
+        _drain(link, sink, n)
         log = sim.result()
         log.update(fw_state=fw_state, fw_faults=fw_faults, latency_us=latency, late=late)
         stats.update(sink.stats())
@@ -778,6 +778,17 @@ def _cause(exc: BaseException) -> str:
     c = exc.__cause__ or exc
     s = str(c).strip().splitlines()
     return s[0] if s else type(c).__name__
+
+
+def _drain(link: Link, sink: "_Sink", tick: int, seconds: float = 0.05) -> None:
+    # hand what is waiting to the sink; bounded in time, as a board in real time (or one
+    # sending heartbeats) never stops talking
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        m = link.recv(0.0)
+        if m is None:
+            return
+        sink.other(m, tick)
 
 
 def _peek(sim: PlantSim, j: int) -> tuple[int, int]:

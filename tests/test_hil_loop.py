@@ -236,13 +236,14 @@ RT_BOUNDS = {
 
 
 @pytest.mark.slow
-def test_realtime_loop_timing_over_ten_seconds() -> None:
+@pytest.mark.parametrize("link", ["serial", "can"])
+def test_realtime_loop_timing_over_ten_seconds(link) -> None:
     sc = scenario_from_dict({
         "name": "rt_10s", "duration": 10.0, "initial": {"phi": 0.1},
         "force": [{"kind": "push", "start": 3.0, "duration": 4.0, "amplitude": 0.2}],
         "expect": {"a_max": "fail"},
     })
-    with HilSession(mode="realtime", heap_lock=True) as sess:
+    with HilSession(mode="realtime", link=link, heap_lock=True) as sess:
         run = sess.run_realtime(sc, PARAMS)
     st = run.stats
     n = st["ticks"]
