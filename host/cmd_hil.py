@@ -10,7 +10,13 @@ One scenario in real time over CAN frames (python-can ``serial`` interface on th
 
     upright hil --virtual --link can --mode realtime --scenario tilt_0p1
 
-A board running ``firmware.main_hil`` on USB::
+A board running the firmware's HIL main on USB -- on the board (``main.py``)::
+
+    from firmware import main_hil
+    import machine
+    main_hil.main(uart=machine.UART(0, 115200), link="serial", mode="lockstep")
+
+then on the host::
 
     upright hil --port /dev/ttyACM0 --scenario tilt_0p3
 

@@ -816,9 +816,11 @@ def _sleep_until(t: float) -> None:
 
 
 class _PhaseLock:
-    # steer the host's send times so that frames arrive `lead` of a period before the
-    # firmware's tick: the latency of an answer = wait for the tick + step time, so
-    # aiming the latency at (1 - lead) * T puts the wait at about... (see run_realtime)
+    # steer the host's send times so that a frame arrives about `lead` of a period before
+    # the firmware's tick.  An answer's latency = the frame's wait for the tick + the step
+    # + the link, so aiming the latency at lead * T puts the wait near lead * T: when
+    # answers come later than that, the frames waited too long -- send later; earlier --
+    # send earlier.  Both sides use the same monotonic clock, so once locked it holds.
     def __init__(self, T_s: float, lead: float) -> None:
         self.T = T_s
         self.target = lead * T_s
