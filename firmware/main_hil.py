@@ -93,7 +93,8 @@ class HilMain:
     # uart: UnixUART or machine.UART-like (wait/any, readinto(buf, n), write(buf, n));
     # app_factory(hal, link) -> the firmware app (default firmware.app.App; link is this
     # object in real time, whose poll() app.run() calls after each step)
-    def __init__(self, uart, link="serial", mode="lockstep", node=1, app_factory=None):
+    # config: passed to the default App (e.g. {"boot": n}, see firmware/app.py)
+    def __init__(self, uart, link="serial", mode="lockstep", node=1, app_factory=None, config=None):
         if link != "serial" and link != "can":
             raise ValueError("link must be 'serial' or 'can'")
         if mode != "lockstep" and mode != "realtime":
@@ -118,10 +119,12 @@ class HilMain:
             self.pbuf = self.dec.buf
             self.poff = 2
         self.hal = HilHal(self.tx)
+        rt_link = self if mode == "realtime" else None
         if app_factory is None:
             from .app import App
-            app_factory = App
-        self.app = app_factory(self.hal, self if mode == "realtime" else None)
+            self.app = App(self.hal, rt_link, None, config)
+        else:
+            self.app = app_factory(self.hal, rt_link)
         self.hal.set_status(self.app.fill_heartbeat)
         self.disp = commands.Dispatcher(self.app, layout, self.tx, table)
         self.rx = bytearray(_RX)
@@ -252,7 +255,24 @@ class HilMain:
         return self.run_realtime()
 
 
-def main(port=None, link="serial", mode="lockstep", node=1, uart=None, heap_lock=False):
+def next_boot(path):
+    # the boot counter kept in a small file: read it, add one (mod 256), write it back.
+    # Returns the new count (0 on the first boot or when the file cannot be used).
+    n = 0
+    try:
+        with open(path) as f:
+            n = (int(f.read().strip() or "0") + 1) & 0xFF
+    except (OSError, ValueError):
+        n = 0
+    try:
+        with open(path, "w") as f:
+            f.write(str(n))
+    except OSError:
+        pass
+    return n
+
+
+def main(port=None, link="serial", mode="lockstep", node=1, uart=None, heap_lock=False, boot_file=None):
     # port: tty path for the unix port; uart: a ready UART object (a board).
     # heap_lock: run the loop under micropython.heap_lock() -- any allocation in it
     # then raises MemoryError and ends the run (tests use it as the allocation proof).
@@ -261,7 +281,12 @@ def main(port=None, link="serial", mode="lockstep", node=1, uart=None, heap_lock
         uart = UnixUART(port)
     elif not hasattr(uart, "wait"):
         uart = BoardUART(uart)
-    m = HilMain(uart, link, mode, node)
+    # boot_file: where the boot counter persists (a board: a file on its flash); each
+    # start increments it and HEARTBEAT.boot reports it, so the host sees a reset
+    config = None
+    if boot_file is not None:
+        config = {"boot": next_boot(boot_file)}
+    m = HilMain(uart, link, mode, node, None, config)
     if heap_lock:
         import gc
         import micropython

@@ -168,7 +168,8 @@ def set_realtime(priority: int | None, pid: int = 0) -> bool:
 
 
 def firmware_command(port: str, *, link: str = "serial", mode: str = "lockstep", node: int = 1,
-                     heapsize: str | None = None, heap_lock: bool = False) -> list[str]:
+                     heapsize: str | None = None, heap_lock: bool = False,
+                     boot_file: str | None = None) -> list[str]:
     """The command line that runs :func:`firmware.main_hil.main` under the unix port.
 
     Parameters
@@ -186,6 +187,9 @@ def firmware_command(port: str, *, link: str = "serial", mode: str = "lockstep",
     heap_lock : bool
         Run the firmware's loop under ``micropython.heap_lock()``: one allocation ends
         the run with ``MemoryError`` (the allocation-free proof of the HIL tests).
+    boot_file : str, optional
+        File where the firmware keeps its boot counter (incremented at every start and
+        reported in ``heartbeat.boot``); ``None``: no counter (boot stays 0).
     """
     if link not in ("serial", "can"):
         raise ValueError(f"link must be 'serial' or 'can', got {link!r}")
@@ -194,7 +198,7 @@ def firmware_command(port: str, *, link: str = "serial", mode: str = "lockstep",
     code = (
         "import sys\nfrom firmware import main_hil\n"
         f"sys.exit(main_hil.main({port!r}, link={link!r}, mode={mode!r}, node={int(node)}, "
-        f"heap_lock={bool(heap_lock)}))\n"
+        f"heap_lock={bool(heap_lock)}, boot_file={boot_file!r}))\n"
     )
     cmd = [micropython_exe()]
     if heapsize:
@@ -222,8 +226,9 @@ class VirtualBoard:
     code : str, optional
         MicroPython source to run instead of the HIL main (tests and tools); it must open
         ``slave`` itself.
-    heap_lock : bool
-        See :func:`firmware_command`.
+    heap_lock, boot_file
+        See :func:`firmware_command` (a board restarted with :meth:`stop`/:meth:`start`
+        and the same ``boot_file`` reports a new boot count).
     rt_priority : int, optional
         Run the interpreter under the ``SCHED_FIFO`` real-time policy at this priority
         (1..99), as a board's loop owns its CPU; a real-time-mode firmware sharing a busy
@@ -240,11 +245,12 @@ class VirtualBoard:
 
     def __init__(self, slave: str, *, link: str = "serial", mode: str = "lockstep", node: int = 1,
                  heapsize: str | None = None, startup_timeout: float = 10.0, code: str | None = None,
-                 rt_priority: int | None = None, heap_lock: bool = False) -> None:
+                 rt_priority: int | None = None, heap_lock: bool = False, boot_file: str | None = None) -> None:
         self.slave = slave
         self.rt_priority = rt_priority
         self.realtime_policy = False
-        self.cmd = firmware_command(slave, link=link, mode=mode, node=node, heapsize=heapsize, heap_lock=heap_lock)
+        self.cmd = firmware_command(slave, link=link, mode=mode, node=node, heapsize=heapsize, heap_lock=heap_lock,
+                                    boot_file=boot_file)
         if code is not None:
             self.cmd = [*self.cmd[:-1], code]
         self.startup_timeout = float(startup_timeout)

@@ -179,3 +179,21 @@ def test_board_uart_adapter_runs_the_lockstep_loop_allocation_free() -> None:
 
     out = run_unix(BOARD_UART, timeout=60)
     assert out.split() == ["200", "True"], out
+
+
+def test_boot_counter_persists_across_a_restart(tmp_path) -> None:
+    from host.link import SerialLink
+
+    boot = str(tmp_path / "boot.txt")
+    link = SerialLink(PTMX)
+    try:
+        board = VirtualBoard(slave_of(link._ser.fileno()), boot_file=boot)
+        with board:
+            b0 = link.query("heartbeat").boot
+            board.proc.kill()
+            board.stop()
+            board.start()
+            b1 = link.query("heartbeat", timeout=0.5, retries=3).boot
+        assert b1 == (b0 + 1) & 0xFF
+    finally:
+        link.close()
