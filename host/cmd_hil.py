@@ -67,7 +67,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 class Progress:
     """Progress of long runs on a terminal line (``\\r``), or a line per quarter when piped."""
 
-    def __init__(self, stream: TextIO = sys.stderr, enabled: bool = True) -> None:
+    def __init__(self, stream: TextIO | None = None, enabled: bool = True) -> None:
+        # resolved at call time: a default bound at import would outlive a replaced sys.stderr
+        stream = sys.stderr if stream is None else stream
         self.stream = stream
         self.enabled = enabled
         self.tty = bool(getattr(stream, "isatty", lambda: False)())
@@ -97,7 +99,7 @@ class Progress:
 
 
 def report(runs: Sequence[Any], *, tolerance: float = 0.01, out: str | Path | None = None,
-           stream: TextIO = sys.stdout, title: str | None = None) -> int:
+           stream: TextIO | None = None, title: str | None = None) -> int:
     """Print the summary table and the loop figures of HIL runs; return the exit status.
 
     Parameters
@@ -108,8 +110,8 @@ def report(runs: Sequence[Any], *, tolerance: float = 0.01, out: str | Path | No
         Largest accepted ``|phi_hil - phi_float|`` (rad) when a float reference is present.
     out : str or Path, optional
         Where the files were written (printed).
-    stream : text stream
-        Where to print.
+    stream : text stream, optional
+        Where to print (default: the current ``sys.stdout``).
     title : str, optional
         Table title.
 
@@ -121,6 +123,7 @@ def report(runs: Sequence[Any], *, tolerance: float = 0.01, out: str | Path | No
     """
     from sim.metrics import summary_table
 
+    stream = sys.stdout if stream is None else stream
     summaries = [r.summary() for r in runs]
     if runs and title is None:
         r0 = runs[0]
