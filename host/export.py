@@ -8,9 +8,9 @@ binary scale (one LSB in SI units):
 quantity   LSB                                      limit (clamp, saturating)
 =========  =======================================  ==============================
 x          encoder count / 2**QX                    2 * track
-xdot       2**-EV m/s                               2 * no-load speed
+xdot       2**-EV m/s                               V_LIMIT (16 m/s)
 phi        ADC count / 2**QP                        pi/2
-phidot     2**-EW rad/s                             30 rad/s
+phidot     2**-EW rad/s                             W_LIMIT (120 rad/s)
 u (force)  2**-EU N                                 u_max (stall force)
 =========  =======================================  ==============================
 
@@ -74,6 +74,12 @@ __all__ = [
 VERSION = 1
 SMALL_MAX = 2**30 - 1  # largest small int on a 32-bit MicroPython
 SHIFT_MAX = 24  # longest shift used (keeps 2**(S-1) and the gains modest)
+# Default clamps of the speed estimates (m/s, rad/s).  Not physical speeds: the estimates
+# of a noisy measurement (the report's white noise, 71 mm / 0.07 rad rms per 2 ms tick)
+# swing far beyond them, and a clamp that bites makes the loop nonlinear (the firmware
+# lost the pendulum at 3.6 m/s / 30 rad/s).  The headroom proof holds at these limits.
+V_LIMIT = 16.0
+W_LIMIT = 120.0
 MARGIN = 2**16  # headroom kept below 2**30-1 so the firmware's conservative re-check agrees
 DUTY_MAX = 32767
 INTEG_SHIFT = 6  # the integrator accumulates (r - x) >> 6 per tick
@@ -233,7 +239,7 @@ def export(
     ki: float = 0.0,
     deadband: int = 0,
     v_limit: float | None = None,
-    w_limit: float = 30.0,
+    w_limit: float | None = None,
 ) -> FixedDesign:
     """Quantise a discrete controller into the firmware's integer tables.
 
@@ -248,11 +254,13 @@ def export(
     deadband : int
         Motor deadband compensation in duty counts, added in the direction of the force.
     v_limit : float, optional
-        Clamp of the cart-speed estimate, m/s (default: twice the no-load speed).  Very
-        noisy position measurements can drive the estimate beyond the physical speed;
-        a wider limit keeps it linear at the cost of a coarser LSB.
-    w_limit : float
-        Clamp of the tilt-rate estimate, rad/s.
+        Clamp of the cart-speed estimate, m/s (default ``V_LIMIT`` = 16 m/s, about 9x the
+        no-load speed).  Noisy position measurements (the report's white-noise scenario:
+        71 mm rms per tick) drive the estimate far beyond the physical speed; a limit
+        this wide keeps it linear at the cost of a coarser LSB.
+    w_limit : float, optional
+        Clamp of the tilt-rate estimate, rad/s (default ``W_LIMIT`` = 120 rad/s, for the
+        same reason: 0.07 rad rms per tick of angle noise).
 
     Returns
     -------
@@ -273,10 +281,11 @@ def export(
     m_per_count = 2 * math.pi * p.r_wheel / p.enc_cpr
     rad_per_count = p.pot_range / 2**p.adc_bits
     no_load = p.V_supply * p.r_wheel / (p.kt * p.gear)
-    vlim = 2.0 * no_load if v_limit is None else float(v_limit)
-    if not (math.isfinite(vlim) and vlim > 0 and math.isfinite(w_limit) and w_limit > 0):
+    vlim = V_LIMIT if v_limit is None else float(v_limit)
+    wlim = W_LIMIT if w_limit is None else float(w_limit)
+    if not (math.isfinite(vlim) and vlim > 0 and math.isfinite(wlim) and wlim > 0):
         raise ValueError(f"v_limit and w_limit must be finite and > 0, got {v_limit!r}, {w_limit!r}")
-    lim_si = (2.0 * p.track, vlim, math.pi / 2, float(w_limit))
+    lim_si = (2.0 * p.track, vlim, math.pi / 2, wlim)
 
     QX = _pow2_lsb(lim_si[0] / m_per_count)
     QP = _pow2_lsb(lim_si[2] / rad_per_count)
@@ -449,8 +458,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--blob", default=None, help="also write the upload bytes (int32 LE) to this file")
     parser.add_argument("--ki", type=float, default=0.0, help="integral gain on cart position, N/(m*s)")
     parser.add_argument("--deadband", type=int, default=0, help="motor deadband compensation, duty counts")
-    parser.add_argument("--v-limit", type=float, default=None, help="clamp of the cart-speed estimate, m/s")
-    parser.add_argument("--w-limit", type=float, default=30.0, help="clamp of the tilt-rate estimate, rad/s")
+    parser.add_argument("--v-limit", type=float, default=None,
+                        help=f"clamp of the cart-speed estimate, m/s (default {V_LIMIT:g})")
+    parser.add_argument("--w-limit", type=float, default=None,
+                        help=f"clamp of the tilt-rate estimate, rad/s (default {W_LIMIT:g})")
     parser.add_argument("--rate", type=float, default=None, help="loop rate in Hz (default: from the parameters)")
     parser.add_argument("--design", choices=("lqr", "place"), default="lqr",
                         help="discrete design: dlqr (weights --Q/--R) or pole placement (the report's poles)")

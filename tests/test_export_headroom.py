@@ -137,13 +137,17 @@ def test_cli_export(tmp_path) -> None:
     assert cli.main(["export", "--design", "place", "--Q", "1", "0", "1", "0"]) == 1  # clear error, exit 1
 
 
-def test_wider_estimate_limits_option() -> None:
+@pytest.mark.parametrize("v_limit, w_limit, v_want, w_want",
+                         [(None, None, 16.0, 120.0), (3.6, 30.0, 3.6, 30.0)])
+def test_estimate_limits_default_and_option(v_limit, w_limit, v_want, w_want) -> None:
     from host import fwharness as H
 
     p = load_params()
-    fd = ex.export(p, v_limit=16.0, w_limit=120.0)
+    fd = ex.export(p, v_limit=v_limit, w_limit=w_limit)
+    assert (ex.V_LIMIT, ex.W_LIMIT) == (16.0, 120.0)
     assert all(r.worst <= SMALL for r in fd.rows)
-    assert fd.lsb["xdot"] * fd.tables["LIM"][1] == pytest.approx(16.0, rel=1e-3)
+    assert fd.lsb["xdot"] * fd.tables["LIM"][1] == pytest.approx(v_want, rel=1e-3)
+    assert fd.lsb["phidot"] * fd.tables["LIM"][3] == pytest.approx(w_want, rel=1e-3)
     # telemetry conversions use the table's own shift and still fit
     *tel, tsh = fd.tables["TEL"]
     bounds = fd.tables["LIM"] + fd.tables["ULIM"]
