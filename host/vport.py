@@ -227,8 +227,13 @@ class VirtualBoard:
         MicroPython source to run instead of the HIL main (tests and tools); it must open
         ``slave`` itself.
     heap_lock, boot_file
-        See :func:`firmware_command` (a board restarted with :meth:`stop`/:meth:`start`
-        and the same ``boot_file`` reports a new boot count).
+        See :func:`firmware_command`.  ``boot_file=None`` (default): the board keeps its
+        boot counter in a file of its own temporary directory (removed with the object),
+        so every :meth:`stop`/:meth:`start` of this board reports a new
+        ``heartbeat.boot`` (0, 1, 2, ...) as a real board's flash file does.
+    boot_counter : bool
+        False: no boot counter at all (``heartbeat.boot`` stays 0); ``boot_file`` must
+        then be None.
     rt_priority : int, optional
         Run the interpreter under the ``SCHED_FIFO`` real-time policy at this priority
         (1..99), as a board's loop owns its CPU; a real-time-mode firmware sharing a busy
@@ -245,8 +250,19 @@ class VirtualBoard:
 
     def __init__(self, slave: str, *, link: str = "serial", mode: str = "lockstep", node: int = 1,
                  heapsize: str | None = None, startup_timeout: float = 10.0, code: str | None = None,
-                 rt_priority: int | None = None, heap_lock: bool = False, boot_file: str | None = None) -> None:
+                 rt_priority: int | None = None, heap_lock: bool = False, boot_file: str | None = None,
+                 boot_counter: bool = True) -> None:
+        import tempfile
+
         self.slave = slave
+        self._boot_dir: tempfile.TemporaryDirectory[str] | None = None
+        if not boot_counter:
+            if boot_file is not None:
+                raise ValueError("boot_file given with boot_counter=False")
+        elif boot_file is None:
+            self._boot_dir = tempfile.TemporaryDirectory(prefix="upright-board-")
+            boot_file = str(Path(self._boot_dir.name) / "boot_count")
+        self.boot_file = boot_file
         self.rt_priority = rt_priority
         self.realtime_policy = False
         self.cmd = firmware_command(slave, link=link, mode=mode, node=node, heapsize=heapsize, heap_lock=heap_lock,

@@ -197,3 +197,26 @@ def test_boot_counter_persists_across_a_restart(tmp_path) -> None:
         assert b1 == (b0 + 1) & 0xFF
     finally:
         link.close()
+
+
+def test_boot_counter_on_by_default_and_can_be_off() -> None:
+    from host.link import SerialLink
+
+    link = SerialLink(PTMX)
+    try:
+        board = VirtualBoard(slave_of(link._ser.fileno()))
+        assert board.boot_file is not None
+        boots = []
+        with board:
+            for _ in range(3):
+                boots.append(link.query("heartbeat", timeout=0.5, retries=3).boot)
+                board.proc.kill()
+                board.stop()
+                board.start()
+        assert boots == [0, 1, 2]
+        off = VirtualBoard(slave_of(link._ser.fileno()), boot_counter=False)
+        assert off.boot_file is None
+        with pytest.raises(ValueError):
+            VirtualBoard(slave_of(link._ser.fileno()), boot_counter=False, boot_file="x")
+    finally:
+        link.close()
