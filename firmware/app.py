@@ -10,7 +10,8 @@
 #     gains   optional gain module/object with LAYOUT and FLAT (default firmware.gains).
 #     config  optional dict: pot_offset (ADC counts upright), adc_sign/enc_sign (+-1),
 #             deadband (duty counts), backemf (bool), boot (int), stall_ms/stall_duty
-#             (opt-in no-motion check, F_STALL; off by default), emitter ("bytecode",
+#             (no-motion check, F_STALL; on by default: 100 ms at |duty| >= 2000;
+#             stall_ms=0 switches it off), emitter ("bytecode",
 #             "native" or "viper": how the controller step is compiled), and any msgtable PARAMS
 #             name (e.g. watchdog_ms) -- config values are not range-checked, so
 #             watchdog_ms=0 switches the watchdog off (bench/tests only).
@@ -37,6 +38,8 @@ from .supervisor import BALANCING, DISARMED, FAULT, F_GAINS, Supervisor
 from .timing import Timing
 
 _TICKS_MASK = const(0x3FFFFFFF)
+STALL_MS = const(100)  # no-motion check (F_STALL) default: this long without a count
+STALL_DUTY = const(2000)  # ... at |duty| at least this
 _I16 = const(32767)
 _U16 = const(65535)
 
@@ -90,9 +93,11 @@ class App:
                 self.params[p[0]] = cfg[p[1]]
         self.params[T.P_LOOP_RATE] = cfg.get("loop_rate_hz", self.rate)
         self._apply_params()
-        # opt-in no-motion check (F_STALL): stall_ms > 0 enables it, stall_duty its threshold
-        self.sup.stall_ticks = (cfg.get("stall_ms", 0) * self.rate) // 1000
-        self.sup.stall_duty = cfg.get("stall_duty", 8000)
+        # no-motion check (F_STALL): |duty| >= stall_duty for stall_ms without one encoder
+        # count (stall_ms=0: off).  2000 duty (~4.9 N at rest) for 100 ms moves the cart
+        # by millimetres; the report's scenarios in HIL see at most 7 such ticks in a row
+        self.sup.stall_ticks = (cfg.get("stall_ms", STALL_MS) * self.rate) // 1000
+        self.sup.stall_duty = cfg.get("stall_duty", STALL_DUTY)
         # a table the firmware's own check rejects is latched as a fault
         if self.ctrl.validate(self.table, len(self.table), self.version) != T.OK:
             self.sup.faults |= F_GAINS

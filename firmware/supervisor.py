@@ -12,7 +12,7 @@ F_ENC_JUMP = 8   # encoder step larger than the cart can move in one tick: noise
 F_TRACK = 16     # cart beyond the track (1.25 x the reference limit) while balancing
 F_GAINS = 32     # the gain table failed its check at start-up (controller not usable)
 F_STALL = 64     # |duty| >= stall_duty for stall_ms with no encoder count while balancing:
-                 # driver dead, motor or encoder disconnected, encoder stuck (opt-in check)
+                 # driver dead, motor or encoder disconnected, encoder stuck (App: on by default)
 
 try:
     from micropython import const
@@ -39,7 +39,7 @@ class Supervisor:
         self.wd_ticks = 0  # watchdog in ticks (0: off)
         self.wd_count = 0
         self.stall_ticks = 0  # no-motion check in ticks (0: off)
-        self.stall_duty = 8000  # |duty| that must move the cart
+        self.stall_duty = 2000  # |duty| that must move the cart
         self.stall_count = 0
 
     def arm(self):

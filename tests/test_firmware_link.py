@@ -82,7 +82,7 @@ class FakeUart:
                 s.count[mid] += 1
 
 hal = Hal()
-app = App(hal)
+app = App(hal, config={'stall_ms': 0})  # the fake encoder never moves: no-motion check off
 uart = FakeUart(app)
 app.set_link(SerialLink(uart, app))
 STATE = array('i', [0] * 1300)

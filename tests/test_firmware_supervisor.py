@@ -35,9 +35,13 @@ OUT = []
 def chk(name, v):
     OUT.append(name + ' ' + str(int(v)))
 
-def fresh(**cfg):
+def fresh(stall=False, **cfg):
+    # the fake HAL's encoder moves only when a test moves it: the no-motion check
+    # (F_STALL, on by default) is switched off except where it is the subject
     hal = Hal()
     cfg.setdefault('watchdog_ms', 0)
+    if not stall:
+        cfg.setdefault('stall_ms', 0)
     app = App(hal, config=cfg)
     return hal, app
 
@@ -114,7 +118,7 @@ chk('wd_disarmed_state', app2.sup.state)
 # a HAL that counts host frames (hal_hil) feeds the watchdog with every frame
 hal3 = Hal()
 hal3.n_sensor = 0
-app3 = App(hal3, config={{'watchdog_ms': 250}})
+app3 = App(hal3, config={{'watchdog_ms': 250, 'stall_ms': 0}})
 balance(hal3, app3, ticks=1)
 for k in range(400):
     hal3.n_sensor += 1
@@ -185,21 +189,30 @@ chk('disarm_state', app.sup.state)
 chk('disarm_duty', hal.duty)
 chk('disarm_in_fault_keeps_fault', 0)
 
-# --- opt-in no-motion check: large duty, encoder frozen ---
-for cfg_ms in (0, 100):
-    hal, app = fresh(stall_ms=cfg_ms)
-    balance(hal, app)
+# --- no-motion check (on by default): large duty, encoder frozen ---
+for name, cfg in (('stall0', {{'stall_ms': 0}}), ('stall100', {{}})):
+    hal, app = fresh(stall=True, **cfg)
+    hal.adc = {OFF}
+    app.step()
+    app.cmd_arm()
+    app.step()  # balancing from here
+    chk(name + '_balancing', app.sup.state)
     hal.adc = {counts(0.2)}
-    first = -1
+    first = big = -1
     for k in range(300):
         app.step()
+        if big < 0 and (hal.duty >= app.sup.stall_duty or hal.duty <= -app.sup.stall_duty):
+            big = k
         if first < 0 and app.sup.state == S.FAULT:
             first = k
-    chk('stall%d_state' % cfg_ms, app.sup.state)
-    chk('stall%d_faults' % cfg_ms, app.sup.faults)
-    chk('stall%d_first' % cfg_ms, first)
-    chk('stall%d_duty' % cfg_ms, hal.duty)
-hal, app = fresh(stall_ms=100)
+    chk(name + '_state', app.sup.state)
+    chk(name + '_faults', app.sup.faults)
+    chk(name + '_first', first)
+    chk(name + '_big', big)
+    chk(name + '_duty', hal.duty)
+chk('stall_ticks_default', app.sup.stall_ticks)
+chk('stall_duty_default', app.sup.stall_duty)
+hal, app = fresh(stall=True)
 balance(hal, app)
 hal.adc = {counts(0.2)}
 for k in range(300):
@@ -284,10 +297,15 @@ def test_disarm_cuts_the_motor_at_once(obs) -> None:
     assert obs["disarm_state"] == DIS and obs["disarm_duty"] == 0
 
 
-def test_no_motion_check_is_opt_in(obs) -> None:
-    assert obs["stall0_state"] == BAL and obs["stall0_faults"] == 0
+def test_no_motion_check_on_by_default(obs) -> None:
+    assert obs["stall0_balancing"] == obs["stall100_balancing"] == BAL
+    assert obs["stall0_state"] == BAL and obs["stall0_faults"] == 0  # stall_ms=0: off
+    assert obs["stall_ticks_default"] == 50 and obs["stall_duty_default"] == 2000  # 100 ms at 500 Hz
     assert obs["stall100_state"] == FLT and obs["stall100_faults"] == 64 and obs["stall100_duty"] == 0
-    assert 50 <= obs["stall100_first"] <= 60  # 100 ms = 50 ticks of large duty without a count
+    # the duty of tick k is judged at tick k+1: 50 ticks of large duty without a count are
+    # allowed, the 51st trips
+    assert obs["stall100_big"] >= 0
+    assert obs["stall100_first"] - obs["stall100_big"] == 51, (obs["stall100_big"], obs["stall100_first"])
     assert obs["stall_moving_state"] == BAL  # the encoder moves: no fault
 
 
