@@ -146,6 +146,9 @@ class HilMain:
         self._ticks_us = self.hal.ticks_us
         self._diff = self.hal.ticks_diff
         self._timing = self.app.timing
+        # every valid frame from the host feeds the command watchdog (sensor frames via
+        # the HAL's n_sensor; command frames here, as link_serial does on a board)
+        self._wd_feed = getattr(self.app, "feed_watchdog", None)
 
     def _ticks_ms(self):
         return self.hal.ticks_ms()
@@ -162,6 +165,8 @@ class HilMain:
             if step_now:
                 self._tick()
             return True
+        if self._wd_feed is not None:
+            self._wd_feed()
         self.disp.handle(mid, seq, self.pbuf, self.poff)
         return False
 

@@ -177,8 +177,10 @@ class HilRun:
     wall_s : float
         Wall-clock duration of the closed loop (set-up excluded).
     stats : dict
-        Counts and timing: ``ticks``, ``telemetry`` frames, ``telemetry_lost`` (by
-        sequence number), ``fw_step_us_mean/max`` (from telemetry), time split
+        Counts and timing: ``ticks``, ``telemetry`` frames, ``telemetry_lost`` (periodic
+        frames -- telemetry and heartbeats, one counter on the board -- missing by serial
+        sequence number between the first and the last received, half telemetry pairs
+        included; ``None`` over CAN, whose frames carry no sequence number), ``fw_step_us_mean/max`` (from telemetry), time split
         ``plant_s``/``link_s``; in real time also latency and jitter figures and the
         firmware's ``timing`` message (``fw_*``).
     reference : dict of ndarray, optional
@@ -495,7 +497,7 @@ class HilSession:
             raise HilError("this session's firmware runs in real-time mode; use run_realtime")
         params = params or load_params()
         sim = PlantSim(params, scenario, seed=seed, x0=x0)
-        sink = _Sink()
+        sink = _Sink(self._link())
         self.prepare(sim, sink, fw_params=fw_params)
         d = sim.sensor_model.delay_steps
         depth = d if pipeline is None else max(0, min(int(pipeline), d))
@@ -594,7 +596,7 @@ class HilSession:
             raise ValueError(f"lead must be in [0.05, 0.9] of a period, got {lead!r}")
         params = params or load_params()
         sim = PlantSim(params, scenario, seed=seed, x0=x0)
-        sink = _Sink()
+        sink = _Sink(self._link())
         link = self._link()
         # armed later, in the stream, once the phase is locked on the initial reading
         self.prepare(sim, sink, arm=False, fw_params=fw_params)
@@ -841,10 +843,15 @@ class _PhaseLock:
 
 
 class _Sink:
-    # everything but actuator frames: telemetry (sequence-checked), heartbeats, acks
-    def __init__(self) -> None:
+    # everything but actuator frames: telemetry (sequence-checked), heartbeats, acks.
+    # `link`: the link the messages come from; its last_seq (serial) is read for each
+    # message handed over, right after that message's recv
+    def __init__(self, link: Link | None = None) -> None:
+        from host.faults import SeqAccount
+
+        self._link = link
+        self.acct = SeqAccount()
         self.telemetry = 0
-        self.telemetry_lost = 0
         self.step_us: list[int] = []
         self.heartbeats = 0
         self.acks = 0
@@ -856,6 +863,8 @@ class _Sink:
 
     def other(self, m: Any, tick: int = -1) -> None:
         t = type(m)
+        seq = getattr(self._link, "last_seq", None) if self._link is not None else None
+        self.acct.add(m, seq)
         if t is _TELEM_CTRL:
             self.telemetry += 1
             self.step_us.append(m.step_us)
@@ -878,6 +887,10 @@ class _Sink:
         s = np.asarray(self.step_us, dtype=float)
         return {
             "telemetry": self.telemetry,
+            # periodic frames (telemetry and heartbeats share the board's counter) missing
+            # by serial sequence number, half telemetry pairs included; None on CAN, whose
+            # frames carry no sequence number
+            "telemetry_lost": (self.acct.lost + self.acct.half_pairs) if self.acct.events else None,
             "heartbeats": self.heartbeats,
             "acks": self.acks,
             "nacks": list(self.nacks),

