@@ -174,7 +174,7 @@ class RunApp:
         s.reset()
     def reset(s):
         s.hal = Hal()
-        s.app = App(s.hal, config={'watchdog_ms': 0, 'emitter': s.em, 'tilt_limit_mrad': 1500})
+        s.app = App(s.hal, config={'watchdog_ms': 0, 'emitter': s.em, 'tilt_limit_mrad': 1500, 'stall_ms': 0})
         s.hal.adc = 2048
         s.app.step()
         s.app.cmd_arm()
