@@ -46,9 +46,8 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from host import messages as M
-from host.hil import HilError, HilSession, _install_fault
+from host.hil import HilError, HilSession
 from host.link import CanLink, LinkError, SerialLink
-from host.vport import PTMX, VirtualBoard, open_can, slave_of
 from sim.params import RobotParams, load_params
 from sim.plantsim import PlantSim
 from sim.scenario import Scenario
@@ -948,28 +947,10 @@ class ProbeSession(HilSession):
         super().__init__(None, link=link, mode=mode, node=node, **kw)
         self._probe_out = ""
 
-    def open(self) -> "ProbeSession":
-        """Open the link and start the probed virtual board (see :meth:`HilSession.open`)."""
-        try:
-            if self.link_kind == "can":
-                self._bus = open_can(PTMX, interface="serial")
-                self.link = CanLink(self._bus, node_id=self.node)
-                fd = self._bus.fileno()
-            else:
-                self.link = SerialLink(PTMX)
-                fd = self.link._ser.fileno()
-            slave = slave_of(fd)
-            code = _PROBE % {"port": slave, "link": self.link_kind, "mode": self.mode, "node": self.node,
-                             "lock": self.mode == "lockstep"}
-            self.board = VirtualBoard(slave, link=self.link_kind, mode=self.mode, node=self.node,
-                                      heapsize=self.heapsize, code=code)
-            self.board.start()
-            if any(self._fault):
-                _install_fault(self.link, *self._fault)
-        except BaseException:
-            self.close()
-            raise
-        return self
+    def _board_code(self, slave: str) -> str:
+        """The probe wrapper around the unchanged HIL main (see the class docstring)."""
+        return _PROBE % {"port": slave, "link": self.link_kind, "mode": self.mode, "node": self.node,
+                         "lock": self.mode == "lockstep"}
 
     def close(self) -> None:
         """Close the link, let the firmware print its report and stop it."""

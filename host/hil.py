@@ -324,9 +324,11 @@ class HilSession:
                     raise PortError(f"cannot open serial port {url!r}: {_cause(exc)}") from exc
                 fd = self.link._ser.fileno() if self.virtual else -1
             if self.virtual:
-                self.board = VirtualBoard(slave_of(fd), link=self.link_kind, mode=self.mode, node=self.node,
+                slave = slave_of(fd)
+                self.board = VirtualBoard(slave, link=self.link_kind, mode=self.mode, node=self.node,
                                           heapsize=self.heapsize, heap_lock=self.heap_lock,
-                                          rt_priority=self.rt_priority if self.mode == "realtime" else None)
+                                          rt_priority=self.rt_priority if self.mode == "realtime" else None,
+                                          code=self._board_code(slave))
                 self.board.start()
             if any(self._fault):
                 _install_fault(self.link, *self._fault)
@@ -334,6 +336,13 @@ class HilSession:
             self.close()
             raise
         return self
+
+    def _board_code(self, slave: str) -> str | None:
+        """MicroPython source the virtual board runs on ``slave`` (``None``: the standard HIL main).
+
+        Subclasses override it to wrap the unchanged firmware (e.g. a probe of its heap).
+        """
+        return None
 
     def close(self) -> None:
         """Close the link and stop the virtual board (idempotent)."""
