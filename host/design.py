@@ -20,6 +20,7 @@ import control as ct
 import numpy as np
 
 from host.analysis import clean_tf, transfer_functions
+from sim.metrics import settling_time
 from sim.params import RobotParams
 from sim.plant import linear_model, simulate
 
@@ -191,14 +192,8 @@ class StepScore:
     checks: dict[str, bool] = field(default_factory=dict)
 
 
-def settling_time(t: np.ndarray, y: np.ndarray, final: float, band: float = 0.02, scale: float | None = None) -> float:
-    """Last time ``y`` is outside ``final +/- band*scale`` (``scale`` defaults to |final|)."""
-    tol = band * (abs(final) if scale is None else scale)
-    outside = np.nonzero(np.abs(y - final) > tol)[0]
-    if len(outside) == 0:
-        return 0.0
-    k = outside[-1]
-    return float(t[min(k + 1, len(t) - 1)]) if k + 1 < len(t) else math.inf
+def _settled(ts: float) -> float:
+    return math.inf if math.isnan(ts) else ts
 
 
 def score_state_feedback(
@@ -236,8 +231,9 @@ def score_state_feedback(
     t = res["t"]
     accel = np.gradient(res["xdot"], t)
     peak_phi = float(np.max(np.abs(res["phi"])))
-    ts_x = settling_time(t, res["x"], step, scale=max(abs(step), 0.05))
-    ts_phi = settling_time(t, res["phi"], 0.0, scale=max(peak_phi, 1e-3))
+    # 2 % band; a response still outside it at the end never settles (inf)
+    ts_x = _settled(settling_time(t, res["x"], final=step, scale=max(abs(step), 0.05)))
+    ts_phi = _settled(settling_time(t, res["phi"], final=0.0, scale=max(peak_phi, 1e-3)))
     ts = max(ts_x, ts_phi) if step else ts_phi
     checks = {
         "phi": peak_phi < cons.phi_max,
