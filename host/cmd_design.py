@@ -215,17 +215,10 @@ def write_figures(params: RobotParams, out: Path) -> list[Path]:
     Cs = design.loop_controller(*design.REPORT_LOOP)
     fig, axes = plt.subplots(2, 2, figsize=(10, 6), sharex=True)
     w = np.logspace(-2, 3, 800)
-    pn, pd = np.squeeze(P.num[0][0]), np.squeeze(P.den[0][0])
-    cn, cd = np.squeeze(Cs.num[0][0]), np.squeeze(Cs.den[0][0])
-    char = np.polyadd(np.polymul(pd, cd), np.polymul(pn, cn))
-    gang = {
-        "S = 1/(1+PC)": np.polymul(pd, cd),
-        "T = PC/(1+PC)": np.polymul(pn, cn),
-        "PS = P/(1+PC)": np.polymul(pn, cd),
-        "CS = C/(1+PC)": np.polymul(cn, pd),
-    }
-    for ax, (name, num) in zip(axes.ravel(), gang.items()):
-        mag = np.abs(np.polyval(num, 1j * w) / np.polyval(char, 1j * w))
+    labels = {"S": "S = 1/(1+PC)", "T": "T = PC/(1+PC)", "PS": "PS = P/(1+PC)", "CS": "CS = C/(1+PC)"}
+    for ax, (key, (num, den)) in zip(axes.ravel(), design.gang_of_four(P, Cs).items()):
+        name = labels[key]
+        mag = np.abs(np.polyval(num, 1j * w) / np.polyval(den, 1j * w))
         ax.semilogx(w, 20 * np.log10(np.maximum(mag, 1e-12)))
         ax.set(title=name, ylabel="dB")
         ax.grid(alpha=0.3, which="both")

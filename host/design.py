@@ -42,6 +42,7 @@ __all__ = [
     "pid_tf",
     "loop_controller",
     "LoopAnalysis",
+    "gang_of_four",
     "analyse_loop",
     "critical_gain",
     "make_controller",
@@ -345,6 +346,28 @@ def _peak(sys: ct.TransferFunction, omega: np.ndarray) -> float:
     return float(np.max(mag))
 
 
+def gang_of_four(P: ct.TransferFunction, C: ct.TransferFunction) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Numerator and denominator polynomials of S, T, PS and CS, nothing cancelled.
+
+    All four share the unreduced characteristic polynomial ``den(P) den(C) + num(P) num(C)``,
+    so a pole-zero cancellation between plant and controller stays visible.
+
+    Returns
+    -------
+    dict
+        ``{"S": (num, den), "T": ..., "PS": ..., "CS": ...}``, highest power first.
+    """
+    pn, pd = np.squeeze(P.num[0][0]), np.squeeze(P.den[0][0])
+    cn, cd = np.squeeze(C.num[0][0]), np.squeeze(C.den[0][0])
+    char = np.polyadd(np.polymul(pd, cd), np.polymul(pn, cn))
+    return {
+        "S": (np.polymul(pd, cd), char),
+        "T": (np.polymul(pn, cn), char),
+        "PS": (np.polymul(pn, cd), char),
+        "CS": (np.polymul(cn, pd), char),
+    }
+
+
 def analyse_loop(params: RobotParams, C: ct.TransferFunction) -> LoopAnalysis:
     """Nyquist count, margins and the gang of four for ``C`` on the angle loop.
 
@@ -358,15 +381,7 @@ def analyse_loop(params: RobotParams, C: ct.TransferFunction) -> LoopAnalysis:
     ol_rhp = int(np.sum(np.real(L.poles()) > 1e-9))
     N = _encirclements(L)
     Z = N + ol_rhp
-    npn, pd = np.squeeze(P.num[0][0]), np.squeeze(P.den[0][0])
-    cn, cd = np.squeeze(C.num[0][0]), np.squeeze(C.den[0][0])
-    char = np.polyadd(np.polymul(pd, cd), np.polymul(npn, cn))  # unreduced characteristic polynomial
-    funcs = {
-        "S": (np.polymul(pd, cd), char),
-        "T": (np.polymul(npn, cn), char),
-        "PS": (np.polymul(npn, cd), char),
-        "CS": (np.polymul(cn, pd), char),
-    }
+    funcs = gang_of_four(P, C)
     omega = np.logspace(-3, 4, 3000)
     gang: dict[str, dict[str, float | bool | int]] = {}
     for name, (num, den) in funcs.items():
