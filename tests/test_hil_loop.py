@@ -265,7 +265,9 @@ RT_BOUNDS = {
     # are sometimes descheduled by the hypervisor (steal time, ~10 ms); the firmware runs
     # SCHED_FIFO so nothing in the guest delays it
     "latency_p99_periods": 1.0,  # sensor-to-actuator latency, 99th percentile
-    "late_fraction": 0.01,  # ticks whose answer missed the plant step
+    # ticks whose answer missed the host's plant step: a host-side figure (the host is
+    # descheduled, not the firmware); measured 5-70 per 5000 over clean-clone CI runs here
+    "late_fraction": 0.02,
     "overrun_fraction": 0.01,  # firmware overruns (period > 1.5 T or step > T) per step
     "period_max_periods": 10.0,  # longest period between two step starts
 }
