@@ -39,7 +39,7 @@ from .timing import Timing
 
 _TICKS_MASK = const(0x3FFFFFFF)
 STALL_MS = const(100)  # no-motion check (F_STALL) default: this long without a count
-STALL_DUTY = const(2000)  # ... at |duty| at least this
+STALL_DUTY = const(800)  # ... at |duty| at least this
 _I16 = const(32767)
 _U16 = const(65535)
 
@@ -94,8 +94,8 @@ class App:
         self.params[T.P_LOOP_RATE] = cfg.get("loop_rate_hz", self.rate)
         self._apply_params()
         # no-motion check (F_STALL): |duty| >= stall_duty for stall_ms without one encoder
-        # count (stall_ms=0: off).  2000 duty (~4.9 N at rest) for 100 ms moves the cart
-        # by millimetres; the report's scenarios in HIL see at most 7 such ticks in a row
+        # count (stall_ms=0: off).  800 duty (~2 N at rest, 3/4 of the default design's
+        # force clamp) for 100 ms moves the cart by centimetres
         self.sup.stall_ticks = (cfg.get("stall_ms", STALL_MS) * self.rate) // 1000
         self.sup.stall_duty = cfg.get("stall_duty", STALL_DUTY)
         # a table the firmware's own check rejects is latched as a fault

@@ -39,7 +39,7 @@ class Supervisor:
         self.wd_ticks = 0  # watchdog in ticks (0: off)
         self.wd_count = 0
         self.stall_ticks = 0  # no-motion check in ticks (0: off)
-        self.stall_duty = 2000  # |duty| that must move the cart
+        self.stall_duty = 800  # |duty| that must move the cart
         self.stall_count = 0
 
     def arm(self):

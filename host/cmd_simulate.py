@@ -81,14 +81,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_scenario(args: argparse.Namespace) -> int:
     """``--scenario``: the float closed loop of a scenario, CSV + summary (+ plot)."""
-    from host.discrete import controller_ss
+    from host.discrete import controller_for
     from sim.metrics import evaluate, summary_table
     from sim.plantsim import run_scenario_float
     from sim.scenario import load_scenario
 
     params = load_params(args.params)
     scenario = load_scenario(args.scenario)
-    log = run_scenario_float(scenario, params, controller_ss(params), init="measured")
+    log = run_scenario_float(scenario, params, controller_for(scenario, params), init="measured")
     write_csv(args.csv, {"force": log["force"], **{k: log[k] for k in ("t", "x", "xdot", "phi", "phidot")}})
     summary = evaluate(log, scenario, params, name=scenario.name)
     print(summary_table([summary], title="Float simulation of the firmware's discrete controller"), file=sys.stderr)

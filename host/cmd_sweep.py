@@ -208,7 +208,11 @@ def _custom(args: argparse.Namespace) -> bool:
 
 
 def _chosen_design(args: argparse.Namespace) -> Any:
-    """The design given by --q-x/--q-phi/--r/--observer/--u-max (default: the report's LQR)."""
+    """The design given by --q-x/--q-phi/--r/--observer/--u-max (default: the shipped design).
+
+    Unchanged weights keep the shipped design's values (``host.discrete.Q_DEFAULT``,
+    including its speed weights).
+    """
     from host.discrete import Q_DEFAULT, R_DEFAULT
     from sim.sweep import Design
 
@@ -219,7 +223,7 @@ def _chosen_design(args: argparse.Namespace) -> Any:
     qx = Q_DEFAULT[0] if args.q_x is None else args.q_x
     qphi = Q_DEFAULT[2] if args.q_phi is None else args.q_phi
     r = R_DEFAULT if args.r is None else args.r
-    return Design(f"qx{qx:g}_qphi{qphi:g}_r{r:g}_obs{args.observer:g}", Q=(qx, 0.0, qphi, 0.0), R=r,
+    return Design(f"qx{qx:g}_qphi{qphi:g}_r{r:g}_obs{args.observer:g}", Q=(qx, Q_DEFAULT[1], qphi, Q_DEFAULT[3]), R=r,
                   observer=args.observer, u_max=args.u_max)
 
 

@@ -54,7 +54,7 @@ from typing import Sequence
 
 import numpy as np
 
-from host.discrete import DiscreteController, controller_ss
+from host.discrete import DiscreteController, controller_ss, force_limit
 from sim.params import RobotParams, load_params
 
 __all__ = [
@@ -291,7 +291,11 @@ def export(
     QP = _pow2_lsb(lim_si[2] / rad_per_count)
     EV = _pow2_lsb(lim_si[1])
     EW = _pow2_lsb(lim_si[3])
-    EU = _pow2_lsb(c.u_max)
+    # the force format spans the drive's whole range (its LSB is about one duty count); the
+    # controller's clamp u_max, usually well inside it, is an integer limit in that format.
+    # A format fitted to a small clamp would make the LSB finer than the duty can express
+    # and cost the force row its shift (the stored-force gains kb_i < 1 would be coarse)
+    EU = _pow2_lsb(max(c.u_max, force_limit(p)))
     s = np.array([m_per_count / 2**QX, 2.0**-EV, rad_per_count / 2**QP, 2.0**-EW])
     su = 2.0**-EU
     LIM = [int(math.floor(lim_si[i] / s[i])) for i in range(4)]
@@ -467,12 +471,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="discrete design: dlqr (weights --Q/--R) or pole placement (the report's poles)")
     parser.add_argument("--Q", type=float, nargs=4, default=None, metavar="q", help="LQR state weights (diagonal)")
     parser.add_argument("--R", type=float, default=None, help="LQR input weight")
+    parser.add_argument("--u-max", type=float, default=None,
+                        help="force clamp of the controller, N (default: 4.4 m/s^2 of cart acceleration from upright)")
+    parser.add_argument("--noise", type=float, nargs=2, default=None, metavar=("X_M", "PHI_RAD"),
+                        help="measurement noise (std, m and rad) the Kalman filter is designed for "
+                             "(default: one encoder count, two ADC counts)")
 
 
 def run(args: argparse.Namespace) -> int:
     """Export the fixed-point tables (``upright export``)."""
     p = load_params(args.params)
-    c = controller_ss(p, rate=args.rate, design=args.design, Q=args.Q, R=args.R)
+    kw = {} if args.noise is None else {"sigma_meas": tuple(args.noise)}
+    c = controller_ss(p, rate=args.rate, design=args.design, Q=args.Q, R=args.R, u_max=args.u_max, **kw)
     fd = export(p, c, ki=args.ki, deadband=args.deadband, v_limit=args.v_limit, w_limit=args.w_limit)
     text = render(fd)
     if args.out:

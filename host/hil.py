@@ -70,6 +70,7 @@ __all__ = [
     "HilSession",
     "PRIME_TICK",
     "encoder_jump_limit",
+    "design_noise",
     "float_reference",
     "resolve_scenarios",
     "run_scenarios",
@@ -286,9 +287,10 @@ class HilSession:
         self.link: Link | None = None
         self.board: VirtualBoard | None = None
         self._bus: Any = None
-        self._encj: int | None = None
+        self._table_key: Any = (None, None)
         self._gains_label = "firmware default"
         self.gains = self._gains_label
+        self._custom: tuple[bytes, str] | None = None
 
     @property
     def virtual(self) -> bool:
@@ -412,19 +414,30 @@ class HilSession:
                 return m
             sink.other(m)
 
-    def _ensure_gains(self, encj: int | None) -> str:
+    def use_gains(self, blob: bytes | None, label: str = "custom table") -> None:
+        """Run the following scenarios with this gain table instead of the design's.
+
+        ``blob`` is an exported table (``host.export.export(...).blob()``); it is uploaded
+        by the next :meth:`prepare` and stays until ``use_gains(None)`` gives the design's
+        tables (with the scenario's noise adjustments) back.
+        """
+        self._custom = None if blob is None else (bytes(blob), str(label))
+
+    def _ensure_gains(self, encj: int | None, sigma: tuple[float, float] | None = None) -> str:
         # upload the design's table with the encoder plausibility limit widened to
-        # `encj` counts per tick (None: the firmware's own table); returns a label
-        link = self._link()
-        if encj == self._encj:
+        # `encj` counts per tick and the estimator designed for measurement noise `sigma`
+        # (None, None: the firmware's own table), or the table set by use_gains();
+        # returns a label
+        key: Any = ("custom", self._custom) if self._custom is not None else (encj, sigma)
+        if key == self._table_key:
             return self._gains_label
-        blob, label = _gain_table(encj)
+        blob, label = self._custom if self._custom is not None else _gain_table(encj, sigma)
         try:
-            link.upload_gains(blob, timeout=self.timeout / 4, retries=3)
+            self._link().upload_gains(blob, timeout=self.timeout / 4, retries=3)
         except LinkError as exc:
             self._check_board()
             raise HilError(f"gain table upload ({label}) failed: {exc}") from exc
-        self._encj = encj
+        self._table_key = key
         self._gains_label = label
         return label
 
@@ -432,11 +445,12 @@ class HilSession:
                 fw_params: Mapping[str | int, int] | None = None) -> None:
         """Bring the board to a clean start for a run (see the module docstring).
 
-        If the scenario puts measurement noise on the cart position that the firmware's
-        encoder plausibility check (largest step per tick) would take for lost counts,
-        the design's gain table is uploaded with that limit widened
-        (:func:`encoder_jump_limit`); the next scenario without such noise gets the
-        default limit back.  ``fw_params`` sets firmware parameters (name or index ->
+        If the scenario puts measurement noise on the sensors, the design's gain table is
+        uploaded with the estimator designed for that noise
+        (:func:`host.discrete.sigma_meas_for`) and, where the firmware's encoder
+        plausibility check (largest step per tick) would take the noise for lost counts,
+        that limit widened (:func:`encoder_jump_limit`); the next scenario without noise
+        gets the firmware's own table back.  ``fw_params`` sets firmware parameters (name or index ->
         value, see ``firmware.msgtable.PARAMS``) before arming; they stay set for the
         session.
         """
@@ -452,7 +466,7 @@ class HilSession:
             if a.tick != PRIME_TICK:
                 raise TickError(f"priming frame answered with tick {a.tick}")
         self._request(link.clear_faults)
-        self.gains = self._ensure_gains(encoder_jump_limit(sim.scenario, sim.params))
+        self.gains = self._ensure_gains(encoder_jump_limit(sim.scenario, sim.params), design_noise(sim.scenario, sim.params))
         self._request(link.param_set, T.P_ARM_TILT, _ARM_TILT_MAX)
         for key, value in (fw_params or {}).items():
             self._request(link.param_set, key, int(value))
@@ -735,21 +749,41 @@ class HilSession:
         return self.run_realtime(scenario, params, **kwargs)
 
 
-_TABLES: dict[int | None, tuple[bytes, str]] = {}
+_TABLES: dict[tuple[int | None, tuple[float, float] | None], tuple[bytes, str]] = {}
 
 
-def _gain_table(encj: int | None) -> tuple[bytes, str]:
-    # the design's table (host/export.py, default robot) with ENCJ replaced
-    if encj not in _TABLES:
+def _gain_table(encj: int | None, sigma: tuple[float, float] | None = None) -> tuple[bytes, str]:
+    # the design's table (host/export.py, default robot) with the estimator designed for
+    # measurement noise `sigma` and ENCJ replaced
+    key = (encj, sigma)
+    if key not in _TABLES:
+        from host.discrete import controller_ss
         from host.export import export
 
-        fd = export()
-        label = "firmware default"
+        labels = []
+        if sigma is None:
+            fd = export()
+        else:
+            p = load_params()
+            fd = export(p, controller_ss(p, sigma_meas=sigma))
+            labels.append(f"estimator for noise {sigma[0]:.3g} m / {sigma[1]:.3g} rad")
         if encj is not None:
             fd.tables["ENCJ"] = [int(encj)]
-            label = f"encoder step limit {encj} counts/tick"
-        _TABLES[encj] = (fd.blob(), label)
-    return _TABLES[encj]
+            labels.append(f"encoder step limit {encj} counts/tick")
+        _TABLES[key] = (fd.blob(), ", ".join(labels) or "firmware default")
+    return _TABLES[key]
+
+
+def design_noise(scenario: Scenario, params: RobotParams) -> tuple[float, float] | None:
+    """Measurement noise ``(m, rad)`` the estimator is designed for in this scenario, or
+    ``None`` when the firmware's own table (default sensor noise) serves.
+
+    See :func:`host.discrete.sigma_meas_for`.
+    """
+    from host.discrete import SIGMA_MEAS, sigma_meas_for
+
+    sig = sigma_meas_for(scenario, params)
+    return None if sig == tuple(SIGMA_MEAS) else sig
 
 
 def encoder_jump_limit(scenario: Scenario, params: RobotParams) -> int | None:
@@ -954,11 +988,13 @@ def write_outputs(run: HilRun, out: str | Path, *, gif: bool = True, plot: bool 
 
 
 def float_reference(scenario: Scenario, params: RobotParams, *, init: str = "measured",
-                    seed: int | None = None) -> dict[str, np.ndarray]:
+                    seed: int | None = None, ctrl: Any = None) -> dict[str, np.ndarray]:
     """The same scenario closed with the float discrete design in pure simulation.
 
-    The controller is :func:`host.discrete.controller_ss` of the *design* parameters
-    ``params`` (the gains the firmware carries); the plant gets the scenario's overrides.
+    The controller is :func:`host.discrete.controller_for` of the *design* parameters
+    ``params`` (the gains the firmware carries, with the estimator designed for the
+    scenario's measurement noise as :meth:`HilSession.prepare` uploads it); the plant
+    gets the scenario's overrides.
     The loop is :func:`sim.plantsim.run_scenario_float`'s, with one choice added:
 
     Parameters
@@ -976,18 +1012,20 @@ def float_reference(scenario: Scenario, params: RobotParams, *, init: str = "mea
         checks the two agree to the last bit).
     seed : int, optional
         Noise seed overriding the scenario's.
+    ctrl : DiscreteController, optional
+        Another design (the one whose table :meth:`HilSession.use_gains` uploaded).
 
     Returns
     -------
     dict of ndarray
         The run log, like :func:`~sim.plantsim.run_scenario_float`'s.
     """
-    from host.discrete import controller_ss
+    from host.discrete import controller_for
     from sim import motor, sensors
 
     if init not in ("measured", "zero"):
         raise ValueError(f"init must be 'measured' or 'zero', got {init!r}")
-    ctrl = controller_ss(params)
+    ctrl = controller_for(scenario, params) if ctrl is None else ctrl
     sim = PlantSim(params, scenario, seed=seed)
     p = sim.params
     Ac, Bc, Cc, Dc = (np.asarray(m, dtype=float) for m in (ctrl.Ac, ctrl.Bc, ctrl.Cc, ctrl.Dc))

@@ -13,7 +13,7 @@ settling time (2 % band)
     settling time is the time from the segment's start to the first sample after which the
     signal stays in the band; the run's settling time is the worst over segments and
     signals.  A signal still outside the band at the end of its segment has not settled
-    (``nan``).  With measurement noise the true state never settles in a 2 % band, so the
+    (``nan``), nor has a pendulum lying past the tilt constraint at the end of a segment.  With measurement noise the true state never settles in a 2 % band, so the
     settling time is not defined (``nan``, check "N/A") unless the scenario also has events.
 peak |phi|
     ``max |phi|`` over the run (rad).
@@ -229,6 +229,7 @@ def compute_metrics(log: Mapping[str, np.ndarray], scenario: Scenario, params: R
     xr = np.asarray(log["x_ref"], dtype=float) if "x_ref" in log else np.asarray(scenario.x_ref(t))
     end = float(t[-1] + Ts)
     floors = _floors(params)
+    phi_lim = float(params.phi_max) if params is not None else 0.3
     events = [e for e in scenario.events() if e < end]
     bounds = events + [end]
     edges = set(scenario.reference.edges(end))
@@ -251,6 +252,8 @@ def compute_metrics(log: Mapping[str, np.ndarray], scenario: Scenario, params: R
                     sel = (t >= a) & (t < b)
                     scale = max(abs(step), float(np.max(np.abs(sig[sel] - np.mean(sig[sel][-max(1, int(_TAIL * sel.sum())):])))))
                 ts_ = settling_time(t, sig, t0=a, t1=b, scale=scale, floor=floors[name])
+                if name == "phi" and abs(float(sig[(t >= a) & (t < b)][-1])) >= phi_lim:
+                    ts_ = math.nan  # fell over: "settled" lying down is not settled
                 if math.isnan(ts_) or ts_ > worst:
                     settle_from = a
                 worst = max(worst, ts_) if not math.isnan(ts_) else math.nan

@@ -573,12 +573,15 @@ def pareto_front(points: Sequence[Sequence[float]]) -> set[int]:
 
 # ------------------------------------------------------------------ tilt
 def default_tilt_designs(params: RobotParams) -> list[Design]:
-    """The report's LQR and pole placement, and softer LQRs (larger ``R``)."""
+    """The shipped design (with its own force clamp), the report's LQR and pole placement, and
+    softer versions of the report's LQR (larger ``R``)."""
     from host.design import place_gain
+    from host.discrete import Q_REPORT, R_REPORT, force_clamp
 
     K = tuple(float(v) for v in place_gain(params))
-    return [Design("lqr_report"), Design("lqr_R0.01", R=0.01), Design("lqr_R0.1", R=0.1), Design("lqr_R1", R=1.0),
-            Design("place_report", K=K)]  # type: ignore[arg-type]
+    return [Design("lqr_default", u_max=force_clamp(params)), Design("lqr_report", Q=Q_REPORT, R=R_REPORT),
+            Design("lqr_R0.01", Q=Q_REPORT, R=0.01), Design("lqr_R0.1", Q=Q_REPORT, R=0.1),
+            Design("lqr_R1", Q=Q_REPORT, R=1.0), Design("place_report", K=K)]  # type: ignore[arg-type]
 
 
 def physical_tilt_limit(params: RobotParams) -> float:

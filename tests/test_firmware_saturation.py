@@ -176,7 +176,7 @@ def test_integral_action_removes_the_offset_of_a_constant_push() -> None:
     no_i = simulate_loop(P, FD.ctrl, [0, 0, 0, 0], 10.0, quantise=True, disturbance=push,
                          controller=H.fixed_controller(P, FD))
     with_i = simulate_loop(P, FD.ctrl, [0, 0, 0, 0], 10.0, quantise=True, disturbance=push,
-                           controller=H.fixed_controller(P, export(P, ki=40.0)))
+                           controller=H.fixed_controller(P, export(P, ki=6.0)))
     off_no_i = np.mean(np.abs(no_i["x"][-500:]))
     off_i = np.mean(np.abs(with_i["x"][-500:]))
     assert off_no_i > 0.005 and off_i < off_no_i / 5

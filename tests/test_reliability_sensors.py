@@ -87,7 +87,8 @@ def test_fault_while_cause_persists_relatches_after_clear(board) -> None:
     _assert_fault_motor_off_latched(run, F_ADC_RAIL, within=0)
     L = board.link
     L.clear_faults()  # accepted while the cause is still there ...
-    a = _one_tick(board, 0, 0)  # ... and the next tick latches it again
+    enc = int(run.log["enc"][-1])  # (the encoder as it was: only the ADC is at fault)
+    a = _one_tick(board, 0, enc)  # ... and the next tick latches it again
     assert a.state == FAULT and a.faults == F_ADC_RAIL and a.duty == 0
 
 

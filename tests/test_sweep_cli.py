@@ -63,7 +63,7 @@ def test_a_chosen_design_is_swept(tmp_path, capsys) -> None:
                      "--observer", "0.5", "--worst", "1", "--quiet", "--no-plots", "--out", str(tmp_path)]) == 0
     capsys.readouterr()
     s = load_scenario(next((tmp_path / "scenarios").glob("*.toml")))
-    assert "design qx1_qphi0.8_r0.1_obs0.5" in s.expect.note
+    assert "design qx1_qphi0.1_r0.1_obs0.5" in s.expect.note
 
 
 def test_parse_noise() -> None:
