@@ -208,10 +208,18 @@ class HilRun:
         return self.scenario.duration / self.wall_s if self.wall_s > 0 else math.inf
 
     def phi_error(self) -> float:
-        """Largest ``|phi_hil - phi_float|`` (rad) against the float reference (nan if none)."""
+        """Largest ``|phi_hil - phi_float|`` (rad) against the float reference (nan if none).
+
+        Compared while the firmware controls the motor: once its supervisor has cut the
+        motor (a fault), the float design -- which has no supervisor -- runs on alone.
+        """
         if self.reference is None:
             return math.nan
         n = min(len(self.log["phi"]), len(self.reference["phi"]))
+        state = self.log.get("fw_state")
+        if state is not None:
+            cut = np.nonzero(np.asarray(state[:n]) == _FAULT_STATE)[0]
+            n = int(cut[0]) if cut.size else n
         return float(np.max(np.abs(self.log["phi"][:n] - self.reference["phi"][:n]))) if n else 0.0
 
     def summary(self, name: str | None = None) -> Any:
@@ -748,6 +756,8 @@ class HilSession:
             return self.run_lockstep(scenario, params, **kwargs)
         return self.run_realtime(scenario, params, **kwargs)
 
+
+_FAULT_STATE = next(code for code, name, _ in T.STATES if name == "fault")
 
 _TABLES: dict[tuple[int | None, tuple[float, float] | None], tuple[bytes, str]] = {}
 
