@@ -123,19 +123,13 @@ def force_clamp(params: RobotParams, a_cmd: float = A_CMD_DEFAULT) -> float:
 def sigma_meas_for(scenario: "Scenario", params: RobotParams) -> tuple[float, float]:
     """Kalman measurement noise ``(x in m, phi in rad)`` for a scenario's sensor noise.
 
-    The standard deviation of the scenario's measurement noise on each channel (uniform
-    in +-a: ``a / sqrt(3)``; white of power P sampled every Ts: ``sqrt(P / Ts)``), or the
-    default ``SIGMA_MEAS`` where that is larger (quantisation stays).
+    The standard deviation of the scenario's measurement noise on each channel
+    (:meth:`sim.sensors.NoiseModel.std` at the loop period), or the default ``SIGMA_MEAS``
+    where that is larger (quantisation stays).
     """
     n = scenario.noise
     sig = list(SIGMA_MEAS)
-    if n.kind == "none":
-        return (sig[0], sig[1])
-    p = scenario.apply(params)
-    if n.kind == "uniform":
-        s = n.amplitude / math.sqrt(3.0)
-    else:
-        s = math.sqrt(n.power / (n.sample_time or 1.0 / p.rate))
+    s = n.std(1.0 / scenario.apply(params).rate)  # 0 without noise
     for i, ch in enumerate(("x", "phi")):
         if ch in n.channels:
             sig[i] = max(sig[i], s)

@@ -774,8 +774,7 @@ def _gain_table(encj: int | None, sigma: tuple[float, float] | None = None) -> t
         if sigma is None:
             fd = export()
         else:
-            p = load_params()
-            fd = export(p, controller_ss(p, sigma_meas=sigma))
+            fd = export(ctrl=controller_ss(load_params(), sigma_meas=sigma))
             labels.append(f"estimator for noise {sigma[0]:.3g} m / {sigma[1]:.3g} rad")
         if encj is not None:
             fd.tables["ENCJ"] = [int(encj)]
@@ -821,8 +820,7 @@ def encoder_jump_limit(scenario: Scenario, params: RobotParams) -> int | None:
     if n.kind == "uniform":
         spread = 2.0 * n.amplitude * cpm
     else:
-        st = n.sample_time or 1.0 / p.rate
-        spread = 9.0 * math.sqrt(n.power / st) * cpm
+        spread = 9.0 * n.std(1.0 / p.rate) * cpm
     base = 2.0 * p.V_supply * p.r_wheel / (p.kt * p.gear) / p.rate * cpm + 2.0
     if spread < 1.0:
         return None

@@ -229,7 +229,7 @@ def compute_metrics(log: Mapping[str, np.ndarray], scenario: Scenario, params: R
     xr = np.asarray(log["x_ref"], dtype=float) if "x_ref" in log else np.asarray(scenario.x_ref(t))
     end = float(t[-1] + Ts)
     floors = _floors(params)
-    phi_lim = float(params.phi_max) if params is not None else 0.3
+    phi_lim = float(params.phi_max) if params is not None else math.inf  # no params: no fallen check
     events = [e for e in scenario.events() if e < end]
     bounds = events + [end]
     edges = set(scenario.reference.edges(end))
