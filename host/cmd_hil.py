@@ -133,7 +133,8 @@ def report(runs: Sequence[Any], *, tolerance: float = 0.01, out: str | Path | No
     head = f"  {'scenario':28s} {'ticks':>6s} {'x real time':>11s} {'|dphi| vs float':>15s} {'fw step us':>10s}"
     rt = any(r.mode == "realtime" for r in runs)
     if rt:
-        head += f" {'latency us (mean/p99/max)':>26s} {'late':>5s} {'fw overruns':>11s} {'fw period max':>13s}"
+        head += (f" {'latency us (mean/p99/max)':>26s} {'late':>5s} {'fw overruns':>11s} {'fw period max':>13s}"
+                 f" {'steal ms':>8s}")
     print(head, file=stream)
     bad = 0
     for r, s in zip(runs, summaries):
@@ -148,7 +149,8 @@ def report(runs: Sequence[Any], *, tolerance: float = 0.01, out: str | Path | No
         if rt:
             line += (f" {st.get('latency_us_mean', math.nan):8.0f}/{st.get('latency_us_p99', math.nan):6.0f}/"
                      f"{st.get('latency_us_max', math.nan):7.0f}   {st.get('late', 0):5d} "
-                     f"{st.get('fw_overruns', -1):11d} {st.get('fw_period_max_us', -1):10d} us")
+                     f"{st.get('fw_overruns', -1):11d} {st.get('fw_period_max_us', -1):10d} us"
+                     f" {st.get('steal_s', math.nan) * 1e3:8.0f}")
         print(line, file=stream)
         if st.get("gains", "firmware default") != "firmware default":
             print(f"  {'':28s} (gain table uploaded: {st['gains']})", file=stream)

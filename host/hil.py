@@ -57,7 +57,7 @@ import numpy as np
 from firmware import msgtable as T
 from host import messages as M
 from host.link import CanLink, CommandRefused, Link, LinkError, SerialLink
-from host.vport import PTMX, BoardExited, PortError, VirtualBoard, open_can, set_realtime, slave_of
+from host.vport import PTMX, BoardExited, PortError, VirtualBoard, open_can, set_realtime, slave_of, steal_seconds
 from sim.params import RobotParams, load_params
 from sim.plantsim import PlantSim, write_csv
 from sim.scenario import REPORT_SCENARIOS, Scenario, list_scenarios, load_scenario
@@ -620,6 +620,11 @@ class HilSession:
             the phase.
         progress, seed, x0, fw_params
             As for :meth:`run_lockstep`.
+
+        The run's ``stats`` hold the host's measurements (``latency_us_*``, ``late``,
+        ``answered``), the firmware's own timing statistics (``fw_*``) and ``steal_s``: the
+        CPU time the hypervisor took from the machine during the run
+        (:func:`host.vport.steal_seconds`), against which the timing figures are read.
         """
         if self.mode != "realtime":
             raise HilError("this session's firmware runs in lockstep mode; use run_lockstep")
@@ -699,6 +704,7 @@ class HilSession:
         link.send(M.BY_NAME["request"](msg_id=T.TIMING))
         link.send(M.BY_NAME["arm"]())
         t0 = clock()
+        steal0 = steal_seconds()
         ref_prev = sim.x_ref()
         for k in range(n):
             _sleep_until(t_next)
@@ -725,6 +731,7 @@ class HilSession:
             if self.board is not None and k % 500 == 0:
                 self._check_board()
         wall = clock() - t0
+        steal = steal_seconds() - steal0
         if progress is not None:
             progress(n, n)
         pump(clock() + 0.02, None)
@@ -745,6 +752,7 @@ class HilSession:
             "latency_us_p99": float(np.percentile(lat, 99)) if lat.size else math.nan,
             "period_us": period_us,
             "wall_s": wall,
+            "steal_s": steal,
             "fw_realtime_policy": bool(self.board.realtime_policy) if self.board is not None else None,
             "host_realtime_policy": host_rt,
         })

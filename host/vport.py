@@ -18,6 +18,7 @@ one-line :class:`PortError` messages, never tracebacks (:func:`open_serial`,
 from __future__ import annotations
 
 import fcntl
+import math
 import os
 import signal
 import struct
@@ -37,6 +38,7 @@ __all__ = [
     "open_can",
     "firmware_command",
     "set_realtime",
+    "steal_seconds",
     "VirtualBoard",
 ]
 
@@ -165,6 +167,22 @@ def set_realtime(priority: int | None, pid: int = 0) -> bool:
     except (OSError, AttributeError):
         return False
     return True
+
+
+def steal_seconds() -> float:
+    """CPU time the hypervisor has taken from this virtual machine so far, all CPUs (s).
+
+    The ``steal`` column of ``/proc/stat`` (Linux; in clock ticks): time a vCPU was ready
+    to run but the host ran something else.  Nothing inside the VM can prevent it, not
+    even ``SCHED_FIFO``; real-time statistics are read against it.  ``nan`` where the
+    kernel does not report it.
+    """
+    try:
+        with open("/proc/stat") as fh:
+            fields = fh.readline().split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return math.nan
 
 
 def firmware_command(port: str, *, link: str = "serial", mode: str = "lockstep", node: int = 1,

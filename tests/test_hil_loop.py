@@ -303,15 +303,19 @@ def test_tilt_past_cutoff_turns_motor_off_within_one_tick() -> None:
 
 # ---------------------------------------------------------------- real time
 RT_BOUNDS = {
-    # generous bounds, documented in the report: this is a shared 2-core VM whose vCPUs
-    # are sometimes descheduled by the hypervisor (steal time, ~10 ms); the firmware runs
-    # SCHED_FIFO so nothing in the guest delays it
-    "latency_p99_periods": 1.0,  # sensor-to-actuator latency, 99th percentile
-    # ticks whose answer missed the host's plant step: a host-side figure (the host is
-    # descheduled, not the firmware); measured 5-70 per 5000 over clean-clone CI runs here
+    # This is a shared 2-core VM whose vCPUs the hypervisor sometimes deschedules (steal:
+    # measured 50-240 ms per 10 s run here, in episodes of up to ~50 ms).  The firmware runs
+    # SCHED_FIFO above the host, so nothing in the guest delays it -- and nothing in the guest
+    # can prevent steal.  So the host-side counts are bounded by a fraction of the run plus
+    # the periods the kernel reports stolen during the run (stats["steal_s"], /proc/stat),
+    # and the longest gaps by a multiple of the period plus the stolen time (one episode
+    # cannot be longer than all of them).  With no steal the fractions alone apply.
+    "latency_periods": 1.0,  # sensor-to-actuator latency at most one period ...
+    "slow_fraction": 0.01,  # ... on all but 1 % of the ticks (the p99, with no steal)
+    # ticks whose answer missed the host's plant step (a host-side figure)
     "late_fraction": 0.02,
     "overrun_fraction": 0.01,  # firmware overruns (period > 1.5 T or step > T) per step
-    "period_max_periods": 10.0,  # longest period between two step starts
+    "period_max_periods": 10.0,  # longest period between two step starts (+ stolen time)
 }
 
 
@@ -345,14 +349,18 @@ def test_realtime_loop_timing_over_ten_seconds(link) -> None:
     # the longest one is bounded like the period (a vCPU descheduled by the hypervisor in
     # the middle of a step stretches that step: measured up to 1.9 ms, also before any
     # firmware change, so a hard T/2 on the maximum failed now and then)
+    stolen_us = st["steal_s"] * 1e6 if math.isfinite(st["steal_s"]) else 0.0
+    stolen = stolen_us / T_us  # periods the hypervisor took (both vCPUs)
     assert 0 < st["fw_step_us_mean"] < T_us / 4, st
-    assert 0 < st["fw_step_max_us"] <= RT_BOUNDS["period_max_periods"] * T_us, st
+    assert 0 < st["fw_step_max_us"] <= RT_BOUNDS["period_max_periods"] * T_us + stolen_us, st
     assert st["fw_overruns"] <= RT_BOUNDS["overrun_fraction"] * n, st
-    assert st["fw_period_max_us"] <= RT_BOUNDS["period_max_periods"] * T_us, st
+    assert st["fw_period_max_us"] <= RT_BOUNDS["period_max_periods"] * T_us + stolen_us, st
     # the host's measurements: latency at most one period, answers in time
-    assert st["latency_us_p99"] <= RT_BOUNDS["latency_p99_periods"] * T_us, st
-    assert st["late"] <= RT_BOUNDS["late_fraction"] * n, st
-    assert st["answered"] >= (1 - RT_BOUNDS["late_fraction"]) * n
+    lat = run.log["latency_us"]
+    slow = int(np.sum(lat[np.isfinite(lat)] > RT_BOUNDS["latency_periods"] * T_us))
+    assert slow <= RT_BOUNDS["slow_fraction"] * n + stolen, (slow, st)
+    assert st["late"] <= RT_BOUNDS["late_fraction"] * n + stolen, st
+    assert st["answered"] >= n - (RT_BOUNDS["late_fraction"] * n + stolen), st
     assert math.isfinite(st["latency_us_mean"]) and st["latency_us_mean"] < T_us
 
 
