@@ -191,44 +191,8 @@ def fuzz_stream(n_bytes: int, seed: int = 0) -> bytes:
 
 _MPY_FUZZ = """
 import micropython, time
-from array import array
 from firmware import codec, framing, commands
-from firmware import msgtable as T
-
-class Tg:
-    def __init__(self):
-        self.p = array('i', [p[5] for p in T.PARAMS])
-        self.st = 0
-        self.faults = 0
-    def cmd_arm(self):
-        self.st = 1
-        return 0
-    def cmd_disarm(self):
-        self.st = 0
-        return 0
-    def cmd_clear_faults(self):
-        self.faults = 0
-        return 0
-    def cmd_set_reference(self, x):
-        return 0
-    def param_get(self, i):
-        return self.p[i]
-    def param_set(self, i, v):
-        self.p[i] = v
-        return 0
-    def gains_apply(self, b, n):
-        return 0
-    def fill_heartbeat(self, a):
-        a[0] = self.st
-        a[1] = self.faults
-        a[2] = 1
-        a[3] = 2
-    def fill_telemetry(self, a):
-        for i in range(8):
-            a[i] = i
-    def fill_timing(self, a):
-        for i in range(4):
-            a[i] = i
+from host.standin import StandIn
 
 class Sink:
     def __init__(self):
@@ -238,7 +202,7 @@ class Sink:
 
 layout = codec.Layout()
 sink = Sink()
-tg = Tg()
+tg = StandIn()
 disp = commands.Dispatcher(tg, layout, framing.SerialTx(framing.Encoder(layout), sink.write))
 data = bytearray({size})
 f = open({path!r}, 'rb')

@@ -20,11 +20,17 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 
-__all__ = ["MicroPythonError", "micropython_exe", "run_unix", "run_wasm", "wasm_available", "ROOT"]
+__all__ = ["MicroPythonError", "micropython_exe", "run_unix", "run_wasm", "wasm_available", "standin_source", "ROOT"]
 
 
 class MicroPythonError(RuntimeError):
     """Code run under MicroPython raised or the interpreter failed (stderr attached)."""
+
+
+def standin_source() -> str:
+    """Source of :mod:`host.standin` (the dispatcher's stand-in target), for pasting into code
+    run by an interpreter that cannot import it (the wasm port sees only ``firmware/``)."""
+    return (ROOT / "host" / "standin.py").read_text()
 
 
 def micropython_exe() -> str:
