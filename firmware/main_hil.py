@@ -260,23 +260,6 @@ class HilMain:
         return self.run_realtime()
 
 
-def next_boot(path):
-    # the boot counter kept in a small file: read it, add one (mod 256), write it back.
-    # Returns the new count (0 on the first boot or when the file cannot be used).
-    n = 0
-    try:
-        with open(path) as f:
-            n = (int(f.read().strip() or "0") + 1) & 0xFF
-    except (OSError, ValueError):
-        n = 0
-    try:
-        with open(path, "w") as f:
-            f.write(str(n))
-    except OSError:
-        pass
-    return n
-
-
 def main(port=None, link="serial", mode="lockstep", node=1, uart=None, heap_lock=False, boot_file=None):
     # port: tty path for the unix port; uart: a ready UART object (a board).
     # heap_lock: run the loop under micropython.heap_lock() -- any allocation in it
@@ -290,7 +273,8 @@ def main(port=None, link="serial", mode="lockstep", node=1, uart=None, heap_lock
     # start increments it and HEARTBEAT.boot reports it, so the host sees a reset
     config = None
     if boot_file is not None:
-        config = {"boot": next_boot(boot_file)}
+        from .main import boot_count
+        config = {"boot": boot_count(boot_file)}
     m = HilMain(uart, link, mode, node, None, config)
     if heap_lock:
         import gc

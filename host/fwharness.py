@@ -200,25 +200,10 @@ def default_design() -> FixedDesign:
     return export()
 
 
-APP_LOOP = """
+APP_LOOP = FAKE_HAL + """
 import sys
 from firmware.app import App
-class LoopHal:
-    def __init__(s):
-        s.adc = 2048
-        s.enc = 0
-        s.duty = 0
-        s.t = 0
-    def read_angle_raw(s):
-        return s.adc
-    def read_encoder(s):
-        return s.enc
-    def set_motor(s, d):
-        s.duty = d
-    def ticks_us(s):
-        s.t = (s.t + 250) & 0x3FFFFFFF
-        return s.t
-hal = LoopHal()
+hal = Hal()
 app = App(hal, config=CONFIG)
 hal.adc = ADC0
 hal.enc = ENC0
