@@ -48,13 +48,13 @@ demo: setup
 	$(BIN)/upright demo --out $(OUT)
 
 bench: setup
-	$(PY) -m host.bench --out $(OUT)/bench.json
+	$(PY) -m host.bench.main --out $(OUT)/bench.json
 
 fuzz: setup
-	$(PY) -m host.bench --only proto_fuzz --out $(OUT)/fuzz.json
+	$(PY) -m host.bench.main --only proto_fuzz --out $(OUT)/fuzz.json
 
 soak: setup
-	$(PY) -m host.soak --sim-seconds 3600
+	$(BIN)/upright soak --sim-seconds 3600
 
 firmware: $(STAMP)
 	$(PY) -m host.bundle --arch $(ARCH) --out $(OUT)/firmware

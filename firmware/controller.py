@@ -2,8 +2,8 @@
 # over the stored forces, state feedback + reference precompensation (+ optional
 # integral action with anti-windup).  Integer-only and allocation-free per step.
 #
-# It implements exactly host/discrete.py's DiscreteController in the integer scales
-# of host/export.py (see the header of firmware/gains.py for formats and the headroom
+# It implements exactly host/design/discrete.py's DiscreteController in the integer scales
+# of host/design/export.py (see the header of firmware/gains.py for formats and the headroom
 # proof).  One step, with y in state LSB and r in x LSB, all clamped by the caller:
 #   e = y - C p;  xf = clamp(p + (M e + rf) >> SM)
 #   u = clamp((KF.xf + KB.b + KR r + KI integ) >> SK, +-ULIM)      (returned)
@@ -135,7 +135,7 @@ class Controller:
 
     def validate(self, t, n, version):
         # re-check an uploaded table (t: n ints) before it may replace the live one:
-        # shape, limits, and the abs-sum bound of every row (host/export.py's proof)
+        # shape, limits, and the abs-sum bound of every row (host/design/export.py's proof)
         o = self.off
         if n != self.length or t[o["HDR"] + 2] != n:
             return R_BAD_LENGTH

@@ -1,6 +1,6 @@
 # HIL entry point: the unchanged firmware app, its sensors and motor replaced by the link.
 #
-# Runs under the MicroPython unix port on a pty (host/vport.py starts it) or on a real
+# Runs under the MicroPython unix port on a pty (host/boards/vport.py starts it) or on a real
 # board in HIL mode (hand it the board's machine.UART):
 #   from firmware import main_hil; main_hil.main("/dev/pts/3", link="serial", mode="lockstep")
 #   main_hil.main(uart=machine.UART(0, 1000000), mode="realtime")

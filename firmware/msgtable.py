@@ -1,7 +1,7 @@
 # upright protocol: THE message table (single source of truth).
 #
-# Firmware and host both read this module; host/messages.py builds typed message
-# classes from it, host/dbc.py renders the CAN database and docs/protocol.md is the
+# Firmware and host both read this module; host/link/messages.py builds typed message
+# classes from it, host/link/dbc.py renders the CAN database and docs/protocol.md is the
 # generated reference.  Nothing in here runs except literal data and const().
 #
 # Wire rules (both framings carry the same payload bytes):

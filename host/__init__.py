@@ -1,1 +1,1 @@
-"""upright host side: design, analysis, fixed-point export, link clients, HIL runner and CLI."""
+"""upright host side, in rooms by concern (lowest first): design, link, boards, hil, studies, bench, cli."""

@@ -1,1 +1,1 @@
-"""upright simulation: parameters, nonlinear plant, sensors, scenarios, metrics."""
+"""upright simulation, the plant side only: parameters, nonlinear plant, motor, sensors, scenarios, metrics, plots, the batch simulator."""

@@ -7,7 +7,7 @@ parameters, measurement delay, noise stream and initial state::
         reading  = sensors(x, phi, noise_k)          ADC / encoder counts (sim.sensors)
         v        = decode(reading from d_i ticks ago)  [x_meas, phi_meas, x_ref]
         u        = Cc z + Dc v ; u_sat = clip(u, +-u_max)
-        z        = Ac z + Bc v + Bu u_sat             (host.discrete.DiscreteController)
+        z        = Ac z + Bc v + Bu u_sat             (host.design.discrete.DiscreteController)
         duty     = duty_from_force(u_sat, xdot_est)  back-EMF compensation (sim.motor)
     between ticks: RK4 sub-steps at ``plant_rate`` (1 kHz) of sim.plant.dynamics with the
     force F = force_from_duty(duty, xdot) of the *true* motor (it varies with xdot inside
@@ -207,7 +207,7 @@ class BatchResult:
 def estimator_rows(ctrl: Any) -> tuple[np.ndarray, np.ndarray] | None:
     """The controller's cart-speed estimate as a linear map ``xdot_est = ce z + de v``.
 
-    Built from the structured pieces of :class:`host.discrete.DiscreteController`
+    Built from the structured pieces of :class:`host.design.discrete.DiscreteController`
     (``Ad, Bd, C, M, delay_steps``), the same prediction as its ``estimate()``.
     Returns ``None`` for a controller without them.
     """
@@ -331,7 +331,7 @@ def simulate_batch(
         Nominal parameters: the firmware's (sensor conversion, motor inversion, loop
         rate) and the defaults of every run's true plant.
     ctrl : DiscreteController or sequence of them
-        The controller (``Ac, Bc, Cc, Dc, Bu, Ts, u_max``), see :mod:`host.discrete`; or
+        The controller (``Ac, Bc, Cc, Dc, Bu, Ts, u_max``), see :mod:`host.design.discrete`; or
         several (same period and state size) with ``ctrl_index`` choosing one per run,
         so that many designs run in one batch.
     runs : RunSet

@@ -17,7 +17,7 @@ robot would do between two loop iterations of the board:
 
 The HIL runner calls ``read()`` -> sends the frame -> gets the duty -> ``step(duty)``;
 :func:`run_scenario_float` does the same with the float reference controller
-(``host.discrete.DiscreteController``) in place of the board, so both use exactly this code.
+(``host.design.discrete.DiscreteController``) in place of the board, so both use exactly this code.
 Every tick is logged; :meth:`PlantSim.result` returns the log as arrays (:data:`LOG_COLUMNS`),
 the input of :mod:`sim.metrics` and :mod:`sim.plots`.
 
@@ -317,7 +317,7 @@ def run_scenario_float(
 
     Each tick: the delayed, noisy, quantised sensor counts of :class:`PlantSim` are decoded
     like the firmware does (ADC -> rad with offset and scale; 16-bit encoder unwrapped ->
-    m), the controller (``host.discrete.DiscreteController``) computes ``u``, saturates it to
+    m), the controller (``host.design.discrete.DiscreteController``) computes ``u``, saturates it to
     ``u_max`` and updates its state with the saturated value; the force is mapped to an
     integer duty by the inverse motor model with back-EMF compensation
     (:func:`sim.motor.duty_from_force`), and the plant integrates that duty.

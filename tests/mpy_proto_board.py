@@ -1,15 +1,15 @@
 # A protocol "board" for the MicroPython unix port (test helper, not firmware):
-# firmware decoder + dispatcher + encoder on a tty, with host.standin as the target.
+# firmware decoder + dispatcher + encoder on a tty, with host.link.standin as the target.
 #   micropython tests/mpy_proto_board.py TTY serial|can SECONDS
 # Prints "ready" once the port is open, then serves until SECONDS pass or a
-# DISARM arrives after a SET_REFERENCE of exactly 424242 um (host.standin.QUIT_REF);
+# DISARM arrives after a SET_REFERENCE of exactly 424242 um (host.link.standin.QUIT_REF);
 # prints counters at exit.
 import sys
 import time
 import micropython
 from firmware import canframe, codec, commands, framing
 from firmware.uart_unix import UnixUART
-from host.standin import StandIn
+from host.link.standin import StandIn
 
 
 def main():

@@ -7,7 +7,7 @@ from array import array
 from hypothesis import strategies as st
 
 from firmware import codec, framing
-from host import messages as M
+from host.link import messages as M
 
 
 def message_strategy(cls: type[M.Message] | None = None) -> st.SearchStrategy[M.Message]:

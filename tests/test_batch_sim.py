@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from host.discrete import controller_ss
+from host.design.discrete import controller_ss
 from sim.batch import (
     BatchError,
     RunSet,

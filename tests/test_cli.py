@@ -6,7 +6,7 @@ import importlib
 
 import pytest
 
-from host import cli
+from host.cli import main as cli
 
 
 @pytest.mark.parametrize("name", sorted(cli.COMMANDS))

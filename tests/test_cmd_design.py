@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from host.cli import main
+from host.cli.main import main
 
 
 @pytest.mark.slow

@@ -6,8 +6,8 @@ import control as ct
 import numpy as np
 import pytest
 
-from host import design
-from host.cmd_report import REPORT, deviation, seed_numbers
+from host.design import controllers as design
+from host.cli.report import REPORT, deviation, seed_numbers
 from sim.params import load_params
 from sim.plant import linear_model, simulate
 

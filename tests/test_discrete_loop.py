@@ -1,4 +1,4 @@
-"""The discrete controller (host/discrete.py) against the nonlinear plant with delay and saturation."""
+"""The discrete controller (host/design/discrete.py) against the nonlinear plant with delay and saturation."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import control as ct
 import numpy as np
 import pytest
 
-from host.discrete import (A_CMD_DEFAULT, Q_DEFAULT, Q_REPORT, R_DEFAULT, R_REPORT, controller_ss, delay_steps,
+from host.design.discrete import (A_CMD_DEFAULT, Q_DEFAULT, Q_REPORT, R_DEFAULT, R_REPORT, controller_ss, delay_steps,
                            discretise, force_clamp, force_limit, simulate_loop)
 from sim.params import load_params
 from sim.plant import linear_model
@@ -140,7 +140,7 @@ def test_zoh_matches_python_control(params) -> None:
 
 @pytest.mark.parametrize("design", ["lqr", "place"])
 def test_separation_with_the_delay_as_states(params, design) -> None:
-    from host.discrete import closed_loop_poles, delayed_plant
+    from host.design.discrete import closed_loop_poles, delayed_plant
 
     c = controller_ss(params, design=design)
     A, B, C, Ts, d = delayed_plant(params)

@@ -1,4 +1,4 @@
-"""Fixed-point export (host/export.py): the headroom proof, the table layout and the CLI."""
+"""Fixed-point export (host/design/export.py): the headroom proof, the table layout and the CLI."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import struct
 
 import pytest
 
-from host import export as ex
-from host.discrete import controller_ss
+from host.design import export as ex
+from host.design.discrete import controller_ss
 from sim.params import load_params
 
 SMALL = 2**30 - 1
@@ -88,7 +88,7 @@ def test_blob_crc_and_render(fd) -> None:
     assert struct.unpack(f"<{len(flat)}i", blob) == tuple(flat)
     assert ex.crc16(b"123456789") == 0x29B1
     text = ex.render(fd)
-    assert "do not edit" in text.splitlines()[0] and "host/export.py" in text.splitlines()[0]
+    assert "do not edit" in text.splitlines()[0] and "host/design/export.py" in text.splitlines()[0]
     assert f"CRC = const(0x{fd.crc():04X})" in text
     ns: dict = {}
     exec(compile(text, "gains.py", "exec"), ns)
@@ -125,7 +125,7 @@ def test_other_rates_and_designs_export() -> None:
 
 
 def test_cli_export(tmp_path) -> None:
-    from host import cli
+    from host.cli import main as cli
 
     out = tmp_path / "g.py"
     blob = tmp_path / "g.bin"
@@ -140,7 +140,7 @@ def test_cli_export(tmp_path) -> None:
 @pytest.mark.parametrize("v_limit, w_limit, v_want, w_want",
                          [(None, None, 16.0, 120.0), (3.6, 30.0, 3.6, 30.0)])
 def test_estimate_limits_default_and_option(v_limit, w_limit, v_want, w_want) -> None:
-    from host import fwharness as H
+    from host.boards import fwharness as H
 
     p = load_params()
     fd = ex.export(p, v_limit=v_limit, w_limit=w_limit)
@@ -155,7 +155,7 @@ def test_estimate_limits_default_and_option(v_limit, w_limit, v_want, w_want) ->
     s = H.measurements(p, fd, [0, 0, 0.1, 0], 2.0)
     u, _ = H.py_controller_run(fd, s.yx, s.yp, s.r)
     # within 0.2 % of the drive's full scale (the duty range; see test_firmware_fixed_vs_float)
-    from host.discrete import force_limit
+    from host.design.discrete import force_limit
 
     assert max(abs(a * fd.lsb["u"] - b) for a, b in zip(u, s.u_float)) <= 0.002 * force_limit(p)
     with pytest.raises(ValueError):

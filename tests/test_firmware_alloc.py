@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import pytest
 
-from host import fwharness as H
-from host.export import export
-from host.mpyrun import run_unix, run_wasm, wasm_available
+from host.boards import fwharness as H
+from host.design.export import export
+from host.boards.mpyrun import run_unix, run_wasm, wasm_available
 
 FD = export()
 FD_KI = export(ki=40.0, deadband=300)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from host import bundle
+from host.boards import bundle
 
 FW = Path(__file__).resolve().parent.parent / "firmware"
 MODULES = sorted(p.name for p in FW.glob("*.py"))

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import pytest
 
-from host import fwharness as H
-from host.export import export, render_fastpath
-from host.mpyrun import run_unix
+from host.boards import fwharness as H
+from host.design.export import export, render_fastpath
+from host.boards.mpyrun import run_unix
 from sim.params import load_params
 
 P = load_params()

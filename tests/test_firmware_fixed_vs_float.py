@@ -13,10 +13,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from host import fwharness as H
-from host.discrete import force_limit, simulate_loop
-from host.export import export
-from host.mpyrun import wasm_available
+from host.boards import fwharness as H
+from host.design.discrete import force_limit, simulate_loop
+from host.design.export import export
+from host.boards.mpyrun import wasm_available
 from sim.params import load_params
 
 P = load_params()

@@ -6,10 +6,10 @@ import struct
 
 import pytest
 
-from host import fwharness as H
-from host.discrete import controller_ss
-from host.export import export
-from host.mpyrun import run_unix
+from host.boards import fwharness as H
+from host.design.discrete import controller_ss
+from host.design.export import export
+from host.boards.mpyrun import run_unix
 from sim.params import load_params
 
 P = load_params()

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import pytest
 
-from host import fwharness as H
-from host.mpyrun import run_unix
+from host.boards import fwharness as H
+from host.boards.mpyrun import run_unix
 
 SCRIPT = H.FAKE_HAL + """
 import micropython

@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from host import fwharness as H
-from host.discrete import simulate_loop
-from host.export import export
-from host.mpyrun import run_unix
+from host.boards import fwharness as H
+from host.design.discrete import simulate_loop
+from host.design.export import export
+from host.boards.mpyrun import run_unix
 from sim.params import load_params
 
 P = load_params()

@@ -12,9 +12,9 @@ import math
 
 import pytest
 
-from host import fwharness as H
-from host.export import export
-from host.mpyrun import run_unix
+from host.boards import fwharness as H
+from host.design.export import export
+from host.boards.mpyrun import run_unix
 from sim.params import load_params
 
 P = load_params()

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from host import generate
+from host.cli import generate
 
 
 def test_no_generated_file_is_stale() -> None:

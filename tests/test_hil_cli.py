@@ -8,14 +8,14 @@ from pathlib import Path
 
 import pytest
 
-import host.hil
-from host.cli import main
-from host.mpyrun import ROOT
+import host.hil.session
+from host.cli.main import main
+from host.boards.mpyrun import ROOT
 from sim.scenario import scenario_from_dict
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "host.cli", *args], cwd=ROOT, capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "host.cli.main", *args], cwd=ROOT, capture_output=True, text=True,
                           timeout=120)
 
 
@@ -45,7 +45,7 @@ def test_hil_cli_bad_port_or_scenario_is_one_line(args, needle, tmp_path: Path) 
 def test_demo_runs_and_writes_an_index(tmp_path: Path, monkeypatch, capsys) -> None:
     short = scenario_from_dict({"name": "demo_short", "description": "a short tilt", "duration": 1.0,
                                 "initial": {"phi": 0.05}, "expect": {"a_max": "any"}})
-    monkeypatch.setattr(host.hil, "resolve_scenarios", lambda spec: [short])
+    monkeypatch.setattr(host.hil.session, "resolve_scenarios", lambda spec: [short])
     assert main(["demo", "--out", str(tmp_path), "--no-design", "--quiet"]) == 0
     out = capsys.readouterr().out
     assert "demo_short" in out and "index.html" in out

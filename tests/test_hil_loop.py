@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from firmware import msgtable as T
-from host import messages as M
-from host.hil import (
+from host.link import messages as M
+from host.hil.session import (
     PRIME_TICK,
     HilSession,
     TickError,
@@ -32,7 +32,7 @@ TOL_PHI = 0.01  # rad, HIL vs float design (issue 5)
 
 # The report's white noise of power 1e-5 puts 7 cm (sigma) of noise on the cart position and
 # 0.07 rad on the angle at every 2 ms tick.  The firmware's speed-estimate clamps
-# (host/export.py V_LIMIT 16 m/s, W_LIMIT 120 rad/s) are wide enough that the estimates stay
+# (host/design/export.py V_LIMIT 16 m/s, W_LIMIT 120 rad/s) are wide enough that the estimates stay
 # linear, so the firmware follows the float design within TOL_PHI there too (measured: 0.0009
 # rad).  Before, at 3.6 m/s / 30 rad/s, the clamps bit from tick 15 on and the pendulum fell.
 WHITE = "white_noise_1e-5_delay10ms"
@@ -137,7 +137,7 @@ def test_can_telemetry_counted_not_sequenced(can_runs) -> None:
 
 
 def test_sink_counts_telemetry_lost_by_seq() -> None:
-    from host.hil import _Sink
+    from host.hil.session import _Sink
 
     class FakeLink:
         last_seq = None
@@ -228,7 +228,7 @@ def test_large_tilt_with_the_force_clamp_is_cut_cleanly() -> None:
     # up to the cut the firmware ran the float design, whose saturated force is fed back
     ref = float_reference(sc, PARAMS)
     assert np.max(np.abs(log["phi"][:k] - ref["phi"][:k])) <= TOL_PHI
-    from host.discrete import force_clamp
+    from host.design.discrete import force_clamp
 
     at_clamp = np.abs(ref["u_sat"][:k]) >= 0.999 * force_clamp(PARAMS)
     assert at_clamp.sum() >= 50 and np.all(np.abs(ref["u_sat"]) <= force_clamp(PARAMS) * (1 + 1e-9))
@@ -238,8 +238,8 @@ def test_large_tilt_with_the_force_clamp_is_cut_cleanly() -> None:
 def test_large_tilt_saturates_the_drive_recovers_without_windup() -> None:
     # with the drive's whole range (the report's gains, clamp at the stall force) the same
     # 0.4 rad runs the motor at full supply voltage and is caught
-    from host.discrete import Q_REPORT, R_REPORT, controller_ss, force_limit
-    from host.export import export
+    from host.design.discrete import Q_REPORT, R_REPORT, controller_ss, force_limit
+    from host.design.export import export
 
     ctrl = controller_ss(PARAMS, Q=Q_REPORT, R=R_REPORT, u_max=force_limit(PARAMS))
     sc = scenario_from_dict({"name": "tilt_0p4", "duration": 4.0, "initial": {"phi": 0.4}})
@@ -367,7 +367,7 @@ def test_realtime_loop_timing_over_ten_seconds(link) -> None:
 def test_silent_firmware_is_an_error_not_a_hang() -> None:
     # a dropped frame with nothing in flight: the firmware never answers (it only sends
     # heartbeats); the runner must give up after its timeout
-    from host.hil import HilError
+    from host.hil.session import HilError
 
     fault = _TickFault(100, "drop")
     sc = scenario_from_dict({"name": "short", "duration": 1.0})

@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from host.vport import PTMX, BoardExited, PortError, VirtualBoard, open_can, open_serial, slave_of
+from host.boards.vport import PTMX, BoardExited, PortError, VirtualBoard, open_can, open_serial, slave_of
 
 ECHO = r"""
 import gc, micropython
@@ -175,14 +175,14 @@ print(m.n_steps, ticks == list(range(200)))
 def test_board_uart_adapter_runs_the_lockstep_loop_allocation_free() -> None:
     # a machine.UART-like object (any, readinto(buf, n), write(buf) only) wrapped in
     # main_hil.BoardUART, 200 sensor frames, the loop heap-locked: every tick answered
-    from host.mpyrun import run_unix
+    from host.boards.mpyrun import run_unix
 
     out = run_unix(BOARD_UART, timeout=60)
     assert out.split() == ["200", "True"], out
 
 
 def test_boot_counter_persists_across_a_restart(tmp_path) -> None:
-    from host.link import SerialLink
+    from host.link.clients import SerialLink
 
     boot = str(tmp_path / "boot.txt")
     link = SerialLink(PTMX)
@@ -200,7 +200,7 @@ def test_boot_counter_persists_across_a_restart(tmp_path) -> None:
 
 
 def test_boot_counter_on_by_default_and_can_be_off() -> None:
-    from host.link import SerialLink
+    from host.link.clients import SerialLink
 
     link = SerialLink(PTMX)
     try:

@@ -84,7 +84,7 @@ def test_cli_reports_bad_file_in_one_line(tmp_path: Path) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text(_text().replace("M = 0.5 ", "M = -1 "))
     proc = subprocess.run(
-        [sys.executable, "-m", "host.cli", "simulate", "--open-loop", "--params", str(bad), "--csv", str(tmp_path / "o.csv")],
+        [sys.executable, "-m", "host.cli.main", "simulate", "--open-loop", "--params", str(bad), "--csv", str(tmp_path / "o.csv")],
         capture_output=True,
         text=True,
     )

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from host import analysis
-from host.cli import main
+from host.design import analysis
+from host.cli.main import main
 from sim.params import load_params
 from sim.plant import dynamics, linear_model, make_nlsys, reduced_model, simulate
 

@@ -8,8 +8,8 @@ import pytest
 from firmware import codec, commands
 from firmware import msgtable as T
 from firmware.app import App
-from host import messages as M
-from host.export import export
+from host.link import messages as M
+from host.design.export import export
 from proto_helpers import RecordingSender
 
 

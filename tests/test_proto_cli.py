@@ -8,8 +8,8 @@ import time
 import pytest
 import serial
 
-from host import messages as M
-from host.cli import main
+from host.link import messages as M
+from host.cli.main import main
 from proto_helpers import PtyBridge
 
 

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from firmware import codec, commands
 from firmware import msgtable as T
-from host import messages as M
+from host.link import messages as M
 from proto_helpers import RecordingSender, RecordingTarget
 
 

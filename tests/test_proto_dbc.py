@@ -10,8 +10,9 @@ import cantools
 from hypothesis import given, settings
 
 from firmware import canframe, codec
-from host import dbc, protodoc
-from host import messages as M
+from host.link import dbc
+from host.link import protodoc
+from host.link import messages as M
 from proto_helpers import message_strategy
 
 ROOT = Path(__file__).resolve().parent.parent

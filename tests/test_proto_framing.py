@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from firmware import canframe, codec, crc16, framing
 from firmware import msgtable as T
-from host import messages as M
+from host.link import messages as M
 from proto_helpers import fw_decode_stream, fw_encode, fw_small, message_strategy
 
 

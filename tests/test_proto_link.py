@@ -16,8 +16,8 @@ import pytest
 import serial
 
 from firmware import msgtable as T
-from host import link as L
-from host import messages as M
+from host.link import clients as L
+from host.link import messages as M
 from proto_helpers import CanBoard, PtyBridge, SerialBoard
 
 _chan = itertools.count()

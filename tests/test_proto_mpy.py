@@ -20,9 +20,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from host import link as L
-from host import messages as M
-from host.mpyrun import ROOT, micropython_exe, run_unix, run_wasm, standin_source, wasm_available
+from host.link import clients as L
+from host.link import messages as M
+from host.boards.mpyrun import ROOT, micropython_exe, run_unix, run_wasm, standin_source, wasm_available
 from proto_helpers import PtyBridge, message_strategy
 
 _FEED = standin_source() + """
@@ -245,7 +245,7 @@ def test_micropython_board_on_a_pty(mode):
 
 
 def test_fuzz_bench_small_run_agrees_with_host():
-    from host.bench_proto import bench_fuzz
+    from host.bench.proto import bench_fuzz
 
     res = bench_fuzz(n_bytes=30000)
     fw, host = res["rows"]

@@ -5,7 +5,7 @@ again after (or with, mid-run) the refused commands gives a bit-identical motor 
 trace; a positive control (a different table actually applied) shows that the comparison
 can fail.  The decoder/dispatcher fuzzing (hypothesis in make test, 1.2 M heap-locked
 inputs in make bench) is P's: tests/test_proto_commands.py, tests/test_proto_mpy.py and
-host/bench_proto.py.
+host/bench/proto.py.
 """
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 from firmware import msgtable as T
-from host import messages as M
-from host.export import export
-from host.faults import StreamFaults, run_lossy
-from host.hil import HilSession
-from host.link import CommandRefused
+from host.link import messages as M
+from host.design.export import export
+from host.hil.faults import StreamFaults, run_lossy
+from host.hil.session import HilSession
+from host.link.clients import CommandRefused
 from sim.scenario import scenario_from_dict
 
 SCEN = scenario_from_dict({"name": "gains_probe", "duration": 1.0, "initial": {"phi": 0.08}})
@@ -130,7 +130,7 @@ def test_gain_upload_over_corrupted_link_applies_all_or_nothing(board) -> None:
     alt = _trace(board)
     board.link.disarm()
     board.link.upload_gains(GOOD)
-    from host.hil import _install_fault
+    from host.hil.session import _install_fault
 
     outcomes = []
     for seed in (1, 2):

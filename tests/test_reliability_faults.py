@@ -1,12 +1,12 @@
-"""The fault injectors themselves (host/faults.py): seeded, counted, doing what they say."""
+"""The fault injectors themselves (host/hil/faults.py): seeded, counted, doing what they say."""
 
 from __future__ import annotations
 
 import pytest
 
 from firmware import msgtable as T
-from host import messages as M
-from host.faults import (ActuatorFault, BusFaults, FaultError, FrameFaults, SensorFault, SeqAccount,
+from host.link import messages as M
+from host.hil.faults import (ActuatorFault, BusFaults, FaultError, FrameFaults, SensorFault, SeqAccount,
                          StreamFaults)
 
 SENSOR = M.BY_NAME["hil_sensor"]

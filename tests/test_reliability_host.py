@@ -18,11 +18,11 @@ from pathlib import Path
 import pytest
 
 from firmware.supervisor import F_WATCHDOG
-from host.faults import serial_link_on_fd
-from host.hil import HilSession
-from host.link import CommandRefused
-from host.mpyrun import ROOT
-from host.vport import PTMX, PortError, VirtualBoard, open_serial, slave_of
+from host.hil.faults import serial_link_on_fd
+from host.hil.session import HilSession
+from host.link.clients import CommandRefused
+from host.boards.mpyrun import ROOT
+from host.boards.vport import PTMX, PortError, VirtualBoard, open_serial, slave_of
 from sim.params import load_params
 
 P = load_params()
@@ -32,8 +32,8 @@ DISARMED, ARMED, BALANCING, FAULT = 0, 1, 2, 3
 # "balancing" once the board does, then starts a frame and is killed before finishing it
 CRASHING_HOST = r"""
 import sys, time
-from host import messages as M
-from host.faults import serial_link_on_fd
+from host.link import messages as M
+from host.hil.faults import serial_link_on_fd
 link = serial_link_on_fd(int(sys.argv[1]))
 link.disarm(); link.clear_faults(); link.arm()
 S = M.BY_NAME["hil_sensor"]
@@ -149,7 +149,7 @@ def test_command_frames_feed_the_watchdog(line) -> None:
 
 
 def _stream(link, n: int) -> None:
-    from host import messages as M
+    from host.link import messages as M
 
     S = M.BY_NAME["hil_sensor"]
     t0 = time.perf_counter()
@@ -161,7 +161,7 @@ def _stream(link, n: int) -> None:
 
 # ---------------------------------------------------------------- bad input: one-line errors
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "host.cli", *args], cwd=ROOT, capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "host.cli.main", *args], cwd=ROOT, capture_output=True, text=True,
                           timeout=120)
 
 

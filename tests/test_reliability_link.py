@@ -1,5 +1,5 @@
 """Issue 7, link faults, in the HIL loop: the real firmware under the MicroPython unix port on a
-pty, serial and CAN framing, faults injected on the host side (host/faults.py).
+pty, serial and CAN framing, faults injected on the host side (host/hil/faults.py).
 
 - link loss (real time: the firmware paces itself) -> watchdog cuts the motor within the
   configured timeout, the fault is reported when the link returns, resuming needs clear +
@@ -17,9 +17,9 @@ import pytest
 
 from firmware import msgtable as T
 from firmware.supervisor import F_ENC_JUMP, F_TILT, F_TRACK, F_WATCHDOG
-from host.faults import BusFaults, ProbeSession, StreamFaults, Tap, run_lossy, stream_realtime
-from host.hil import HilSession
-from host.link import CommandRefused
+from host.hil.faults import BusFaults, ProbeSession, StreamFaults, Tap, run_lossy, stream_realtime
+from host.hil.session import HilSession
+from host.link.clients import CommandRefused
 from sim.params import load_params
 from sim.scenario import scenario_from_dict
 

@@ -14,9 +14,9 @@ import pytest
 
 from firmware import msgtable as T
 from firmware.supervisor import F_ADC_RAIL, F_ENC_JUMP, F_STALL, F_TILT
-from host.faults import ActuatorFault, SensorFault, run_lossy
-from host.hil import HilSession
-from host.link import CommandRefused
+from host.hil.faults import ActuatorFault, SensorFault, run_lossy
+from host.hil.session import HilSession
+from host.link.clients import CommandRefused
 from sim.params import load_params
 from sim.scenario import scenario_from_dict
 
@@ -93,7 +93,7 @@ def test_fault_while_cause_persists_relatches_after_clear(board) -> None:
 
 
 def _one_tick(board, adc: int, enc: int):
-    from host import messages as M
+    from host.link import messages as M
 
     L = board.link
     L.send(M.BY_NAME["hil_sensor"](tick=7, adc=adc, enc=enc))

@@ -7,8 +7,8 @@ import sys
 
 import pytest
 
-from host.mpyrun import ROOT
-from host.soak import SoakResult, _check, soak
+from host.boards.mpyrun import ROOT
+from host.hil.soak import SoakResult, _check, soak
 
 
 @pytest.mark.slow
@@ -68,7 +68,7 @@ def test_soak_checks_can_fail(over, probe, needle: str) -> None:
 
 
 def test_soak_cli_refuses_too_short_in_one_line() -> None:
-    r = subprocess.run([sys.executable, "-m", "host.soak", "--sim-seconds", "3", "--quiet"], cwd=ROOT,
+    r = subprocess.run([sys.executable, "-m", "host.cli", "soak", "--sim-seconds", "3", "--quiet"], cwd=ROOT,
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 1
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1

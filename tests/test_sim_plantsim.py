@@ -14,7 +14,7 @@ from sim.plant import dynamics, rk4_step
 from sim.plantsim import LOG_COLUMNS, PlantSim, read_csv, run_scenario_float, write_csv
 from sim.scenario import REPORT_SCENARIOS, load_scenario, scenario_from_dict
 
-host_discrete = pytest.importorskip("host.discrete")
+host_discrete = pytest.importorskip("host.design.discrete")
 
 
 @pytest.fixture(scope="module")

@@ -8,8 +8,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from host import cli
-from host.cmd_sweep import parse_noise
+from host.cli import main as cli
+from host.cli.sweep import parse_noise
 from sim.scenario import load_scenario
 
 

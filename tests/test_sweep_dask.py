@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.dask_run import DaskRunError, run_on_dask
+from host.studies.dask_run import DaskRunError, run_on_dask
 from sim.params import load_params
-from sim.sweep import Design, SweepConfig, robustness, tasks_for, tilt, tune
+from host.studies.sweep import Design, SweepConfig, robustness, run_task, tasks_for, tilt, tune
 
 distributed = pytest.importorskip("distributed")
 
@@ -48,22 +48,22 @@ def test_tune_and_tilt_on_dask_equal_single_process(cluster, cfg) -> None:
 
 def test_client_object_and_task_errors(cluster, cfg) -> None:
     with distributed.Client(cluster.scheduler_address) as client:
-        tables = run_on_dask(tasks_for(cfg, 2, 1), client)
+        tables = run_on_dask(tasks_for(cfg, 2, 1), client, run_task)
         assert [int(t["run"][0]) for t in tables] == [0, 1]
         bad = SweepConfig(params=cfg.params, design=Design(observer=-1.0), duration=0.1)
         with pytest.raises(DaskRunError, match="runs 0..1"):
-            run_on_dask(tasks_for(bad, 1), client)
+            run_on_dask(tasks_for(bad, 1), client, run_task)
 
 
 def test_unreachable_scheduler_is_a_clear_error(cfg) -> None:
     with pytest.raises(DaskRunError, match="cannot reach"):
-        run_on_dask(tasks_for(cfg, 1), "tcp://127.0.0.1:9", timeout=1.0)
+        run_on_dask(tasks_for(cfg, 1), "tcp://127.0.0.1:9", run_task, timeout=1.0)
 
 
 def test_cli_with_scheduler_writes_the_same_table(cluster, tmp_path) -> None:
     import pyarrow.parquet as pq
 
-    from host import cli
+    from host.cli import main as cli
 
     common = ["sweep", "robustness", "--n", "5", "--chunk", "2", "--duration", "0.5", "--seed", "4", "--quiet", "--no-plots"]
     assert cli.main([*common, "--out", str(tmp_path / "local")]) == 0

@@ -11,7 +11,7 @@ import pytest
 from sim.batch import simulate_batch
 from sim.params import load_params
 from sim.scenario import dump_scenario, load_scenario
-from sim.sweep import (
+from host.studies.sweep import (
     Design,
     SweepConfig,
     SweepError,

@@ -1,0 +1,1 @@
+"""make bench: the speed figures, measured side by side in one run."""

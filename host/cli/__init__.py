@@ -1,0 +1,1 @@
+"""The upright command line: one module per command, dispatched by host.cli.main."""

@@ -1,0 +1,51 @@
+"""``upright export``: the discrete controller as fixed-point tables (``firmware/gains.py``)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from host.design.discrete import controller_ss
+from host.design.export import V_LIMIT, W_LIMIT, export, render
+from sim.params import load_params
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``upright export``."""
+    parser.add_argument("--params", default=None, help="robot parameter TOML (default: the report's robot)")
+    parser.add_argument("--out", default=None, help="write the gains module here (default: print to stdout)")
+    parser.add_argument("--blob", default=None, help="also write the upload bytes (int32 LE) to this file")
+    parser.add_argument("--ki", type=float, default=0.0, help="integral gain on cart position, N/(m*s)")
+    parser.add_argument("--deadband", type=int, default=0, help="motor deadband compensation, duty counts")
+    parser.add_argument("--v-limit", type=float, default=None,
+                        help=f"clamp of the cart-speed estimate, m/s (default {V_LIMIT:g})")
+    parser.add_argument("--w-limit", type=float, default=None,
+                        help=f"clamp of the tilt-rate estimate, rad/s (default {W_LIMIT:g})")
+    parser.add_argument("--rate", type=float, default=None, help="loop rate in Hz (default: from the parameters)")
+    parser.add_argument("--design", choices=("lqr", "place"), default="lqr",
+                        help="discrete design: dlqr (weights --Q/--R) or pole placement (the report's poles)")
+    parser.add_argument("--Q", type=float, nargs=4, default=None, metavar="q", help="LQR state weights (diagonal)")
+    parser.add_argument("--R", type=float, default=None, help="LQR input weight")
+    parser.add_argument("--u-max", type=float, default=None,
+                        help="force clamp of the controller, N (default: 4.4 m/s^2 of cart acceleration from upright)")
+    parser.add_argument("--noise", type=float, nargs=2, default=None, metavar=("X_M", "PHI_RAD"),
+                        help="measurement noise (std, m and rad) the Kalman filter is designed for "
+                             "(default: one encoder count, two ADC counts)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Export the fixed-point tables (``upright export``)."""
+    p = load_params(args.params)
+    kw = {} if args.noise is None else {"sigma_meas": tuple(args.noise)}
+    c = controller_ss(p, rate=args.rate, design=args.design, Q=args.Q, R=args.R, u_max=args.u_max, **kw)
+    fd = export(p, c, ki=args.ki, deadband=args.deadband, v_limit=args.v_limit, w_limit=args.w_limit)
+    text = render(fd)
+    if args.out:
+        Path(args.out).write_text(text)
+        print(f"wrote {args.out} ({len(fd.flat())} ints, crc 0x{fd.crc():04X})", file=sys.stderr)
+    else:
+        sys.stdout.write(text)
+    if args.blob:
+        Path(args.blob).write_bytes(fd.blob())
+    return 0

@@ -1,0 +1,186 @@
+"""``upright hil``: the firmware balancing the simulated pendulum, over a serial or CAN link.
+
+Examples
+--------
+The report's scenarios, firmware under the MicroPython unix port on a virtual serial port::
+
+    upright hil --virtual --scenario all --out out/hil
+
+One scenario in real time over CAN frames (python-can ``serial`` interface on the pty)::
+
+    upright hil --virtual --link can --mode realtime --scenario tilt_0p1
+
+A board running the firmware's HIL main on USB -- on the board (``main.py``)::
+
+    from firmware import main_hil
+    import machine
+    main_hil.main(uart=machine.UART(0, 115200), link="serial", mode="lockstep")
+
+then on the host::
+
+    upright hil --port /dev/ttyACM0 --scenario tilt_0p3
+
+Writes ``<out>/<scenario>.csv``, ``.png`` and ``.gif`` per scenario and prints a summary
+table with PASS/FAIL per constraint; the exit status is 1 if a check came out differently
+from the scenario's ``[expect]`` or the HIL run left the float pure simulation by more
+than ``--tolerance`` rad of tilt.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence, TextIO
+
+__all__ = ["add_arguments", "run", "report", "Progress"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``upright hil``."""
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--virtual", action="store_true",
+                       help="run the firmware under the MicroPython unix port on a pty (default)")
+    where.add_argument("--port", metavar="DEV",
+                       help="a board running firmware.main_hil: serial device, or CAN channel with --link can")
+    parser.add_argument("--link", choices=("serial", "can"), default="serial",
+                        help="framing: COBS serial frames or CAN frames (default serial)")
+    parser.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
+                        help="lockstep: deterministic, as fast as the link; realtime: the firmware paces itself")
+    parser.add_argument("--scenario", default="all", metavar="NAME",
+                        help="scenario name(s) comma-separated, a TOML path, or 'all' (the report's; default)")
+    parser.add_argument("--out", default="out/hil", metavar="DIR", help="output directory (default out/hil)")
+    parser.add_argument("--can-interface", default="slcan", metavar="NAME",
+                        help="python-can interface for --port with --link can (default slcan)")
+    parser.add_argument("--node", type=int, default=1, help="CAN node id of the board (default 1)")
+    parser.add_argument("--baudrate", type=int, default=115200, help="serial line rate for --port (default 115200)")
+    parser.add_argument("--no-gif", action="store_true", help="skip the animated GIFs (faster)")
+    parser.add_argument("--no-plots", action="store_true", help="skip PNG and GIF")
+    parser.add_argument("--no-compare", action="store_true", help="skip the float pure-simulation comparison")
+    parser.add_argument("--tolerance", type=float, default=0.01,
+                        help="largest |phi_hil - phi_float| accepted (rad, default 0.01)")
+    parser.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+class Progress:
+    """Progress of long runs on a terminal line (``\\r``), or a line per quarter when piped."""
+
+    def __init__(self, stream: TextIO | None = None, enabled: bool = True) -> None:
+        # resolved at call time: a default bound at import would outlive a replaced sys.stderr
+        stream = sys.stderr if stream is None else stream
+        self.stream = stream
+        self.enabled = enabled
+        self.tty = bool(getattr(stream, "isatty", lambda: False)())
+        self._last: dict[str, int] = {}
+        self._t0 = time.perf_counter()
+
+    def __call__(self, name: str, k: int, n: int) -> None:
+        if not self.enabled or n <= 0:
+            return
+        if k == 0:
+            self._t0 = time.perf_counter()
+        pct = int(100 * k / n)
+        if self.tty:
+            width = 30
+            fill = int(width * k / n)
+            el = time.perf_counter() - self._t0
+            self.stream.write(f"\r  {name:28s} [{'#' * fill}{'.' * (width - fill)}] {pct:3d}% {el:5.1f}s")
+            if k >= n:
+                self.stream.write("\n")
+            self.stream.flush()
+            return
+        q = pct // 25
+        if self._last.get(name, -1) != q:
+            self._last[name] = q
+            self.stream.write(f"  {name}: {pct}% ({k}/{n} ticks)\n")
+            self.stream.flush()
+
+
+def report(runs: Sequence[Any], *, tolerance: float = 0.01, out: str | Path | None = None,
+           stream: TextIO | None = None, title: str | None = None) -> int:
+    """Print the summary table and the loop figures of HIL runs; return the exit status.
+
+    Parameters
+    ----------
+    runs : sequence of host.hil.session.HilRun
+        The runs.
+    tolerance : float
+        Largest accepted ``|phi_hil - phi_float|`` (rad) when a float reference is present.
+    out : str or Path, optional
+        Where the files were written (printed).
+    stream : text stream, optional
+        Where to print (default: the current ``sys.stdout``).
+    title : str, optional
+        Table title.
+
+    Returns
+    -------
+    int
+        0 if every check came out as the scenario expects and every compared run agrees
+        with the float simulation; 1 otherwise.
+    """
+    from sim.metrics import summary_table
+
+    stream = sys.stdout if stream is None else stream
+    summaries = [r.summary() for r in runs]
+    if runs and title is None:
+        r0 = runs[0]
+        title = f"Firmware in the loop ({r0.link} link, {r0.mode}): the report's constraints"
+    print(summary_table(summaries, title=title), file=stream)
+    print("", file=stream)
+    head = f"  {'scenario':28s} {'ticks':>6s} {'x real time':>11s} {'|dphi| vs float':>15s} {'fw step us':>10s}"
+    rt = any(r.mode == "realtime" for r in runs)
+    if rt:
+        head += (f" {'latency us (mean/p99/max)':>26s} {'late':>5s} {'fw overruns':>11s} {'fw period max':>13s}"
+                 f" {'steal ms':>8s}")
+    print(head, file=stream)
+    bad = 0
+    for r, s in zip(runs, summaries):
+        err = r.phi_error()
+        ok_err = math.isnan(err) or err <= tolerance
+        if not s.as_expected or not ok_err:
+            bad += 1
+        st = r.stats
+        line = (f"  {r.name:28s} {st.get('ticks', 0):6d} {r.realtime_factor:10.1f}x "
+                f"{'-' if math.isnan(err) else format(err, '.4f'):>14s}{' ' if ok_err else '!'} "
+                f"{st.get('fw_step_us_mean', math.nan):10.1f}")
+        if rt:
+            line += (f" {st.get('latency_us_mean', math.nan):8.0f}/{st.get('latency_us_p99', math.nan):6.0f}/"
+                     f"{st.get('latency_us_max', math.nan):7.0f}   {st.get('late', 0):5d} "
+                     f"{st.get('fw_overruns', -1):11d} {st.get('fw_period_max_us', -1):10d} us"
+                     f" {st.get('steal_s', math.nan) * 1e3:8.0f}")
+        print(line, file=stream)
+        if st.get("gains", "firmware default") != "firmware default":
+            print(f"  {'':28s} (gain table uploaded: {st['gains']})", file=stream)
+    if out is not None:
+        print(f"\nCSV logs, PNG plots and GIF animations: {Path(out).resolve()}", file=stream)
+    if bad:
+        print(f"\n{bad} run(s) not as expected (see '!' marks).", file=stream)
+    return 1 if bad else 0
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``upright hil``."""
+    from host.hil.session import HilError, resolve_scenarios, run_scenarios
+    from host.boards.vport import PortError
+
+    if not args.tolerance > 0:
+        raise ValueError(f"--tolerance must be > 0, got {args.tolerance}")
+    scenarios = resolve_scenarios(args.scenario)
+    prog = Progress(enabled=not args.quiet)
+    out = Path(args.out)
+    where = "virtual board (MicroPython unix port on a pty)" if args.port is None else args.port
+    if not args.quiet:
+        print(f"upright hil: {len(scenarios)} scenario(s), {args.link} link, {args.mode}, {where}", file=sys.stderr)
+    try:
+        runs = run_scenarios(
+            scenarios, port=args.port, link=args.link, mode=args.mode, out=out,
+            compare=not args.no_compare, gif=not (args.no_gif or args.no_plots), plot=not args.no_plots,
+            progress=prog, node=args.node, baudrate=args.baudrate, can_interface=args.can_interface,
+        )
+    except (PortError, HilError) as exc:
+        print(f"upright hil: {exc}", file=sys.stderr)
+        return 1
+    return report(runs, tolerance=args.tolerance, out=out)

@@ -1,0 +1,100 @@
+"""The ``upright`` command line.
+
+Each subcommand lives in its own module that provides ``add_arguments(parser)`` and
+``run(args) -> int``; the table below maps command names to those modules, which are
+imported only when their command runs (nothing is parsed or imported at import time).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import Sequence
+
+# name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "simulate": ("host.cli.simulate", "integrate the nonlinear plant, open loop or closed around a design; write CSV"),
+    "design": ("host.cli.design", "print the design report (poles, gains, margins, constraint checks) and write figures"),
+    "report": ("host.cli.report", "reproduce the numbers the design report publishes (report seed [--json])"),
+    "export": ("host.cli.export", "write the fixed-point gain table module for the firmware"),
+    "generate": ("host.cli.generate", "regenerate every generated file (or --check that none is stale)"),
+    "proto": ("host.cli.proto", "encode/decode protocol messages (serial or CAN framing) and dump a live link"),
+    "hil": ("host.cli.hil", "close the firmware in a hardware-in-the-loop run with the simulated plant"),
+    "sweep": ("host.cli.sweep", "batch Monte Carlo: robustness, weight tuning, largest recoverable tilt"),
+    "soak": ("host.cli.soak", "long lockstep HIL run: firmware heap, timing drift, telemetry accounted for, metrics stable"),
+    "demo": ("host.cli.demo", "the main job: the report's scenarios balanced by the firmware, summary and plots"),
+}
+
+
+def _lazy_module(name: str):  # noqa: ANN202 - returns a module
+    return importlib.import_module(COMMANDS[name][0])
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """Build the top-level parser with one subparser per command.
+
+    Parameters
+    ----------
+    only : str, optional
+        Import and define the arguments of this command only (the others keep their
+        one-line help), so ``upright simulate ...`` does not import the HIL, the sweeps...
+
+    Returns
+    -------
+    argparse.ArgumentParser
+    """
+    parser = argparse.ArgumentParser(
+        prog="upright",
+        description="Design, simulate and run the firmware of a motorised inverted pendulum on a cart.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (_, help_) in COMMANDS.items():
+        sp = sub.add_parser(name, help=help_, description=help_)
+        sp.set_defaults(_command=name)
+        # argument definitions are imported with the command's module
+        if only is not None and name != only:
+            continue
+        try:
+            _lazy_module(name).add_arguments(sp)
+        except ModuleNotFoundError as exc:  # pragma: no cover - a command not built yet
+            if exc.name != COMMANDS[name][0]:
+                raise
+            sp.set_defaults(_missing=True)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``upright`` console script.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        Arguments (default: ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        Process exit status.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    chosen = next((a for a in argv if not a.startswith("-")), None)
+    parser = build_parser(only=chosen if chosen in COMMANDS else "")
+    args = parser.parse_args(argv)
+    if getattr(args, "_command", None) is None:
+        parser.print_help()
+        return 2
+    from sim.params import ParamError
+
+    try:
+        return int(_lazy_module(args._command).run(args) or 0)
+    except ParamError as exc:
+        print(f"upright {args._command}: bad parameter: {exc}", file=sys.stderr)
+        return 2
+    except (OSError, ValueError) as exc:
+        print(f"upright {args._command}: error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

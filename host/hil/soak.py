@@ -1,0 +1,298 @@
+"""Soak: a long lockstep HIL run that must leave no trace in the firmware.
+
+``upright soak --sim-seconds 3600 [--link serial|can]`` (``make soak``) balances the
+robot through the report's square-wave reference (0 <-> 20 cm, 4.4 s period) for the given
+simulated time, with the real firmware under the MicroPython unix port on a pty, one plant
+and one armed, balancing board from start to end, and checks:
+
+heap
+    the firmware runs under ``micropython.heap_lock()`` for the whole run
+    (:class:`host.hil.faults.ProbeSession`): one allocation would end it with ``MemoryError``;
+    at exit it reports ``gc.mem_alloc()`` before and after, which must be equal.  (The board
+    does not expose ``gc.mem_free()`` over the link -- there is no message for it -- so this
+    is read from the virtual board's exit report.)
+timing drift
+    the board's uptime (from heartbeats requested at the start and the end) must advance
+    by exactly one loop period per tick; its step time (telemetry ``step_us``, median per chunk)
+    must not grow from chunk to chunk.
+accounting
+    every tick answered with its own tick number (a lost or repeated tick stops the run);
+    every telemetry frame accounted for: on serial by sequence number (no gap, no
+    duplicate), on both links by count (one pair every ``telem_div`` ticks).
+metrics
+    per chunk (a whole number of reference periods): RMS and peak tilt, RMS tracking error,
+    peak duty; every chunk after the first must match the first within a tolerance, and
+    the board must be balancing, fault-free, throughout.
+
+It prints a summary table per chunk and a verdict; the exit status is 0 only if every
+check passed.  :func:`soak` returns the same as a :class:`SoakResult` (the short soak in
+``make test`` calls it directly).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from firmware import msgtable as T
+from host.link import messages as M
+from host.hil.faults import ProbeSession, SeqAccount
+from host.hil.session import HilError, _peek
+from sim.params import RobotParams, load_params
+from sim.plantsim import PlantSim
+from sim.scenario import load_scenario, scenario_from_dict
+
+__all__ = ["SoakResult", "soak"]
+
+_SENSOR = M.BY_NAME["hil_sensor"]
+_SET_REF = M.BY_NAME["set_reference"]
+_ACTUATOR = M.BY_NAME["hil_actuator"]
+_TELEM_CTRL = M.BY_NAME["telem_ctrl"]
+_PERIOD_S = 4.4  # the square wave's period: chunks are whole periods
+_BALANCING = 2
+
+
+@dataclass
+class SoakResult:
+    """Outcome of :func:`soak`.
+
+    Attributes
+    ----------
+    chunks : list of dict
+        Per chunk: ``t0``, ``t1`` (s), ``rms_phi`` (rad), ``peak_phi`` (rad),
+        ``rms_err`` (m, x - x_ref), ``peak_duty``, ``step_us_mean``, ``step_us_median``,
+        ``step_us_max`` (from telemetry), ``telemetry`` (pairs received), ``ticks_per_s`` (host wall rate),
+        ``not_balancing`` (ticks answered in another state).
+    stats : dict
+        Whole-run figures: ticks, telemetry accounting, firmware probe, uptime.
+    failures : list of str
+        Every check that failed (empty: passed).
+    """
+
+    chunks: list[dict[str, float]] = field(default_factory=list)
+    stats: dict[str, Any] = field(default_factory=dict)
+    failures: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """True if every check passed."""
+        return not self.failures
+
+    def table(self) -> str:
+        """The per-chunk summary as fixed-width text."""
+        head = (f"{'chunk':>5} {'t0 s':>7} {'t1 s':>7} {'phi rms':>9} {'|phi|max':>9} {'err rms':>8} "
+                f"{'|duty|max':>9} {'step us':>8} {'max us':>7} {'telem':>6} {'tick/s':>7}")
+        rows = [head, "-" * len(head)]
+        for i, c in enumerate(self.chunks):
+            rows.append(f"{i:>5} {c['t0']:>7.1f} {c['t1']:>7.1f} {c['rms_phi']:>9.2e} {c['peak_phi']:>9.2e} "
+                        f"{c['rms_err']:>8.4f} {c['peak_duty']:>9.0f} {c['step_us_mean']:>8.1f} "
+                        f"{c['step_us_max']:>7.0f} {c['telemetry']:>6.0f} {c['ticks_per_s']:>7.0f}")
+        return "\n".join(rows)
+
+
+def _scenario(seconds: float) -> Any:
+    base = load_scenario("square_wave_20cm_2p2s")
+    ref = base.reference
+    return scenario_from_dict({
+        "name": "soak", "description": f"{seconds:g} s of the square-wave reference", "duration": float(seconds),
+        "seed": base.seed,
+        "reference": {"kind": "square", "start": ref.start, "amplitude": ref.amplitude, "period": ref.period},
+    })
+
+
+def soak(sim_seconds: float, *, link: str = "serial", chunk_s: float | None = None, params: RobotParams | None = None,
+         tolerance: float = 0.1, progress: Callable[[float, float], None] | None = None,
+         timeout: float = 2.0) -> SoakResult:
+    """Run the soak (see the module docstring).
+
+    Parameters
+    ----------
+    sim_seconds : float
+        Simulated time (s), at least two reference periods (8.8 s).
+    link : {"serial", "can"}
+        Framing.
+    chunk_s : float, optional
+        Chunk length (s), rounded to whole reference periods; default about a tenth of
+        the run (at least one period).
+    params : RobotParams, optional
+        Robot parameters (default ``sim/robot.toml``).
+    tolerance : float
+        Largest relative difference of a chunk's RMS tilt / tracking error / peak duty from
+        the first chunk's.
+    progress : callable, optional
+        ``progress(sim_time_done, sim_seconds)`` once per chunk.
+    timeout : float
+        Seconds to wait for an answer.
+
+    Returns
+    -------
+    SoakResult
+    """
+    if not sim_seconds >= 2 * _PERIOD_S:
+        raise ValueError(f"sim_seconds must be at least {2 * _PERIOD_S:g} (two reference periods), got {sim_seconds!r}")
+    if link not in ("serial", "can"):
+        raise ValueError(f"link must be 'serial' or 'can', got {link!r}")
+    if not 0 < tolerance < 1:
+        raise ValueError(f"tolerance must be in (0, 1), got {tolerance!r}")
+    params = params or load_params()
+    periods = max(1, round((chunk_s if chunk_s else sim_seconds / 10) / _PERIOD_S))
+    chunk_s = periods * _PERIOD_S
+    res = SoakResult()
+    scen = _scenario(sim_seconds)
+    sess = ProbeSession(link=link, timeout=timeout)
+    sess.open()
+    try:
+        _run(sess, scen, params, chunk_s, res, progress)
+    finally:
+        sess.close()
+    try:
+        probe = sess.probe()
+    except HilError as exc:
+        res.failures.append(f"firmware: {exc}")
+        probe = {}
+    res.stats["probe"] = probe
+    _check(res, probe, tolerance)
+    return res
+
+
+def _run(sess: ProbeSession, scen: Any, params: RobotParams, chunk_s: float, res: SoakResult,
+         progress: Callable[[float, float], None] | None) -> None:
+    link = sess._link()
+    sim = PlantSim(params, scen)
+    sess.prepare(sim)
+    hb0 = link.query("heartbeat", timeout=sess.timeout / 4, retries=3)
+    telem_div = link.param_get(T.P_TELEM_DIV)
+    n = sim.n_ticks
+    per_chunk = int(round(chunk_s * sim.params.rate))
+    depth = sim.sensor_model.delay_steps
+    acc = SeqAccount()
+    telemetry = 0
+    step_us: list[int] = []
+    states = np.zeros(per_chunk, dtype=np.int64)
+    faults_seen = 0
+    send, recv = link.send, link.recv
+    ref_prev = sim.x_ref()
+    Ts = sim.Ts
+    sent = 0
+    c_start = 0
+    c_wall = time.perf_counter()
+    c_tel = 0
+    for k in range(n):
+        while sent < n and sent - k <= depth:
+            j = sent - k
+            adc, enc = sim.read() if j == 0 else _peek(sim, j)
+            ref = float(scen.x_ref(sent * Ts))
+            if ref != ref_prev:
+                send(_SET_REF(x_um=int(round(ref * 1e6))))
+                ref_prev = ref
+            send(_SENSOR(tick=sent, adc=int(adc), enc=int(enc)))
+            sent += 1
+        while True:
+            m = recv(sess.timeout)
+            if m is None:
+                sess._check_board()
+                raise HilError(f"no answer for tick {k} within {sess.timeout:g} s")
+            if type(m) is _ACTUATOR:
+                break
+            acc.add(m, link.last_seq)
+            if type(m) is _TELEM_CTRL:
+                telemetry += 1
+                step_us.append(m.step_us)
+            elif m.NAME == "nack":
+                raise HilError(f"the firmware refused a loop frame at tick {k}: {m}")
+        if m.tick != k:
+            raise HilError(f"tick {k}: the firmware answered tick {m.tick} (a tick lost or repeated)")
+        states[k - c_start] = m.state
+        faults_seen |= m.faults
+        sim.step(m.duty)
+        if k + 1 - c_start == per_chunk or k + 1 == n:
+            log = sim.result()
+            cnt = k + 1 - c_start
+            st = np.asarray(step_us[c_tel:], dtype=float)
+            err = log["x"] - log["x_ref"]
+            now = time.perf_counter()
+            res.chunks.append({
+                "t0": c_start * Ts, "t1": (k + 1) * Ts,
+                "rms_phi": float(np.sqrt(np.mean(log["phi"] ** 2))), "peak_phi": float(np.max(np.abs(log["phi"]))),
+                "rms_err": float(np.sqrt(np.mean(err ** 2))), "peak_duty": float(np.max(np.abs(log["duty"]))),
+                "step_us_mean": float(st.mean()) if st.size else math.nan,
+                "step_us_median": float(np.median(st)) if st.size else math.nan,
+                "step_us_max": float(st.max()) if st.size else math.nan,
+                "telemetry": float(telemetry - c_tel), "ticks_per_s": cnt / max(now - c_wall, 1e-9),
+                "not_balancing": float(np.count_nonzero(states[:cnt] != _BALANCING)),
+            })
+            # keep memory flat over an hour: the plant's log restarts with each chunk
+            for v in sim._log.values():
+                v.clear()
+            c_start, c_wall, c_tel = k + 1, now, telemetry
+            if progress is not None:
+                progress((k + 1) * Ts, n * Ts)
+    # let the last periodic frames arrive, then read the clock again
+    end = time.monotonic() + 0.1
+    while (left := end - time.monotonic()) > 0 and (m := recv(left)) is not None:
+        acc.add(m, link.last_seq)
+        if type(m) is _TELEM_CTRL:
+            telemetry += 1
+    hb1 = link.query("heartbeat", timeout=sess.timeout / 4, retries=3)
+    res.stats.update({
+        "ticks": n, "link": sess.link_kind, "telem_div": telem_div, "telemetry": telemetry,
+        "faults_seen": faults_seen, "uptime0_ms": hb0.uptime_ms, "uptime1_ms": hb1.uptime_ms,
+        "state_end": hb1.state, "period_ms": 1000.0 / sim.params.rate,
+    })
+    if sess.link_kind == "serial":
+        res.stats.update(acc.stats())
+    res.stats["host_drops"] = dict(link.drops)
+    sess.finish()
+
+
+def _check(res: SoakResult, probe: dict[str, int], tol: float) -> None:
+    s, f = res.stats, res.failures
+    if probe:
+        if probe.get("locked") != 1:
+            f.append("heap: the firmware did not run under heap_lock")
+        if probe.get("alloc0") != probe.get("alloc1"):
+            f.append(f"heap: gc.mem_alloc() {probe.get('alloc0')} at the start, {probe.get('alloc1')} at the end")
+        drops = sum(v for k, v in probe.items() if k in ("n_crc", "n_length", "n_unknown", "n_overrun", "n_framing"))
+        if drops:
+            f.append(f"firmware decoder dropped {drops} frame(s) on a clean link: {probe}")
+    if not s:
+        return
+    # the board's clock: exactly one period per tick between the two heartbeats
+    ticks = s["ticks"]
+    want = ticks * s["period_ms"]
+    got = (s["uptime1_ms"] - s["uptime0_ms"]) % (1 << 30)
+    s["uptime_advance_ms"] = got
+    if abs(got - want) > s["period_ms"]:
+        f.append(f"timing drift: the board's uptime advanced {got} ms over {ticks} ticks (expected {want:g})")
+    if s["faults_seen"] or s["state_end"] != _BALANCING:
+        f.append(f"board left balancing: faults 0x{s['faults_seen']:x}, final state {s['state_end']}")
+    # telemetry: one pair every telem_div ticks, and (serial) no sequence gap
+    div = s["telem_div"]
+    if div > 0:
+        expect = ticks / div
+        if abs(s["telemetry"] - expect) > 2:
+            f.append(f"telemetry: {s['telemetry']} pairs received, {expect:g} expected")
+    if s.get("seq_lost") or s.get("duplicates") or s.get("half_pairs"):
+        f.append(f"telemetry sequence: {s['seq_lost']} lost, {s['duplicates']} duplicated, "
+                 f"{s['half_pairs']} half pairs")
+    if sum(s.get("host_drops", {}).values()):
+        f.append(f"host decoder dropped frames on a clean link: {s['host_drops']}")
+    # metrics stable: every full chunk like the first
+    full = [c for c in res.chunks if abs((c["t1"] - c["t0"]) - (res.chunks[0]["t1"] - res.chunks[0]["t0"])) < 1e-6]
+    ref = full[0]
+    for i, c in enumerate(full[1:], 1):
+        for key, floor in (("rms_phi", 1e-4), ("rms_err", 1e-3), ("peak_duty", 50.0)):
+            if abs(c[key] - ref[key]) > tol * ref[key] + floor:
+                f.append(f"chunk {i}: {key} {c[key]:.4g} vs {ref[key]:.4g} in the first chunk")
+        # the median: a step the OS preempted (another process on the machine) is not drift
+        if c["step_us_median"] > 2.0 * ref["step_us_median"] + 10:
+            f.append(f"chunk {i}: firmware step (median) {c['step_us_median']:.1f} us, first chunk "
+                     f"{ref['step_us_median']:.1f} us")
+    for i, c in enumerate(res.chunks):
+        if c["not_balancing"]:
+            f.append(f"chunk {i}: {c['not_balancing']:.0f} ticks not balancing")
