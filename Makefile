@@ -11,7 +11,7 @@ OUT    ?= out
 PORT   ?= /dev/ttyACM0
 ARCH   ?= armv6m
 
-.PHONY: all setup test demo bench fuzz soak firmware flash generate clean help
+.PHONY: all setup test demo bench fuzz soak firmware flash generate clean help rp2040
 
 all: test
 
@@ -24,8 +24,9 @@ help:
 	@echo "make generate  regenerate the generated sources (gain tables, DBC, protocol docs)"
 	@echo "make firmware  compile the firmware bundle with mpy-cross (ARCH=$(ARCH))"
 	@echo "make flash     copy the bundle to a board (PORT=$(PORT)) with mpremote"
+	@echo "make rp2040    build the emulated Pico's firmware (MicroPython rp2 port, Debian sources) into build/rp2040/"
 
-setup: $(STAMP) $(NODE_STAMP)
+setup: $(STAMP) $(NODE_STAMP) rp2040
 
 $(STAMP): requirements.txt pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -36,6 +37,29 @@ $(STAMP): requirements.txt pyproject.toml
 # The 32-bit MicroPython WebAssembly port used by the allocation/small-int tests.
 $(NODE_STAMP): package.json package-lock.json
 	npm ci --no-audit --no-fund --loglevel=error
+	touch $@
+
+# The emulated board's firmware: MicroPython's rp2 port (RPI_PICO) built from Debian trixie
+# sources with the machine's ARM toolchain, pinned and checksummed (docs/firmware.md).
+# The apt step installs only the missing packages; `apt-get update` only if that fails.
+APT_PACKAGES := gcc-arm-none-eabi libnewlib-arm-none-eabi libstdc++-arm-none-eabi-newlib cmake make gcc libc6-dev debian-archive-keyring
+APT_STAMP    := build/.apt-installed
+SUDO         := $(if $(filter 0,$(shell id -u)),,sudo)
+
+rp2040: build/rp2040/firmware.bin
+
+$(APT_STAMP): Makefile
+	@missing=$$(for p in $(APT_PACKAGES); do \
+	  dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q '^install ok installed' || echo $$p; done); \
+	if [ -n "$$missing" ]; then \
+	  echo "apt-get install" $$missing; \
+	  $(SUDO) apt-get install -y --no-install-recommends $$missing || \
+	  { $(SUDO) apt-get update && $(SUDO) apt-get install -y --no-install-recommends $$missing; }; \
+	fi
+	@mkdir -p $(@D) && touch $@
+
+build/rp2040/firmware.bin: $(APT_STAMP) host/boards/rp2040/build.py host/boards/rp2040/manifest.py
+	$(PYTHON) -m host.boards.rp2040.build
 	touch $@
 
 generate: $(STAMP)
