@@ -81,7 +81,7 @@ soak: setup
 	$(BIN)/upright soak --sim-seconds 3600
 
 firmware: $(STAMP)
-	$(PY) -m host.bundle --arch $(ARCH) --out $(OUT)/firmware
+	$(PY) -m host.boards.bundle --arch $(ARCH) --out $(OUT)/firmware
 
 flash: firmware
 	$(BIN)/mpremote connect $(PORT) fs cp -r $(OUT)/firmware/. : + reset
