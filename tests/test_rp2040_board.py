@@ -105,3 +105,18 @@ def test_encoder_counts_quadrature_edges_both_ways(bundle: Path) -> None:
         b.set_encoder(-290)
         b.run(1000)
         assert int(b.exec("print(hal.read_encoder())", timeout=0.5)) == (-290) & 0xFFFF
+
+
+def test_firmware_main_streams_on_uart_at_1_mbaud(bundle: Path) -> None:
+    with EmulatedBoard(bundle) as b:
+        assert b.uart_baud == 1_000_000
+        data = b.wait_uart(50, timeout_us=200_000)
+        assert len(data) >= 50
+
+
+def test_code_that_never_finishes_gives_board_error_in_bounded_time(bundle: Path) -> None:
+    with EmulatedBoard(bundle, main=False) as b:
+        t0 = time.monotonic()
+        with pytest.raises(BoardError, match="did not finish"):
+            b.exec("while True:\n    pass", timeout=0.05)
+        assert time.monotonic() - t0 < 60

@@ -114,6 +114,8 @@ class StepResult:
         Program counter at the end.
     wall_s : float
         Wall-clock seconds the interval took to emulate.
+    cpu_s : float
+        CPU seconds node spent on it (the speed figure that does not depend on machine load).
     log : list of str
         New emulator warnings (unimplemented registers or instructions).
     """
@@ -137,6 +139,7 @@ class StepResult:
     idle_cycles: int
     pc: int
     wall_s: float
+    cpu_s: float = 0.0
     log: list[str] = field(default_factory=list)
 
     @classmethod
@@ -164,6 +167,7 @@ class StepResult:
             idle_cycles=a["idle_cycles"],
             pc=a["pc"],
             wall_s=a.get("wall_ms", 0.0) / 1000.0,
+            cpu_s=a.get("cpu_ms", 0.0) / 1000.0,
             log=list(a.get("log", [])),
         )
 
@@ -234,6 +238,9 @@ class EmulatedBoard:
         Extra files for the filesystem (replacing the bundle's of the same path).
     boot_us : int
         Emulated time allowed for the USB host to see the board (enumeration done).
+    main_us : int
+        With ``main=True``: emulated time allowed for the firmware to open its UART link (it
+        imports for about 0.2 s of board time first).
     wall_timeout : float
         Wall-clock seconds any one harness request may take per emulated millisecond
         (plus 10 s); past that the board is taken as stuck.
@@ -255,10 +262,12 @@ class EmulatedBoard:
         main: bool = True,
         files: dict[str, bytes] | None = None,
         boot_us: int = 200_000,
+        main_us: int = 2_000_000,
         wall_timeout: float = 0.2,
         node: str | None = None,
     ) -> None:
         self.main = main
+        self.main_us = main_us
         self.wall_timeout = wall_timeout
         self.cycles = 0
         self.uart_baud = 0
@@ -456,8 +465,16 @@ class EmulatedBoard:
             t += chunk
         self.boot_cycles = self.cycles
         if self.main:
-            # main.py starts right away: a failing import prints its traceback within a few ms
-            self.run(30_000)
+            # main.py imports the firmware (about 0.2 s of board time) and opens the UART link; an
+            # exception on the way prints a traceback (BoardError from run()).  Wait for either.
+            t = 0
+            while not self.uart_baud:
+                self.run(10_000)
+                t += 10_000
+                if self.uart_baud:
+                    break
+                if t >= self.main_us:
+                    raise self._fail(f"firmware did not open its UART link within {self.main_us / 1000:.0f} ms of board time")
 
     # ------------------------------------------------------------------ REPL
     def _read_until(self, marker: bytes, timeout_us: float, chunk_us: float = 500.0) -> bytes:
@@ -547,26 +564,42 @@ class EmulatedBoard:
         self.close()
 
 
+def _measure(b: EmulatedBoard, seconds: float, label: str) -> None:
+    wall = cpu = 0.0
+    c0, i0 = b.cycles, None
+    for _ in range(max(1, int(seconds * 1000))):
+        r = b.run(1000)
+        wall += r.wall_s
+        cpu += r.cpu_s
+        i0 = r.idle_cycles if i0 is None else i0
+    emu = (b.cycles - c0) / 125e6
+    idle = (r.idle_cycles - (i0 or 0)) / max(1, b.cycles - c0)
+    print(f"{label}: {emu:.2f} s board time in {wall:.2f} s wall / {cpu:.2f} s CPU: "
+          f"{emu / wall:.3f} board s per wall s, {emu / max(cpu, 1e-9):.3f} per CPU s "
+          f"({(b.cycles - c0) / max(cpu, 1e-9) / 1e6:.1f} M cycles per CPU s; core idle {100 * idle:.0f} %)")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m host.boards.rp2040.board``: boot, then measure the emulation speed."""
     ap = argparse.ArgumentParser(prog="python -m host.boards.rp2040.board", description=main.__doc__)
     ap.add_argument("--firmware", default=str(FIRMWARE))
-    ap.add_argument("--seconds", type=float, default=2.0, help="board seconds to run for the speed figure")
-    ap.add_argument("--repl", action="store_true", help="boot to the REPL (empty main.py) instead of the firmware")
+    ap.add_argument("--seconds", type=float, default=1.0, help="board seconds to run for each speed figure")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    with EmulatedBoard(firmware=Path(args.firmware), main=not args.repl) as b:
-        t_boot = time.perf_counter() - t0
-        print(f"booted: USB enumerated at {b.boot_cycles / 125e3:.1f} ms board time; "
-              f"start-up incl. bundle+fs image+node {t_boot:.2f} s wall")
-        wall = 0.0
-        c0 = b.cycles
-        steps = int(args.seconds * 1000)
-        for _ in range(steps):
-            wall += b.run(1000).wall_s
-        emu = (b.cycles - c0) / 125e6
-        print(f"ran {emu:.2f} s board time in {wall:.2f} s wall (harness): {emu / wall:.3f} board s per wall s, "
-              f"{(b.cycles - c0) / wall / 1e6:.1f} M cycles/s; baud {b.uart_baud}")
+    with EmulatedBoard(firmware=Path(args.firmware), main=False) as b:
+        print(f"REPL board: USB enumerated at {b.boot_cycles / 125e3:.1f} ms board time; "
+              f"start-up incl. bundle, fs image, node: {time.perf_counter() - t0:.2f} s wall")
+        t1 = time.perf_counter()
+        b.exec("import firmware.board as B\nfrom firmware.hal_pico import HalPico\nhal = HalPico(B)\n")
+        print(f"first exec (HalPico up, encoder PIO running): {time.perf_counter() - t1:.2f} s wall")
+        _measure(b, args.seconds, "idle REPL, PIO running")
+        b.usb_write(b"x = 0\nwhile True:\n    x += 1\n\x04")
+        b.run(5000)
+        _measure(b, args.seconds, "busy bytecode loop, PIO running")
+    t0 = time.perf_counter()
+    with EmulatedBoard(firmware=Path(args.firmware), main=True) as b:
+        print(f"firmware main: booted in {time.perf_counter() - t0:.2f} s wall; UART0 baud {b.uart_baud}")
+        _measure(b, args.seconds, "firmware main.py (no host on the link)")
     return 0
 
 

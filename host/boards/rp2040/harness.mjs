@@ -118,10 +118,156 @@ function setNanos(n) {
   else clock.nanosCounter = n;
 }
 
+// ---------------------------------------------------------------- 3. lock-step PIO
+// rp2040js runs PIO from setTimeout (1000 steps per macrotask, no divider).  That is disabled;
+// every enabled state machine is stepped at its own clock-enable times on the CPU's cycle count:
+// one step per divider period (int + frac/256 system cycles), 1 + delay periods per instruction,
+// one period per stalled cycle.
+//
+// Speed, without giving up exactness:
+//  * Lazy stepping: while no PIO output pin is enabled, no PIO interrupt is enabled and no DMA
+//    channel is busy, nothing outside the PIO can see its state except through its registers and
+//    its input pins.  The machines are then caught up to the current cycle just before the CPU
+//    touches a PIO register, before an input pin or the IO/pad configuration changes, and at the
+//    end of each run -- the same steps at the same cycles as stepping after every instruction.
+//    Otherwise they are stepped after every CPU instruction (and cycle by cycle in WFI).
+//  * Steady state: a lone state machine whose complete state (registers, shift counters, FIFO
+//    contents, IRQ flags, pins) is identical at two consecutive passes through its wrap target,
+//    with nothing external touching it in between, repeats that period forever; whole periods
+//    are skipped by advancing its clock-enable time (its state is then the one it would have).
+//    The quadrature decoder idles like that (it pushes an unchanged count into a full FIFO).
+const pioSMs = []; // {sm, pio, next, div, snap, snapAt}
+let pioNext = Infinity;
+let pioLazy = false;
+let pioSkipped = 0; // PIO cycles skipped by the steady-state rule (statistics)
+function smDiv(sm) {
+  const i = sm.clockDivInt === 0 ? 65536 : sm.clockDivInt;
+  return i + sm.clockDivFrac / 256;
+}
+function pioCanWake() {
+  for (const pio of mcu.pio) {
+    if (pio.irq0IntEnable | pio.irq0IntForce | pio.irq1IntEnable | pio.irq1IntForce) return true;
+  }
+  // a busy DMA channel (it could be paced by a PIO DREQ and raise an interrupt)
+  for (const ch of mcu.dma.channels) if (ch.ctrl & (1 << 24)) return true;
+  return false;
+}
+function pioMode() {
+  pioLazy = pioSMs.length > 0 && !pioCanWake() && (mcu.pio[0].pinDirections | mcu.pio[1].pinDirections) === 0;
+}
+function refreshPio() {
+  const old = new Map(pioSMs.map((e) => [e.sm, e]));
+  pioSMs.length = 0;
+  for (const pio of mcu.pio) {
+    for (const sm of pio.machines) {
+      if (!sm.enabled) continue;
+      const div = smDiv(sm);
+      const prev = old.get(sm);
+      pioSMs.push({ sm, pio, div, next: prev ? prev.next : cyc + div, snap: null, snapAt: 0 });
+    }
+  }
+  pioNext = Infinity;
+  for (const e of pioSMs) if (e.next < pioNext) pioNext = e.next;
+  pioMode();
+}
+function pioTouched() {
+  for (let k = 0; k < pioSMs.length; k++) pioSMs[k].snap = null;
+}
+function pioSync() {
+  // catch the machines up to the current time (before something observes or changes their world)
+  if (pioSMs.length) {
+    const now = Math.floor(clock.nanosCounter / NS_PER_CYCLE);
+    if (pioNext <= now) stepPio(now);
+  }
+  pioTouched();
+}
+function smSnapshot(sm, pio) {
+  const rx = sm.rxFIFO, tx = sm.txFIFO;
+  return `${sm.pc},${sm.x},${sm.y},${sm.inputShiftReg},${sm.inputShiftCount},${sm.outputShiftReg},` +
+    `${sm.outputShiftCount},${sm.waiting},${sm.waitType},${sm.execValid},${sm.execCtrl},${rx.items},` +
+    `${tx.items},${pio.irq},${pio.pinValues},${pio.pinDirections}`;
+}
+function stepPio(upTo) {
+  if (pioSMs.length === 1) {
+    const e = pioSMs[0];
+    const sm = e.sm;
+    const wrap = sm.wrapBottom;
+    while (e.next <= upTo) {
+      if (sm.pc === wrap && !sm.waiting) {
+        const snap = smSnapshot(sm, e.pio);
+        if (snap === e.snap) {
+          const period = e.next - e.snapAt;
+          const k = Math.floor((upTo - e.next) / period);
+          if (k > 0) {
+            e.next += k * period;
+            pioSkipped += k * period;
+          }
+        } else {
+          e.snap = snap;
+        }
+        e.snapAt = e.next;
+        if (e.next > upTo) break;
+      }
+      const c0 = sm.cycles;
+      sm.step();
+      let dc = sm.cycles - c0; // 1 + delay, 0 while stalled
+      if (dc < 1) dc = 1;
+      e.next += dc * e.div;
+    }
+    pioNext = e.next;
+  } else {
+    // several machines: interleave them in time order (they may talk through IRQ flags)
+    for (;;) {
+      let best = null;
+      for (let k = 0; k < pioSMs.length; k++) {
+        const e = pioSMs[k];
+        if (e.next <= upTo && (best === null || e.next < best.next)) best = e;
+      }
+      if (best === null) break;
+      const sm = best.sm;
+      const c0 = sm.cycles;
+      sm.step();
+      let dc = sm.cycles - c0;
+      if (dc < 1) dc = 1;
+      best.next += dc * best.div;
+    }
+    let next = Infinity;
+    for (const e of pioSMs) if (e.next < next) next = e.next;
+    pioNext = next;
+  }
+  mcu.pio[0].checkChangedPins();
+  mcu.pio[1].checkChangedPins();
+  if (pioLazy && (mcu.pio[0].pinDirections | mcu.pio[1].pinDirections)) pioLazy = false;
+}
+for (const pio of mcu.pio) {
+  pio.run = () => {}; // no wall-clock stepping
+  const origWrite = pio.writeUint32.bind(pio);
+  const origRead = pio.readUint32.bind(pio);
+  pio.readUint32 = (offset) => {
+    pioSync();
+    return origRead(offset);
+  };
+  pio.writeUint32 = (offset, value) => {
+    pioSync();
+    origWrite(offset, value);
+    // CTRL (enable/restart) and SMn_CLKDIV (0xc8 + 0x18 n) change the stepping plan
+    if (offset === 0 || (offset >= 0xc8 && offset <= 0x124 && (offset - 0xc8) % 0x18 === 0)) refreshPio();
+    else pioMode();
+  };
+}
+{
+  const origWrite = mcu.dma.writeUint32.bind(mcu.dma);
+  mcu.dma.writeUint32 = (offset, value) => {
+    pioSync();
+    origWrite(offset, value);
+    pioMode();
+  };
+}
+
 // ---------------------------------------------------------------- fast GPIO input word
 // RP2040.gpioValues (read by every PIO `in pins`/`wait`/`mov x, pins`) walks all 30 pins through
 // getters.  Cache it; the cache is dropped when an input level, IO_BANK0 (overrides) or
-// PADS_BANK0 (input enable) changes.
+// PADS_BANK0 (input enable) changes -- after catching the PIO up to that moment.
 let gpioCache = -1;
 Object.defineProperty(mcu, 'gpioValues', {
   get() {
@@ -136,72 +282,12 @@ Object.defineProperty(mcu, 'gpioValues', {
 });
 for (const pin of mcu.gpio) {
   const orig = pin.setInputValue.bind(pin);
-  pin.setInputValue = (value) => { gpioCache = -1; orig(value); };
+  pin.setInputValue = (value) => { pioSync(); gpioCache = -1; orig(value); };
 }
 for (const base of [0x40014, 0x4001c]) {
   const per = mcu.peripherals[base];
   const orig = per.writeUint32.bind(per);
-  per.writeUint32 = (offset, value) => { gpioCache = -1; orig(offset, value); };
-}
-
-// ---------------------------------------------------------------- 3. lock-step PIO
-// rp2040js runs PIO from setTimeout (1000 steps per macrotask, no divider).  Disable that and step
-// the enabled machines ourselves.
-const pioSMs = []; // {sm, pio, next, div}
-let pioNext = Infinity;
-function smDiv(sm) {
-  const i = sm.clockDivInt === 0 ? 65536 : sm.clockDivInt;
-  return i + sm.clockDivFrac / 256;
-}
-function refreshPio() {
-  const old = new Map(pioSMs.map((e) => [e.sm, e]));
-  pioSMs.length = 0;
-  for (const pio of mcu.pio) {
-    for (const sm of pio.machines) {
-      if (!sm.enabled) continue;
-      const div = smDiv(sm);
-      const prev = old.get(sm);
-      pioSMs.push({ sm, pio, div, next: prev ? prev.next : cyc + div });
-    }
-  }
-  pioNext = Infinity;
-  for (const e of pioSMs) if (e.next < pioNext) pioNext = e.next;
-}
-for (const pio of mcu.pio) {
-  pio.run = () => {}; // no wall-clock stepping
-  const orig = pio.writeUint32.bind(pio);
-  pio.writeUint32 = (offset, value) => {
-    orig(offset, value);
-    // CTRL (enable/restart) and SMn_CLKDIV (0xc8 + 0x18 n) change the stepping plan
-    if (offset === 0 || (offset >= 0xc8 && offset <= 0x124 && (offset - 0xc8) % 0x18 === 0)) refreshPio();
-  };
-}
-function pioCanWake() {
-  for (const pio of mcu.pio) {
-    if (pio.irq0IntEnable | pio.irq0IntForce | pio.irq1IntEnable | pio.irq1IntForce) return true;
-  }
-  // a busy DMA channel (it could be paced by a PIO DREQ and raise an interrupt)
-  for (const ch of mcu.dma.channels) if (ch.ctrl & (1 << 24)) return true;
-  return false;
-}
-function stepPio(upTo) {
-  // Step every enabled state machine whose next clock-enable time is <= upTo.
-  let next = Infinity;
-  for (let k = 0; k < pioSMs.length; k++) {
-    const e = pioSMs[k];
-    const sm = e.sm;
-    while (e.next <= upTo) {
-      const c0 = sm.cycles;
-      sm.step();
-      let dc = sm.cycles - c0; // 1 + delay, 0 while stalled
-      if (dc < 1) dc = 1;
-      e.next += dc * e.div;
-    }
-    if (e.next < next) next = e.next;
-  }
-  pioNext = next;
-  mcu.pio[0].checkChangedPins();
-  mcu.pio[1].checkChangedPins();
+  per.writeUint32 = (offset, value) => { pioSync(); gpioCache = -1; orig(offset, value); };
 }
 
 // ---------------------------------------------------------------- 2. UART (PL011 model)
@@ -454,7 +540,7 @@ function runUntil(target) {
         if (ac < until) until = ac < cyc ? cyc : ac;
       }
       const start = cyc;
-      if (pioNext <= until) {
+      if (!pioLazy && pioNext <= until) {
         if (pioCanWake()) {
           // a PIO interrupt may end the wait: step cycle by cycle
           while (core.waiting && pioNext <= until) {
@@ -475,8 +561,9 @@ function runUntil(target) {
     }
     cyc += core.executeInstruction();
     setNanos(cyc * NS_PER_CYCLE);
-    if (pioNext <= cyc) stepPio(cyc);
+    if (!pioLazy && pioNext <= cyc) stepPio(cyc);
   }
+  pioSync(); // the machines' state is current at the end of each run
 }
 
 function hex(arr) { return Buffer.from(arr).toString('hex'); }
@@ -511,6 +598,8 @@ function stateAnswer(extra) {
     pc: core.PC >>> 0,
     idle_cycles: idleCycles,
     pio_active: pioSMs.length,
+    pio_lazy: pioLazy,
+    pio_skipped: pioSkipped,
     log: logCount > lastLog ? logTail.slice(-Math.min(logCount - lastLog, LOG_KEEP)) : [],
     ...extra,
   };
@@ -539,9 +628,11 @@ function handle(req) {
       const n = Math.max(0, Math.round((req.us * 1000) / NS_PER_CYCLE));
       encPlan(n * NS_PER_CYCLE);
       const t0 = process.hrtime.bigint();
+      const u0 = process.cpuUsage();
       runUntil(cyc + n);
       const wall = Number(process.hrtime.bigint() - t0) / 1e6;
-      return stateAnswer({ wall_ms: wall });
+      const u = process.cpuUsage(u0);
+      return stateAnswer({ wall_ms: wall, cpu_ms: (u.user + u.system) / 1000 });
     }
     case 'state':
       return stateAnswer({});
