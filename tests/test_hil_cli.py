@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-import host.hil.session
+import host.hil.runs
 from host.cli.main import main
 from host.boards.mpyrun import ROOT
 from sim.scenario import scenario_from_dict
@@ -28,6 +28,15 @@ def test_hil_cli_runs_a_scenario_and_writes_outputs(tmp_path: Path) -> None:
     assert (tmp_path / "tilt_0p1.png").stat().st_size > 0
 
 
+def test_hil_cli_exits_0_when_the_verdicts_match_a_falling_scenario(tmp_path: Path) -> None:
+    # tilt_0p3 cannot be caught (documented: its three constraint checks are expected to
+    # FAIL); the supervisor cuts the motor at its tilt limit.  The float comparison counts
+    # only while the firmware drives, so the run is as expected: exit 0 (about 5 s)
+    r = _cli("hil", "--virtual", "--scenario", "tilt_0p3", "--no-plots", "--quiet", "--out", str(tmp_path))
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "FAIL*" in r.stdout and "0 unexpected outcome(s)" in r.stdout and "not as expected" not in r.stdout
+
+
 @pytest.mark.parametrize("args, needle", [
     (("--port", "/dev/does-not-exist-upright"), "/dev/does-not-exist-upright"),
     (("--port", "/dev/does-not-exist-upright", "--link", "can", "--can-interface", "serial"), "CAN channel"),
@@ -45,7 +54,7 @@ def test_hil_cli_bad_port_or_scenario_is_one_line(args, needle, tmp_path: Path) 
 def test_demo_runs_and_writes_an_index(tmp_path: Path, monkeypatch, capsys) -> None:
     short = scenario_from_dict({"name": "demo_short", "description": "a short tilt", "duration": 1.0,
                                 "initial": {"phi": 0.05}, "expect": {"a_max": "any"}})
-    monkeypatch.setattr(host.hil.session, "resolve_scenarios", lambda spec: [short])
+    monkeypatch.setattr(host.hil.runs, "resolve_scenarios", lambda spec: [short])
     assert main(["demo", "--out", str(tmp_path), "--no-design", "--quiet"]) == 0
     out = capsys.readouterr().out
     assert "demo_short" in out and "index.html" in out

@@ -16,13 +16,11 @@ import pytest
 
 from firmware import msgtable as T
 from host.link import messages as M
-from host.hil.session import (
-    PRIME_TICK,
-    HilSession,
-    TickError,
-    encoder_jump_limit,
-    float_reference,
-)
+from host.hil.errors import TickError
+from host.hil.gains import encoder_jump_limit
+from host.hil.lockstep import PRIME_TICK
+from host.hil.reference import float_reference
+from host.hil.session import HilSession
 from sim.metrics import evaluate
 from sim.params import load_params
 from sim.scenario import REPORT_SCENARIOS, load_scenario, scenario_from_dict
@@ -137,7 +135,7 @@ def test_can_telemetry_counted_not_sequenced(can_runs) -> None:
 
 
 def test_sink_counts_telemetry_lost_by_seq() -> None:
-    from host.hil.session import _Sink
+    from host.hil.accounting import Sink as _Sink
 
     class FakeLink:
         last_seq = None
@@ -367,7 +365,7 @@ def test_realtime_loop_timing_over_ten_seconds(link) -> None:
 def test_silent_firmware_is_an_error_not_a_hang() -> None:
     # a dropped frame with nothing in flight: the firmware never answers (it only sends
     # heartbeats); the runner must give up after its timeout
-    from host.hil.session import HilError
+    from host.hil.errors import HilError
 
     fault = _TickFault(100, "drop")
     sc = scenario_from_dict({"name": "short", "duration": 1.0})

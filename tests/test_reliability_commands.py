@@ -16,7 +16,8 @@ import pytest
 from firmware import msgtable as T
 from host.link import messages as M
 from host.design.export import export
-from host.hil.faults import StreamFaults, run_lossy
+from host.hil.faults import StreamFaults
+from host.hil.lossy import run_lossy
 from host.hil.session import HilSession
 from host.link.clients import CommandRefused
 from sim.scenario import scenario_from_dict
@@ -130,7 +131,7 @@ def test_gain_upload_over_corrupted_link_applies_all_or_nothing(board) -> None:
     alt = _trace(board)
     board.link.disarm()
     board.link.upload_gains(GOOD)
-    from host.hil.session import _install_fault
+    from host.hil.session import install_fault as _install_fault
 
     outcomes = []
     for seed in (1, 2):

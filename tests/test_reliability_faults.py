@@ -6,8 +6,8 @@ import pytest
 
 from firmware import msgtable as T
 from host.link import messages as M
-from host.hil.faults import (ActuatorFault, BusFaults, FaultError, FrameFaults, SensorFault, SeqAccount,
-                         StreamFaults)
+from host.hil.accounting import SeqAccount
+from host.hil.faults import ActuatorFault, BusFaults, FaultError, FrameFaults, SensorFault, StreamFaults
 
 SENSOR = M.BY_NAME["hil_sensor"]
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from firmware.supervisor import F_WATCHDOG
-from host.hil.faults import serial_link_on_fd
+from host.hil.fdlink import serial_link_on_fd
 from host.hil.session import HilSession
 from host.link.clients import CommandRefused
 from host.boards.mpyrun import ROOT
@@ -33,7 +33,7 @@ DISARMED, ARMED, BALANCING, FAULT = 0, 1, 2, 3
 CRASHING_HOST = r"""
 import sys, time
 from host.link import messages as M
-from host.hil.faults import serial_link_on_fd
+from host.hil.fdlink import serial_link_on_fd
 link = serial_link_on_fd(int(sys.argv[1]))
 link.disarm(); link.clear_faults(); link.arm()
 S = M.BY_NAME["hil_sensor"]

@@ -17,7 +17,9 @@ import pytest
 
 from firmware import msgtable as T
 from firmware.supervisor import F_ENC_JUMP, F_TILT, F_TRACK, F_WATCHDOG
-from host.hil.faults import BusFaults, ProbeSession, StreamFaults, Tap, run_lossy, stream_realtime
+from hil_probe import ProbeSession
+from host.hil.faults import BusFaults, StreamFaults, Tap
+from host.hil.lossy import run_lossy, stream_realtime
 from host.hil.session import HilSession
 from host.link.clients import CommandRefused
 from sim.params import load_params

@@ -14,7 +14,8 @@ import pytest
 
 from firmware import msgtable as T
 from firmware.supervisor import F_ADC_RAIL, F_ENC_JUMP, F_STALL, F_TILT
-from host.hil.faults import ActuatorFault, SensorFault, run_lossy
+from host.hil.faults import ActuatorFault, SensorFault
+from host.hil.lossy import run_lossy
 from host.hil.session import HilSession
 from host.link.clients import CommandRefused
 from sim.params import load_params

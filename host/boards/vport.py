@@ -13,6 +13,11 @@ UART hangs up, i.e. when the host closes the master), then terminates and finall
 it if it does not go, and always reaps the process.  Bad ports and CAN channels become
 one-line :class:`PortError` messages, never tracebacks (:func:`open_serial`,
 :func:`open_can`).
+
+A probed board (``VirtualBoard(..., probe=True)``) runs the unchanged HIL main inside a small
+wrapper that holds ``micropython.heap_lock()`` for the whole lockstep run and prints, at exit,
+the heap in use before and after and the firmware decoder's drop counters -- the board
+exposes neither over the link; :meth:`VirtualBoard.probe_report` reads them.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from __future__ import annotations
 import fcntl
 import math
 import os
+import re
 import signal
 import struct
 import subprocess
@@ -37,6 +43,7 @@ __all__ = [
     "open_serial",
     "open_can",
     "firmware_command",
+    "probe_code",
     "set_realtime",
     "steal_seconds",
     "VirtualBoard",
@@ -224,6 +231,62 @@ def firmware_command(port: str, *, link: str = "serial", mode: str = "lockstep",
     return cmd + ["-c", code]
 
 
+_PROBE = r"""
+import sys, gc, micropython
+from firmware import main_hil
+from firmware.uart_unix import UnixUART
+
+
+def go():
+    u = UnixUART(%(port)r)
+    m = main_hil.HilMain(u, %(link)r, %(mode)r, %(node)d)
+    gc.collect()
+    a0 = gc.mem_alloc()
+    lock = %(lock)r
+    if lock:
+        micropython.heap_lock()
+    else:
+        gc.disable()
+    try:
+        rc = m.run()
+    finally:
+        if lock:
+            micropython.heap_unlock()
+    a1 = gc.mem_alloc()
+    d = m.dec
+    out = "UPRIGHT-PROBE alloc0=%%d alloc1=%%d locked=%%d steps=%%d frames=%%d" %% (a0, a1, lock, m.n_steps, m.n_frames)
+    for k in ("n_ok", "n_crc", "n_length", "n_unknown", "n_overrun", "n_framing", "n_other"):
+        if hasattr(d, k):
+            out += " %%s=%%d" %% (k, getattr(d, k))
+    out += " refused=%%d handled=%%d" %% (m.disp.n_refused, m.disp.n_handled)
+    print(out)
+    return rc
+
+
+sys.exit(go())
+"""
+
+_PROBE_RE = re.compile(r"UPRIGHT-PROBE (.*)")
+
+
+def probe_code(port: str, *, link: str = "serial", mode: str = "lockstep", node: int = 1) -> str:
+    """MicroPython source of the probed HIL main (see the module docstring).
+
+    The firmware is the unchanged :class:`firmware.main_hil.HilMain`; the wrapper holds
+    ``micropython.heap_lock()`` for the whole run in lockstep mode -- one allocation anywhere
+    in the loop, the decoder or the command handler ends the firmware with ``MemoryError``
+    -- and, in real-time mode, disables the GC instead and reports the growth.  At exit it
+    prints ``gc.mem_alloc()`` before and after the run (``alloc0``, ``alloc1``, ``locked``),
+    the steps and frames handled, the decoder's drop counters and the commands refused and
+    handled, on one line that :meth:`VirtualBoard.probe_report` parses.
+    """
+    if link not in ("serial", "can"):
+        raise ValueError(f"link must be 'serial' or 'can', got {link!r}")
+    if mode not in ("lockstep", "realtime"):
+        raise ValueError(f"mode must be 'lockstep' or 'realtime', got {mode!r}")
+    return _PROBE % {"port": port, "link": link, "mode": mode, "node": int(node), "lock": mode == "lockstep"}
+
+
 class VirtualBoard:
     """The firmware's HIL main running under the MicroPython unix port on a pty slave.
 
@@ -252,6 +315,9 @@ class VirtualBoard:
     boot_counter : bool
         False: no boot counter at all (``heartbeat.boot`` stays 0); ``boot_file`` must
         then be None.
+    probe : bool
+        Run the probed HIL main (:func:`probe_code`): heap and decoder counters reported at
+        exit, read with :meth:`probe_report`.  Not with ``code``.
     rt_priority : int, optional
         Run the interpreter under the ``SCHED_FIFO`` real-time policy at this priority
         (1..99), as a board's loop owns its CPU; a real-time-mode firmware sharing a busy
@@ -269,9 +335,14 @@ class VirtualBoard:
     def __init__(self, slave: str, *, link: str = "serial", mode: str = "lockstep", node: int = 1,
                  heapsize: str | None = None, startup_timeout: float = 10.0, code: str | None = None,
                  rt_priority: int | None = None, heap_lock: bool = False, boot_file: str | None = None,
-                 boot_counter: bool = True) -> None:
+                 boot_counter: bool = True, probe: bool = False) -> None:
         import tempfile
 
+        if probe and code is not None:
+            raise ValueError("probe=True runs the probed HIL main: give no code")
+        if probe:
+            code = probe_code(slave, link=link, mode=mode, node=node)
+        self.probe = bool(probe)
         self.slave = slave
         self._boot_dir: tempfile.TemporaryDirectory[str] | None = None
         if not boot_counter:
@@ -357,6 +428,15 @@ class VirtualBoard:
         """Last lines of the firmware's output, joined on one line."""
         tail = [s for s in self.output().strip().splitlines() if s.strip()][-lines:]
         return " | ".join(tail) if tail else f"(no output, exit status {self.returncode})"
+
+    def probe_report(self) -> dict[str, int] | None:
+        """The probed firmware's exit report (``probe=True``, after it ended), or ``None``
+        if it did not report (it crashed: e.g. ``MemoryError`` under the heap lock -- its
+        output tail says why, :meth:`output_tail`)."""
+        m = _PROBE_RE.search(self.output())
+        if m is None:
+            return None
+        return {k: int(v) for k, v in (kv.split("=") for kv in m.group(1).split())}
 
     def check(self) -> None:
         """Raise :class:`BoardExited` if the firmware has ended."""

@@ -72,7 +72,8 @@ def write_index(runs: Sequence[Any], out: Path) -> Path:
 def run(args: argparse.Namespace) -> int:
     """Run ``upright demo``."""
     from host.cli.hil import Progress, report
-    from host.hil.session import HilError, resolve_scenarios, run_scenarios
+    from host.hil.errors import HilError
+    from host.hil.runs import resolve_scenarios, run_scenarios
     from host.boards.vport import PortError
 
     out = Path(args.out) / "demo"

@@ -163,7 +163,8 @@ def report(runs: Sequence[Any], *, tolerance: float = 0.01, out: str | Path | No
 
 def run(args: argparse.Namespace) -> int:
     """Run ``upright hil``."""
-    from host.hil.session import HilError, resolve_scenarios, run_scenarios
+    from host.hil.errors import HilError
+    from host.hil.runs import resolve_scenarios, run_scenarios
     from host.boards.vport import PortError
 
     if not args.tolerance > 0:

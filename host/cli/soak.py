@@ -10,7 +10,7 @@ import sys
 import time
 from typing import Sequence
 
-from host.hil.session import HilError
+from host.hil.errors import HilError
 from host.hil.soak import soak
 
 

@@ -7,7 +7,8 @@ and one armed, balancing board from start to end, and checks:
 
 heap
     the firmware runs under ``micropython.heap_lock()`` for the whole run
-    (:class:`host.hil.faults.ProbeSession`): one allocation would end it with ``MemoryError``;
+    (the probed virtual board, ``HilSession(probe=True)``, :func:`host.boards.vport.probe_code`):
+    one allocation would end it with ``MemoryError``;
     at exit it reports ``gc.mem_alloc()`` before and after, which must be equal.  (The board
     does not expose ``gc.mem_free()`` over the link -- there is no message for it -- so this
     is read from the virtual board's exit report.)
@@ -27,32 +28,31 @@ metrics
 It prints a summary table per chunk and a verdict; the exit status is 0 only if every
 check passed.  :func:`soak` returns the same as a :class:`SoakResult` (the short soak in
 ``make test`` calls it directly).
+
+The run is THE lockstep loop (:class:`host.hil.lockstep.Lockstep`, strict and pipelined);
+the chunks are its ``after_tick`` hook.
 """
 
 from __future__ import annotations
 
 import math
-import sys
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable
 
 import numpy as np
 
 from firmware import msgtable as T
-from host.link import messages as M
-from host.hil.faults import ProbeSession, SeqAccount
-from host.hil.session import HilError, _peek
+from host.hil.accounting import Sink
+from host.hil.errors import HilError
+from host.hil.lockstep import Lockstep
+from host.hil.session import HilSession
 from sim.params import RobotParams, load_params
 from sim.plantsim import PlantSim
 from sim.scenario import load_scenario, scenario_from_dict
 
 __all__ = ["SoakResult", "soak"]
 
-_SENSOR = M.BY_NAME["hil_sensor"]
-_SET_REF = M.BY_NAME["set_reference"]
-_ACTUATOR = M.BY_NAME["hil_actuator"]
-_TELEM_CTRL = M.BY_NAME["telem_ctrl"]
 _PERIOD_S = 4.4  # the square wave's period: chunks are whole periods
 _BALANCING = 2
 
@@ -107,7 +107,7 @@ def _scenario(seconds: float) -> Any:
 
 def soak(sim_seconds: float, *, link: str = "serial", chunk_s: float | None = None, params: RobotParams | None = None,
          tolerance: float = 0.1, progress: Callable[[float, float], None] | None = None,
-         timeout: float = 2.0) -> SoakResult:
+         timeout: float = 2.0, result: SoakResult | None = None) -> SoakResult:
     """Run the soak (see the module docstring).
 
     Parameters
@@ -128,6 +128,9 @@ def soak(sim_seconds: float, *, link: str = "serial", chunk_s: float | None = No
         ``progress(sim_time_done, sim_seconds)`` once per chunk.
     timeout : float
         Seconds to wait for an answer.
+    result : SoakResult, optional
+        Filled in as the run goes (a chunk's row as soon as it is finished) and returned, so
+        a caller interrupted mid-run still holds the finished chunks.
 
     Returns
     -------
@@ -142,9 +145,9 @@ def soak(sim_seconds: float, *, link: str = "serial", chunk_s: float | None = No
     params = params or load_params()
     periods = max(1, round((chunk_s if chunk_s else sim_seconds / 10) / _PERIOD_S))
     chunk_s = periods * _PERIOD_S
-    res = SoakResult()
+    res = SoakResult() if result is None else result
     scen = _scenario(sim_seconds)
-    sess = ProbeSession(link=link, timeout=timeout)
+    sess = HilSession(link=link, timeout=timeout, probe=True)
     sess.open()
     try:
         _run(sess, scen, params, chunk_s, res, progress)
@@ -160,94 +163,76 @@ def soak(sim_seconds: float, *, link: str = "serial", chunk_s: float | None = No
     return res
 
 
-def _run(sess: ProbeSession, scen: Any, params: RobotParams, chunk_s: float, res: SoakResult,
+def _run(sess: HilSession, scen: Any, params: RobotParams, chunk_s: float, res: SoakResult,
          progress: Callable[[float, float], None] | None) -> None:
     link = sess._link()
     sim = PlantSim(params, scen)
     sess.prepare(sim)
+    sink = Sink(link)
     hb0 = link.query("heartbeat", timeout=sess.timeout / 4, retries=3)
     telem_div = link.param_get(T.P_TELEM_DIV)
-    n = sim.n_ticks
-    per_chunk = int(round(chunk_s * sim.params.rate))
-    depth = sim.sensor_model.delay_steps
-    acc = SeqAccount()
-    telemetry = 0
-    step_us: list[int] = []
-    states = np.zeros(per_chunk, dtype=np.int64)
-    faults_seen = 0
-    send, recv = link.send, link.recv
-    ref_prev = sim.x_ref()
-    Ts = sim.Ts
-    sent = 0
-    c_start = 0
-    c_wall = time.perf_counter()
-    c_tel = 0
-    for k in range(n):
-        while sent < n and sent - k <= depth:
-            j = sent - k
-            adc, enc = sim.read() if j == 0 else _peek(sim, j)
-            ref = float(scen.x_ref(sent * Ts))
-            if ref != ref_prev:
-                send(_SET_REF(x_um=int(round(ref * 1e6))))
-                ref_prev = ref
-            send(_SENSOR(tick=sent, adc=int(adc), enc=int(enc)))
-            sent += 1
-        while True:
-            m = recv(sess.timeout)
-            if m is None:
-                sess._check_board()
-                raise HilError(f"no answer for tick {k} within {sess.timeout:g} s")
-            if type(m) is _ACTUATOR:
-                break
-            acc.add(m, link.last_seq)
-            if type(m) is _TELEM_CTRL:
-                telemetry += 1
-                step_us.append(m.step_us)
-            elif m.NAME == "nack":
-                raise HilError(f"the firmware refused a loop frame at tick {k}: {m}")
-        if m.tick != k:
-            raise HilError(f"tick {k}: the firmware answered tick {m.tick} (a tick lost or repeated)")
-        states[k - c_start] = m.state
-        faults_seen |= m.faults
-        sim.step(m.duty)
-        if k + 1 - c_start == per_chunk or k + 1 == n:
-            log = sim.result()
-            cnt = k + 1 - c_start
-            st = np.asarray(step_us[c_tel:], dtype=float)
-            err = log["x"] - log["x_ref"]
-            now = time.perf_counter()
-            res.chunks.append({
-                "t0": c_start * Ts, "t1": (k + 1) * Ts,
-                "rms_phi": float(np.sqrt(np.mean(log["phi"] ** 2))), "peak_phi": float(np.max(np.abs(log["phi"]))),
-                "rms_err": float(np.sqrt(np.mean(err ** 2))), "peak_duty": float(np.max(np.abs(log["duty"]))),
-                "step_us_mean": float(st.mean()) if st.size else math.nan,
-                "step_us_median": float(np.median(st)) if st.size else math.nan,
-                "step_us_max": float(st.max()) if st.size else math.nan,
-                "telemetry": float(telemetry - c_tel), "ticks_per_s": cnt / max(now - c_wall, 1e-9),
-                "not_balancing": float(np.count_nonzero(states[:cnt] != _BALANCING)),
-            })
-            # keep memory flat over an hour: the plant's log restarts with each chunk
-            for v in sim._log.values():
-                v.clear()
-            c_start, c_wall, c_tel = k + 1, now, telemetry
-            if progress is not None:
-                progress((k + 1) * Ts, n * Ts)
+    chunks = _Chunks(sim, sink, int(round(chunk_s * sim.params.rate)), res, progress)
+    # THE lockstep loop, strict and pipelined, without per-tick records (an hour is 1.8 M
+    # ticks): the chunks keep what they need
+    loop = Lockstep(sess, sim, sink=sink, depth=sim.sensor_model.delay_steps, after_tick=chunks.tick,
+                    record=False).run()
     # let the last periodic frames arrive, then read the clock again
-    end = time.monotonic() + 0.1
-    while (left := end - time.monotonic()) > 0 and (m := recv(left)) is not None:
-        acc.add(m, link.last_seq)
-        if type(m) is _TELEM_CTRL:
-            telemetry += 1
+    loop.drain(0.1)
     hb1 = link.query("heartbeat", timeout=sess.timeout / 4, retries=3)
+    n = loop.n
     res.stats.update({
-        "ticks": n, "link": sess.link_kind, "telem_div": telem_div, "telemetry": telemetry,
-        "faults_seen": faults_seen, "uptime0_ms": hb0.uptime_ms, "uptime1_ms": hb1.uptime_ms,
+        "ticks": n, "link": sess.link_kind, "telem_div": telem_div, "telemetry": sink.telemetry,
+        "faults_seen": chunks.faults_seen, "uptime0_ms": hb0.uptime_ms, "uptime1_ms": hb1.uptime_ms,
         "state_end": hb1.state, "period_ms": 1000.0 / sim.params.rate,
     })
     if sess.link_kind == "serial":
-        res.stats.update(acc.stats())
+        res.stats.update(sink.acct.stats())
     res.stats["host_drops"] = dict(link.drops)
+    res.stats["nacks"] = list(sink.nacks)
     sess.finish()
+
+
+class _Chunks:
+    # the loop's after_tick hook: per-tick states and faults, a row of metrics per chunk
+    def __init__(self, sim: PlantSim, sink: Sink, per_chunk: int, res: SoakResult,
+                 progress: Callable[[float, float], None] | None) -> None:
+        self.sim, self.sink, self.per_chunk, self.res, self.progress = sim, sink, per_chunk, res, progress
+        self.states = np.zeros(per_chunk, dtype=np.int64)
+        self.faults_seen = 0
+        self.start = 0
+        self.wall = time.perf_counter()
+        self.tel = 0
+        self.step0 = 0
+
+    def tick(self, k: int, m: Any) -> None:
+        self.states[k - self.start] = m.state
+        self.faults_seen |= m.faults
+        n = self.sim.n_ticks
+        if k + 1 - self.start != self.per_chunk and k + 1 != n:
+            return
+        sim, sink, Ts = self.sim, self.sink, self.sim.Ts
+        log = sim.result()
+        cnt = k + 1 - self.start
+        st = np.asarray(sink.step_us[self.step0:], dtype=float)
+        err = log["x"] - log["x_ref"]
+        now = time.perf_counter()
+        self.res.chunks.append({
+            "t0": self.start * Ts, "t1": (k + 1) * Ts,
+            "rms_phi": float(np.sqrt(np.mean(log["phi"] ** 2))), "peak_phi": float(np.max(np.abs(log["phi"]))),
+            "rms_err": float(np.sqrt(np.mean(err ** 2))), "peak_duty": float(np.max(np.abs(log["duty"]))),
+            "step_us_mean": float(st.mean()) if st.size else math.nan,
+            "step_us_median": float(np.median(st)) if st.size else math.nan,
+            "step_us_max": float(st.max()) if st.size else math.nan,
+            "telemetry": float(sink.telemetry - self.tel), "ticks_per_s": cnt / max(now - self.wall, 1e-9),
+            "not_balancing": float(np.count_nonzero(self.states[:cnt] != _BALANCING)),
+        })
+        # keep memory flat over an hour: the plant's log and the step times restart with each chunk
+        for v in sim._log.values():
+            v.clear()
+        sink.step_us.clear()
+        self.start, self.wall, self.tel, self.step0 = k + 1, now, sink.telemetry, 0
+        if self.progress is not None:
+            self.progress((k + 1) * Ts, n * Ts)
 
 
 def _check(res: SoakResult, probe: dict[str, int], tol: float) -> None:
@@ -280,6 +265,8 @@ def _check(res: SoakResult, probe: dict[str, int], tol: float) -> None:
     if s.get("seq_lost") or s.get("duplicates") or s.get("half_pairs"):
         f.append(f"telemetry sequence: {s['seq_lost']} lost, {s['duplicates']} duplicated, "
                  f"{s['half_pairs']} half pairs")
+    if s.get("nacks"):
+        f.append(f"the firmware refused {len(s['nacks'])} frame(s) on a clean link: {s['nacks'][0]}")
     if sum(s.get("host_drops", {}).values()):
         f.append(f"host decoder dropped frames on a clean link: {s['host_drops']}")
     # metrics stable: every full chunk like the first

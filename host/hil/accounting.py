@@ -1,0 +1,209 @@
+"""What the board says besides its loop answers: telemetry, heartbeats, acks, counted and checked.
+
+:class:`SeqAccount` accounts for the board's periodic frames by their serial sequence number;
+:class:`Sink` takes every message of a run that is not a ``hil_actuator`` answer (telemetry,
+heartbeats, acks, refusals), counts it and keeps the figures a run reports
+(:meth:`Sink.stats`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from firmware import msgtable as T
+from host.hil.errors import HilError
+from host.link import messages as M
+
+__all__ = ["SeqAccount", "Sink"]
+
+_TELEM_STATE = M.BY_NAME["telem_state"]
+_TELEM_CTRL = M.BY_NAME["telem_ctrl"]
+_HEARTBEAT = M.BY_NAME["heartbeat"]
+_NACK = M.BY_NAME["nack"]
+_ACK = M.BY_NAME["ack"]
+_PARAM_VALUE = M.BY_NAME["param_value"]
+
+
+class SeqAccount:
+    """Accounts for the board's periodic frames by their serial sequence number.
+
+    Telemetry (``telem_state`` + ``telem_ctrl``, one seq for the pair) and heartbeats share
+    one counter on the board, incremented once per periodic event, so the seqs seen must be
+    contiguous; a gap is a lost frame, a repeat a duplicate, a step back a reordered frame.
+
+    Attributes
+    ----------
+    events : int
+        Distinct periodic events seen.
+    telemetry, heartbeats : int
+        Distinct telemetry / heartbeat events seen.
+    duplicates, reordered : int
+        Frames seen again / seen after a later one.
+    """
+
+    def __init__(self) -> None:
+        self._last: int | None = None
+        self._first: int | None = None
+        self._seen: dict[int, str] = {}
+        self._pair: dict[int, int] = {}
+        self.duplicates = 0
+        self.reordered = 0
+
+    def add(self, msg: Any, seq: int | None) -> None:
+        """Feed one received message with its serial seq (others and seq None are ignored)."""
+        t = type(msg)
+        if seq is None or t not in (_TELEM_STATE, _TELEM_CTRL, _HEARTBEAT):
+            return
+        if self._last is None:
+            u = seq
+            self._first = u
+            self._last = u
+        else:
+            d = (seq - self._last) & 0xFF
+            u = self._last + d if d < 128 else self._last - (256 - d)
+            if u > self._last:
+                self._last = u
+            elif u < self._last:
+                self.reordered += 1
+        kind = "hb" if t is _HEARTBEAT else "tel"
+        bit = 1 if t is _TELEM_STATE else 2 if t is _TELEM_CTRL else 4
+        have = self._pair.get(u, 0)
+        if have & bit:
+            self.duplicates += 1
+            return
+        self._pair[u] = have | bit
+        self._seen[u] = kind
+
+    @property
+    def events(self) -> int:
+        return len(self._seen)
+
+    @property
+    def telemetry(self) -> int:
+        return sum(1 for v in self._seen.values() if v == "tel")
+
+    @property
+    def heartbeats(self) -> int:
+        return sum(1 for v in self._seen.values() if v == "hb")
+
+    @property
+    def span(self) -> int:
+        """Events the seqs say were sent (first to last seen)."""
+        return 0 if self._first is None else self._last - self._first + 1  # type: ignore[operator]
+
+    @property
+    def lost(self) -> int:
+        """Periodic events missing between the first and the last seen."""
+        return self.span - self.events
+
+    @property
+    def half_pairs(self) -> int:
+        """Telemetry events of which only one of the two frames arrived."""
+        return sum(1 for u, v in self._seen.items() if v == "tel" and self._pair[u] != 3)
+
+    def stats(self) -> dict[str, int]:
+        """All counters as a dict."""
+        return {"seq_events": self.events, "seq_span": self.span, "seq_lost": self.lost,
+                "telemetry": self.telemetry, "heartbeats": self.heartbeats, "duplicates": self.duplicates,
+                "reordered": self.reordered, "half_pairs": self.half_pairs}
+
+
+class Sink:
+    """Everything but actuator answers: telemetry (sequence-checked), heartbeats, acks.
+
+    Parameters
+    ----------
+    link : Link, optional
+        The link the messages come from; its ``last_seq`` (serial) is read for each message
+        handed over, right after that message's ``recv``.
+    strict : bool
+        Raise :class:`~host.hil.errors.HilError` when the firmware refuses a loop frame
+        (``hil_sensor``, ``set_reference``); ``False`` only records it (a lossy link).
+
+    Attributes
+    ----------
+    acct : SeqAccount
+        The periodic frames by sequence number.
+    telemetry, heartbeats, acks : int
+        Frames counted.
+    step_us : list of int
+        The firmware's step time of every ``telem_ctrl``.
+    nacks : list of str
+        Every refusal, with its tick.
+    replies : list of (int, message)
+        Every ACK, NACK and PARAM_VALUE with the tick it arrived at.
+    last_state, last_faults : int
+        From the last heartbeat.
+    """
+
+    def __init__(self, link: Any = None, *, strict: bool = True) -> None:
+        self._link = link
+        self.strict = bool(strict)
+        self.acct = SeqAccount()
+        self.telemetry = 0
+        self.step_us: list[int] = []
+        self.heartbeats = 0
+        self.acks = 0
+        self.nacks: list[str] = []
+        self.replies: list[tuple[int, Any]] = []
+        self.last_state: int | None = None
+        self.last_faults = 0
+        self.other_msgs = 0
+
+    def other(self, m: Any, tick: int = -1) -> None:
+        """Take one message that is not a ``hil_actuator`` answer, received at ``tick``."""
+        t = type(m)
+        seq = getattr(self._link, "last_seq", None) if self._link is not None else None
+        self.acct.add(m, seq)
+        if t is _TELEM_CTRL:
+            self.telemetry += 1
+            self.step_us.append(m.step_us)
+        elif t is _TELEM_STATE:
+            pass
+        elif t is _HEARTBEAT:
+            self.heartbeats += 1
+            self.last_state = m.state
+            self.last_faults = m.faults
+        elif t is _ACK:
+            self.acks += 1
+            self.replies.append((tick, m))
+        elif t is _NACK:
+            self.nacks.append(f"tick {tick}: {m}")
+            self.replies.append((tick, m))
+            if self.strict and m.msg_id in (T.HIL_SENSOR, T.SET_REFERENCE):
+                raise HilError(f"the firmware refused a loop frame at tick {tick}: {m}")
+        elif t is _PARAM_VALUE:
+            self.replies.append((tick, m))
+            self.other_msgs += 1
+        else:
+            self.other_msgs += 1
+
+    def drain(self, link: Any, tick: int, seconds: float = 0.05) -> None:
+        """Hand what is waiting on ``link`` to :meth:`other`; bounded in time, as a board in
+        real time (or one sending heartbeats) never stops talking."""
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            m = link.recv(0.0)
+            if m is None:
+                return
+            self.other(m, tick)
+
+    def stats(self) -> dict[str, Any]:
+        """The figures of a run: telemetry (and what is lost of it), heartbeats, acks, step time."""
+        s = np.asarray(self.step_us, dtype=float)
+        return {
+            "telemetry": self.telemetry,
+            # periodic frames (telemetry and heartbeats share the board's counter) missing
+            # by serial sequence number, half telemetry pairs included; None on CAN, whose
+            # frames carry no sequence number
+            "telemetry_lost": (self.acct.lost + self.acct.half_pairs) if self.acct.events else None,
+            "heartbeats": self.heartbeats,
+            "acks": self.acks,
+            "nacks": list(self.nacks),
+            "fw_step_us_mean": float(s.mean()) if s.size else math.nan,
+            "fw_step_us_max": float(s.max()) if s.size else math.nan,
+        }
