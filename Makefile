@@ -11,7 +11,7 @@ OUT    ?= out
 PORT   ?= /dev/ttyACM0
 ARCH   ?= armv6m
 
-.PHONY: all setup test demo bench fuzz soak firmware flash generate clean help rp2040
+.PHONY: all setup test demo bench fuzz soak firmware flash generate clean help rp2040 mutate
 
 all: test
 
@@ -21,6 +21,7 @@ help:
 	@echo "make bench     speed figures, side by side in one run"
 	@echo "make fuzz      the long fuzz run of the firmware frame decoder and command handler (>= 1M inputs)"
 	@echo "make soak      one hour of simulated lockstep HIL: heap, timing drift, telemetry accounted for"
+	@echo "make mutate    mutation check: small faults in a copy of the firmware, each must fail a test (not in make test)"
 	@echo "make generate  regenerate the generated sources (gain tables, DBC, protocol docs)"
 	@echo "make firmware  compile the firmware bundle with mpy-cross (ARCH=$(ARCH))"
 	@echo "make flash     copy the bundle to a board (PORT=$(PORT)) with mpremote"
@@ -79,6 +80,10 @@ fuzz: setup
 
 soak: setup
 	$(BIN)/upright soak --sim-seconds 3600
+
+# deliberate faults in a temporary copy of the tree (never the working tree); exit 1 if one survives
+mutate: $(STAMP) $(NODE_STAMP)
+	$(PY) -m host.bench.mutate --json $(OUT)/mutate.json
 
 firmware: $(STAMP)
 	$(PY) -m host.boards.bundle --arch $(ARCH) --out $(OUT)/firmware

@@ -7,6 +7,8 @@ from array import array
 from hypothesis import strategies as st
 
 from firmware import codec, framing
+from firmware import msgtable as T
+from firmware.supervisor import ARMED, DISARMED, FAULT
 from host.link import messages as M
 
 
@@ -82,10 +84,8 @@ class RecordingTarget:
     """The firmware target interface as a recording test double (not the real app)."""
 
     def __init__(self) -> None:
-        from firmware import msgtable as T
-
         self.calls: list[tuple] = []
-        self.state = 0
+        self.state = DISARMED
         self.faults = 0
         self.ref = 0
         self.params = [p[5] for p in T.PARAMS]
@@ -99,25 +99,25 @@ class RecordingTarget:
 
     def cmd_arm(self) -> int:
         self.calls.append(("arm",))
-        self.state = 1
-        return 0
+        self.state = ARMED
+        return T.OK
 
     def cmd_disarm(self) -> int:
         self.calls.append(("disarm",))
-        self.state = 0
-        return 0
+        self.state = DISARMED
+        return T.OK
 
     def cmd_clear_faults(self) -> int:
         self.calls.append(("clear_faults",))
         self.faults = 0
-        if self.state == 3:
-            self.state = 0
-        return 0
+        if self.state == FAULT:
+            self.state = DISARMED
+        return T.OK
 
     def cmd_set_reference(self, x_um: int) -> int:
         self.calls.append(("set_reference", x_um))
         self.ref = x_um
-        return 0
+        return T.OK
 
     def param_get(self, index: int) -> int:
         return self.params[index]
@@ -125,14 +125,14 @@ class RecordingTarget:
     def param_set(self, index: int, value: int) -> int:
         self.calls.append(("param_set", index, value))
         self.params[index] = value
-        return 0
+        return T.OK
 
     def gains_apply(self, buf, nbytes: int) -> int:
         self.calls.append(("gains_apply", nbytes))
         if self.gains_reason:
             return self.gains_reason
         self.gains = bytes(buf[:nbytes])
-        return 0
+        return T.OK
 
     def fill_heartbeat(self, arr) -> None:
         arr[0], arr[1], arr[2], arr[3] = self.state, self.faults, 7, 1234

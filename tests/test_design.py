@@ -22,13 +22,39 @@ def ours(params):  # noqa: ANN001, ANN201
     return seed_numbers(params)
 
 
-@pytest.mark.parametrize("key", [k for k in REPORT if k != "critical_gain"])
-def test_report_number_within_one_percent(ours, key: str) -> None:  # noqa: ANN001
-    assert deviation(ours[key], REPORT[key][1]) < 0.01, (key, ours[key], REPORT[key][1])
+# Each of the report's numbers, recomputed, must agree to the digits the report prints: within
+# half a unit of its last printed digit (absolute, per entry).  Measured when set: every entry
+# inside its bound (largest: k_place[2] 199.82415 vs 199.8242, 4.9e-5 of 5e-5; eigenvalue
+# -0.13964 vs -0.1396; zeta 0.62658 vs 0.627).  docs/parameters.md quotes the deviations.
+HALF_DIGIT = {
+    "eigenvalues": 5e-5,  # 4 decimals
+    "tf_phi_num": [5e-5, 1e-12],  # 3.3745 s + 0 (exact zero)
+    "tf_phi_den": [1e-12, 5e-5, 5e-3, 5e-4],  # s^3 + 0.1644 s^2 - 23.68 s - 3.307
+    "det_wr": 0.5,  # 1.2453e4
+    "rank_wo": 0,
+    "zeta": 5e-4,  # 0.627
+    # 7.59 where the exact value is 7.5999: the report cut the digits off instead of rounding,
+    # so one unit of the last digit (measured 0.0099)
+    "omega": 1e-2,
+    "k_place": 5e-5,  # 4 decimals
+    "k_lqr": 5e-5,  # 4 decimals
+    "observer_poles": 1e-9,  # placed exactly at -47.74 ... -50.74 (measured 2e-13)
+    # read off a Nyquist plot as "about 3.7": one unit of that digit (exact boundary 3.6150,
+    # 0.085 off, 2.3 %); the reading, not the computation, sets this bound
+    "critical_gain": 0.1,
+}
 
 
-def test_critical_gain_within_five_percent(ours) -> None:  # noqa: ANN001
-    assert deviation(ours["critical_gain"], REPORT["critical_gain"][1]) < 0.05
+@pytest.mark.parametrize("key", list(REPORT))
+def test_report_number_within_its_printed_digits(ours, key: str) -> None:  # noqa: ANN001
+    assert set(HALF_DIGIT) == set(REPORT)
+    got, want = np.atleast_1d(np.asarray(ours[key], float)), np.atleast_1d(np.asarray(REPORT[key][1], float))
+    assert got.shape == want.shape, (key, got, want)
+    tol = np.broadcast_to(np.asarray(HALF_DIGIT[key], float), want.shape)
+    assert np.all(np.abs(got - want) <= tol * (1 + 1e-9)), (key, got, want, np.abs(got - want))
+    # the relative figure docs/parameters.md prints stays what the table says (< 1 %, the
+    # critical gain < 3 %)
+    assert deviation(ours[key], REPORT[key][1]) < (0.03 if key == "critical_gain" else 0.01)
 
 
 def test_deviation_detects_a_wrong_number() -> None:

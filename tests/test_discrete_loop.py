@@ -1,4 +1,9 @@
-"""The discrete controller (host/design/discrete.py) against the nonlinear plant with delay and saturation."""
+"""The discrete controller (host/design/discrete.py) against the nonlinear plant with delay and saturation.
+
+Bounds: the angle is judged in ADC counts of the potentiometer (PHI_COUNT, 1.15 mrad; the
+loops here run on quantised sensors), the cart in encoder counts (X_COUNT, 0.157 mm); each
+assertion says what was measured when it was set.
+"""
 
 from __future__ import annotations
 
@@ -15,6 +20,11 @@ from sim.plant import linear_model
 @pytest.fixture(scope="module")
 def params():
     return load_params()
+
+
+_P = load_params()
+PHI_COUNT = _P.pot_range / 2**_P.adc_bits  # one ADC count of the angle, rad
+X_COUNT = 2 * np.pi * _P.r_wheel / _P.enc_cpr  # one encoder count of the cart, m
 
 
 @pytest.fixture(scope="module")
@@ -38,14 +48,19 @@ def test_dlqr_poles_match_the_continuous_design(params, ctrl, which) -> None:
     if which == "report":
         c = controller_ss(params, Q=Q_REPORT, R=R_REPORT)
         Kc, _, _ = ct.lqr(A, B, np.diag(Q_REPORT), R_REPORT)
-        np.testing.assert_allclose(Kc, [[-73.4847, -43.6178, 133.2959, 28.7986]], rtol=1e-4)  # the report's K
+        # the report's K, printed to 4 decimals: within half the last digit (measured 3.4e-5
+        # at most; docs/parameters.md "< 0.001 %")
+        np.testing.assert_allclose(Kc, [[-73.4847, -43.6178, 133.2959, 28.7986]], rtol=0, atol=5e-5)
     else:
         c = ctrl
         Kc, _, _ = ct.lqr(A, B, np.diag(Q_DEFAULT), R_DEFAULT)
     sc = np.sort_complex(np.linalg.eigvals(A - B @ Kc))
     zd = np.linalg.eigvals(c.Ad - c.Bd @ c.K)
     sd = np.sort_complex(np.log(zd.astype(complex)) / c.Ts)
-    np.testing.assert_allclose(sd, sc, rtol=1e-3)
+    # dlqr with Qd = Q Ts, Rd = R Ts matches the continuous poles to first order in Ts only:
+    # measured 2.2e-6 (shipped design, poles to -7.4/s) and 1.3e-5 (the report's, poles
+    # -9.1 +- 8.4j/s, further out so the Ts terms weigh more).  host/design/discrete.py says 2e-5
+    np.testing.assert_allclose(sd, sc, rtol={"report": 2e-5, "default": 5e-6}[which])
     assert c.kr == pytest.approx(c.K[0, 0], rel=1e-9)  # x is an integrator: kr = K_x
 
 
@@ -79,15 +94,17 @@ def test_balances_from_tilt(params, ctrl) -> None:
     r = simulate_loop(params, ctrl, [0, 0, 0.1, 0], 5.0, quantise=True)
     assert np.max(np.abs(r["phi"])) < 0.3
     late = r["t"] > 2.5
-    assert np.max(np.abs(r["phi"][late])) < 0.01
-    assert np.max(np.abs(r["x"][late])) < 0.05
+    # settled after the report's 2.5 s: measured 1.13 mrad (one ADC count) and 0.85 mm
+    assert np.max(np.abs(r["phi"][late])) <= 2 * PHI_COUNT
+    assert np.max(np.abs(r["x"][late])) <= 2e-3
     assert np.max(np.abs(r["u"])) <= ctrl.u_max
     # the shipped design holds the report's 5 m/s^2 ...
     assert np.max(np.abs(r["xddot"])) <= 5.0
     # ... where the report's weights need far more from 0.1 rad (about 22 m/s^2 here)
     rep = controller_ss(params, Q=Q_REPORT, R=R_REPORT, u_max=force_limit(params))
     r = simulate_loop(params, rep, [0, 0, 0.1, 0], 5.0, quantise=True)
-    assert np.max(np.abs(r["xddot"])) > 15.0 and np.max(np.abs(r["phi"][r["t"] > 2.5])) < 0.01
+    # measured 21.6 m/s^2; the late tilt 0.99 mrad
+    assert np.max(np.abs(r["xddot"])) > 15.0 and np.max(np.abs(r["phi"][r["t"] > 2.5])) <= 2 * PHI_COUNT
 
 
 def test_acceleration_constraint_is_feasible_with_softer_weights(params) -> None:
@@ -95,12 +112,13 @@ def test_acceleration_constraint_is_feasible_with_softer_weights(params) -> None
     r = simulate_loop(params, soft, [0, 0, 0.1, 0], 6.0, quantise=True)
     assert np.max(np.abs(r["phi"])) < 0.3
     assert np.max(np.abs(r["xddot"])) <= 5.0
-    assert abs(r["phi"][-1]) < 0.01
+    assert abs(r["phi"][-1]) <= PHI_COUNT  # measured 0.17 mrad at 6 s
 
 
 def test_reference_step_is_tracked(params, ctrl) -> None:
     r = simulate_loop(params, ctrl, [0, 0, 0, 0], 5.0, x_ref=0.2, quantise=True)
-    assert abs(r["x"][-1] - 0.2) < 0.005
+    # measured 0.32 mm short at 5 s (2 encoder counts; the response is still creeping in)
+    assert abs(r["x"][-1] - 0.2) <= 1e-3
     off = np.where(np.abs(r["x"] - 0.2) > 0.01)[0]
     assert r["t"][off[-1]] < 2.5  # the report's settling constraint
     assert np.max(np.abs(r["phi"])) < 0.3
@@ -110,14 +128,14 @@ def test_saturation_is_fed_back(params) -> None:
     small = controller_ss(params, u_max=2.0)
     r = simulate_loop(params, small, [0, 0, 0.1, 0], 5.0)
     assert np.max(np.abs(r["u"])) == pytest.approx(2.0)
-    assert abs(r["phi"][-1]) < 0.01
+    assert abs(r["phi"][-1]) < 1e-4  # unquantised: measured 1.4e-6 rad at 5 s
 
 
 def test_no_delay(params) -> None:
     c = controller_ss(params, delay=0.0)
     assert c.delay_steps == 0 and c.n == 4
     r = simulate_loop(params, c, [0, 0, 0.1, 0], 4.0)
-    assert abs(r["phi"][-1]) < 0.01
+    assert abs(r["phi"][-1]) < 1e-4  # unquantised: measured 7.6e-7 rad at 4 s
 
 
 @pytest.mark.parametrize(
@@ -151,7 +169,10 @@ def test_separation_with_the_delay_as_states(params, design) -> None:
     # numerically spread by the repeated root)
     want = np.concatenate([np.linalg.eigvals(c.Ad - c.Bd @ c.K), np.linalg.eigvals(c.Ad @ (np.eye(4) - c.M @ c.C))])
     big = ev[np.argsort(-np.abs(ev))[:8]]
-    np.testing.assert_allclose(np.sort_complex(big), np.sort_complex(want), atol=1e-6)
+    # measured 8e-13 (lqr) and 1.7e-10 (place): eigenvalue round-off of a 14x14 matrix
+    np.testing.assert_allclose(np.sort_complex(big), np.sort_complex(want), atol=1e-8)
+    # the 5-fold root at 0 spreads like (round-off)**(1/5): measured 0.022 / 0.027.  Kept at
+    # 0.05 for that reason; a real pole there would be a slow mode near 1, not ~0.05
     assert np.all(np.abs(ev[np.argsort(-np.abs(ev))[8:]]) < 0.05)
 
 
@@ -159,9 +180,10 @@ def test_place_design_balances(params) -> None:
     c = controller_ss(params, design="place", u_max=force_limit(params))  # the report's drive, unclamped
     # the report's poles [-4.774 +- 5.9172j, -10.1, -10.2] mapped by exp(s Ts)
     s = np.sort_complex(np.log(np.linalg.eigvals(c.Ad - c.Bd @ c.K).astype(complex)) / c.Ts)
-    np.testing.assert_allclose(s, np.sort_complex([-4.774 + 5.9172j, -4.774 - 5.9172j, -10.1, -10.2]), rtol=1e-6)
+    np.testing.assert_allclose(s, np.sort_complex([-4.774 + 5.9172j, -4.774 - 5.9172j, -10.1, -10.2]), rtol=1e-9)  # measured 1e-11
     r = simulate_loop(params, c, [0, 0, 0.1, 0], 4.0, quantise=True)
-    assert np.max(np.abs(r["phi"])) < 0.3 and abs(r["phi"][-1]) < 0.01
+    # measured peak 0.297 rad (the report's constraint is 0.3), final 0.04 mrad
+    assert np.max(np.abs(r["phi"])) < 0.3 and abs(r["phi"][-1]) <= PHI_COUNT
 
 
 def test_start_from_measurement(params, ctrl) -> None:

@@ -6,6 +6,8 @@ import struct
 
 import pytest
 
+from firmware.msgtable import OK, R_ARMED, R_BAD_LENGTH, R_BAD_SHAPE, R_UNSTABLE
+from firmware.supervisor import BALANCING
 from host.boards import fwharness as H
 from host.design.discrete import controller_ss
 from host.design.export import export
@@ -107,9 +109,6 @@ def obs() -> dict[str, int]:
     return {k: int(v) for k, v in (line.split() for line in out.splitlines() if line.strip())}
 
 
-OK, R_ARMED, R_BAD_LENGTH, R_BAD_SHAPE, R_UNSTABLE = 0, 6, 8, 12, 13
-
-
 def test_good_tables_are_applied(obs) -> None:
     assert obs["apply_default"] == OK and obs["apply_soft"] == OK and obs["apply_ki"] == OK
     assert obs["ki_after_default"] == 0 and obs["ki_after_ki"] != 0
@@ -127,7 +126,7 @@ def test_bad_tables_are_refused_and_change_nothing(obs, name, reason) -> None:
 
 
 def test_upload_refused_while_balancing(obs) -> None:
-    assert obs["state"] == 2 and obs["apply_balancing"] == R_ARMED
+    assert obs["state"] == BALANCING and obs["apply_balancing"] == R_ARMED
 
 
 def test_timing_statistics(obs) -> None:

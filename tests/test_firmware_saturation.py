@@ -31,6 +31,7 @@ def _gains_src(name, fd) -> str:
 SCRIPT = H.INTS_SRC + H.FAKE_HAL + _gains_src("G0", FD) + _gains_src("G1", FD_KI) + """
 from firmware.app import App
 from firmware import msgtable as T
+from firmware.supervisor import BALANCING
 OUT = []
 def chk(name, v):
     OUT.append(name + ' ' + str(int(v)))
@@ -49,7 +50,7 @@ for gi, g in enumerate((G0, G1)):
         hi = 0
         nbal = 0
         for k in range(3000):
-            if app.sup.state != 2:
+            if app.sup.state != BALANCING:
                 app.cmd_disarm()
                 app.cmd_clear_faults()
                 hal.adc = 2048
@@ -58,7 +59,7 @@ for gi, g in enumerate((G0, G1)):
             hal.adc = 2048 - 1200 + rnd(2401)
             hal.enc = (hal.enc + rnd(81) - 40) & 0xFFFF
             d = app.step()
-            if app.sup.state == 2:
+            if app.sup.state == BALANCING:
                 nbal += 1
             if d < lo:
                 lo = d

@@ -12,6 +12,15 @@ import math
 
 import pytest
 
+from firmware.msgtable import OK, R_BAD_STATE, R_FAULTED, R_OUT_OF_RANGE
+from firmware.supervisor import ARMED as ARM
+from firmware.supervisor import BALANCING as BAL
+from firmware.supervisor import DISARMED as DIS
+from firmware.supervisor import F_ADC_RAIL as F_RAIL
+from firmware.supervisor import F_ENC_JUMP as F_JUMP
+from firmware.supervisor import F_STALL, F_TILT, F_TRACK
+from firmware.supervisor import F_WATCHDOG as F_WD
+from firmware.supervisor import FAULT as FLT
 from host.boards import fwharness as H
 from host.design.export import export
 from host.boards.mpyrun import run_unix
@@ -236,11 +245,6 @@ def obs() -> dict[str, int]:
     return {k: int(v) for k, v in (line.split() for line in out.splitlines() if line.strip())}
 
 
-DIS, ARM, BAL, FLT = 0, 1, 2, 3
-F_TILT, F_WD, F_RAIL, F_JUMP, F_TRACK = 1, 2, 4, 8, 16
-OK, R_FAULTED, R_BAD_STATE, R_OUT_OF_RANGE = 0, 5, 7, 2
-
-
 def test_arming_waits_for_upright(obs) -> None:
     assert obs["initial_state"] == DIS and obs["arm_reply"] == OK
     assert obs["armed_outside_window_state"] == ARM
@@ -301,7 +305,7 @@ def test_no_motion_check_on_by_default(obs) -> None:
     assert obs["stall0_balancing"] == obs["stall100_balancing"] == BAL
     assert obs["stall0_state"] == BAL and obs["stall0_faults"] == 0  # stall_ms=0: off
     assert obs["stall_ticks_default"] == 50 and obs["stall_duty_default"] == 800  # 100 ms at 500 Hz
-    assert obs["stall100_state"] == FLT and obs["stall100_faults"] == 64 and obs["stall100_duty"] == 0
+    assert obs["stall100_state"] == FLT and obs["stall100_faults"] == F_STALL and obs["stall100_duty"] == 0
     # the duty of tick k is judged at tick k+1: 50 ticks of large duty without a count are
     # allowed, the tick after the 51st trips
     # (counted while the encoder stands still, whether or not the large-duty ticks are

@@ -26,12 +26,22 @@ from sim.params import load_params
 from sim.scenario import REPORT_SCENARIOS, load_scenario, scenario_from_dict
 
 PARAMS = load_params()
-TOL_PHI = 0.01  # rad, HIL vs float design (issue 5)
+# HIL vs float design, set from the angle sensor's LSB: two ADC counts of the potentiometer
+# (2 x 1.15 mrad).  Both loops read the same quantised sensors; where the quantiser flips on a
+# different tick they drift apart by about a count.  Measured when set (serial, lockstep, the
+# shipped design): 0.0004-0.0016 rad over the balancing report scenarios, 0.0021 rad on the
+# 0.4 rad catches (clamped design up to the cut, report's gains at full drive).  docs/firmware.md
+# quotes this bound.  Was 0.01 rad (8.7 counts), which a gain off by a few % would pass.
+TOL_PHI = 2 * PARAMS.pot_range / 2**PARAMS.adc_bits
+# ... except while the pendulum falls (tilt_0p3, up to the supervisor's cut): the unstable pole
+# (4.85/s) amplifies a sub-count difference about 70-fold over the 0.87 s fall.  Measured
+# 0.0091 rad; loose for that reason, 0.012 rad.
+TOL_PHI_FALLING = 0.012
 
 # The report's white noise of power 1e-5 puts 7 cm (sigma) of noise on the cart position and
 # 0.07 rad on the angle at every 2 ms tick.  The firmware's speed-estimate clamps
 # (host/design/export.py V_LIMIT 16 m/s, W_LIMIT 120 rad/s) are wide enough that the estimates stay
-# linear, so the firmware follows the float design within TOL_PHI there too (measured: 0.0009
+# linear, so the firmware follows the float design within TOL_PHI there too (measured: 0.0005
 # rad).  Before, at 3.6 m/s / 30 rad/s, the clamps bit from tick 15 on and the pendulum fell.
 WHITE = "white_noise_1e-5_delay10ms"
 
@@ -82,7 +92,7 @@ def _check(run, ref) -> None:
         end = int(cut[0])
         assert np.all(run.log["duty"][end:] == 0) and np.all(run.log["fw_state"][end:] == 3)
     err = float(np.max(np.abs(run.log["phi"][:end] - ref["phi"][:end])))
-    assert err <= TOL_PHI, f"{run.name}: |phi_hil - phi_float| = {err:.4f} rad"
+    assert err <= (TOL_PHI if end == n else TOL_PHI_FALLING), f"{run.name}: |phi_hil - phi_float| = {err:.4f} rad"
     # the firmware balanced from the first tick (to the last), no fault
     assert np.all(run.log["fw_state"][:end] == 2) and np.all(run.log["fw_faults"][:end] == 0)
 

@@ -8,6 +8,7 @@ import pytest
 from firmware import codec, commands
 from firmware import msgtable as T
 from firmware.app import App
+from firmware.supervisor import F_ADC_RAIL
 from host.link import messages as M
 from host.design.export import export
 from proto_helpers import RecordingSender
@@ -65,7 +66,7 @@ def test_reference_beyond_track_refused():
 
 def test_arming_while_faulted_refused():
     app, tx, disp = _setup()
-    app.sup.faults |= 4
+    app.sup.faults |= F_ADC_RAIL
     before = _state(app)
     assert _send(disp, M.Arm()) == T.R_FAULTED and _state(app) == before
 

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from firmware import codec, commands
 from firmware import msgtable as T
+from firmware.supervisor import ARMED, BALANCING, DISARMED, F_GAINS, FAULT
 from host.link import messages as M
 from proto_helpers import RecordingSender, RecordingTarget
 
@@ -72,7 +73,7 @@ def test_accepted_commands_reach_the_target():
     assert _send(disp, M.ParamSet(index=T.P_REF_LIMIT, value=100000)) == T.OK
     # the reference limit in force is the parameter, not a constant
     assert _send(disp, M.SetReference(x_um=100001)) == T.R_OUT_OF_RANGE and tg.ref == -800000
-    assert _send(disp, M.Arm()) == T.OK and tg.state == 1
+    assert _send(disp, M.Arm()) == T.OK and tg.state == ARMED
     assert _send(disp, M.Request(msg_id=T.HEARTBEAT), 5) == T.OK
     assert tx.sent[-1] == (M.Heartbeat(state=1, faults=0, boot=7, uptime_ms=1234), 5)
     assert _send(disp, M.Request(msg_id=T.TELEM_CTRL)) == T.OK
@@ -120,11 +121,11 @@ def test_gain_table_upload():
     _send(disp, M.Disarm())
     assert _send(disp, M.GainsCommit()) == T.OK and tg.gains == bytes(range(12))
     # motor off because of a latched fault: a table may be applied (fixes a gains fault)
-    tg.state, tg.faults = 3, 32
+    tg.state, tg.faults = FAULT, F_GAINS
     assert _upload(disp, bytes(range(6)))[-1] == T.OK and tg.gains == bytes(range(6))
-    tg.state, tg.faults = 2, 0
+    tg.state, tg.faults = BALANCING, 0
     assert _upload(disp, bytes(6))[-1] == T.R_ARMED and tg.gains == bytes(range(6))
-    tg.state = 0
+    tg.state = DISARMED
     # declared length that a chunk cannot reach
     assert _upload(disp, bytes(6), nbytes=7)[-1] == T.R_INCOMPLETE
 

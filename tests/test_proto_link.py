@@ -16,6 +16,7 @@ import pytest
 import serial
 
 from firmware import msgtable as T
+from firmware.supervisor import F_ADC_RAIL
 from host.link import clients as L
 from host.link import messages as M
 from proto_helpers import CanBoard, PtyBridge, SerialBoard
@@ -118,11 +119,11 @@ def test_commands_against_firmware_dispatcher(board):
     with pytest.raises(L.CommandRefused) as ei:
         host.param_get(200, **kw)
     assert ei.value.reason == T.R_BAD_INDEX
-    tg.faults = 4
+    tg.faults = F_ADC_RAIL
     with pytest.raises(L.CommandRefused) as ei:
         host.arm(**kw)
     assert ei.value.reason_name == "faulted"
-    assert tg.snapshot() == (before[0], 4, *before[2:])
+    assert tg.snapshot() == (before[0], F_ADC_RAIL, *before[2:])
     host.clear_faults(**kw)
     hb = host.query("heartbeat", **kw)
     assert (hb.state, hb.faults, hb.boot, hb.uptime_ms) == (0, 0, 7, 1234)

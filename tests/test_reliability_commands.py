@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from firmware import msgtable as T
+from firmware.supervisor import BALANCING
 from host.link import messages as M
 from host.design.export import export
 from host.hil.faults import StreamFaults
@@ -177,7 +178,7 @@ def test_commands_out_of_range_or_wrong_state_refused_mid_run_change_nothing(boa
         (M.BY_NAME["gains_chunk"](offset=0, data=b"\x01" * 6), T.R_BAD_SEQUENCE),
         (M.BY_NAME["request"](msg_id=T.ARM), T.R_NOT_SUPPORTED),
         (M.BY_NAME["heartbeat"](state=0, faults=0, boot=0, uptime_ms=0), T.R_UNKNOWN),  # wrong direction
-        (M.BY_NAME["hil_actuator"](tick=0, duty=32767, state=2, faults=0), T.R_UNKNOWN),
+        (M.BY_NAME["hil_actuator"](tick=0, duty=32767, state=BALANCING, faults=0), T.R_UNKNOWN),
     ]
 
     def inject(k: int) -> None:
@@ -191,7 +192,7 @@ def test_commands_out_of_range_or_wrong_state_refused_mid_run_change_nothing(boa
     want = [(msg.ID, reason) for msg, reason in bad]
     assert sorted(nacks) == sorted(want), (nacks, want)
     assert not [m for _, m in run.stats["replies"] if m.NAME != "nack"]
-    assert np.all(run.log["fw_state"][300:] == 2)
+    assert np.all(run.log["fw_state"][300:] == BALANCING)
     # nothing changed: the same motor commands, tick for tick, and the same parameters
     assert np.array_equal(got, base)
     assert {i: L.param_get(i) for i in NAMES} == before

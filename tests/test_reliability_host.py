@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from firmware.supervisor import F_WATCHDOG
+from firmware.supervisor import ARMED, BALANCING, DISARMED, F_WATCHDOG, FAULT
 from host.hil.fdlink import serial_link_on_fd
 from host.hil.session import HilSession
 from host.link.clients import CommandRefused
@@ -26,12 +26,12 @@ from host.boards.vport import PTMX, PortError, VirtualBoard, open_serial, slave_
 from sim.params import load_params
 
 P = load_params()
-DISARMED, ARMED, BALANCING, FAULT = 0, 1, 2, 3
 
 # the host that will crash: arms the board, streams sensor frames at the loop rate, says
 # "balancing" once the board does, then starts a frame and is killed before finishing it
 CRASHING_HOST = r"""
 import sys, time
+from firmware.supervisor import BALANCING
 from host.link import messages as M
 from host.hil.fdlink import serial_link_on_fd
 link = serial_link_on_fd(int(sys.argv[1]))
@@ -42,7 +42,7 @@ while True:
     link.send(S(tick=k, adc=%d, enc=0))
     k += 1
     while (m := link.recv(0.0)) is not None:
-        if m.NAME == "heartbeat" and m.state == 2 and not said and k > 100:
+        if m.NAME == "heartbeat" and m.state == BALANCING and not said and k > 100:
             print("balancing", flush=True)
             said = True
     if said and k > 200:

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from firmware import msgtable as T
-from firmware.supervisor import F_ENC_JUMP, F_TILT, F_TRACK, F_WATCHDOG
+from firmware.supervisor import ARMED, BALANCING, DISARMED, F_ENC_JUMP, F_TILT, F_TRACK, F_WATCHDOG, FAULT
 from hil_probe import ProbeSession
 from host.hil.faults import BusFaults, StreamFaults, Tap
 from host.hil.lossy import run_lossy, stream_realtime
@@ -28,7 +28,6 @@ from sim.scenario import scenario_from_dict
 P = load_params()
 WD_MS = 200
 HB_MS = next(p[5] for p in T.PARAMS if p[0] == T.P_HEARTBEAT_MS)
-DISARMED, ARMED, BALANCING, FAULT = 0, 1, 2, 3
 HOLD = scenario_from_dict({"name": "hold", "duration": 2.0, "initial": {"phi": 0.05}})
 
 
