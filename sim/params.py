@@ -197,6 +197,11 @@ def params_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> RobotPa
             values[dotted] = spec.default
     if values["sensors.pot_offset"] >= 2 ** values["sensors.adc_bits"]:
         raise ParamError("sensors.pot_offset", "must be below the ADC full scale 2**adc_bits")
+    ticks = values["sensors.delay"] * values["loop.rate"]
+    if abs(ticks - round(ticks)) > 1e-6:
+        raise ParamError("sensors.delay", f"must be a whole number of control ticks of {1e3 / values['loop.rate']:g} ms "
+                                          f"(loop.rate {values['loop.rate']:g} Hz), got {values['sensors.delay']!r} s "
+                                          f"= {ticks:.4g} ticks")
     return RobotParams(values=values, source=source)
 
 

@@ -246,11 +246,44 @@ class Scenario:
     source: str = "<dict>"
 
     def apply(self, params: RobotParams) -> RobotParams:
-        """The robot parameters for this run: ``params`` with the overrides and the delay."""
+        """The robot parameters for this run: ``params`` with the overrides and the delay.
+
+        Raises
+        ------
+        ScenarioError
+            If the scenario does not fit this robot (see :meth:`check`).
+        """
         changes = dict(self.param_overrides)
         if self.delay is not None:
             changes["delay"] = self.delay
-        return params.replace(**changes) if changes else params
+        try:
+            p = params.replace(**changes) if changes else params
+        except ParamError as exc:
+            key = "sensors.delay" if exc.key == "sensors.delay" and self.delay is not None else f"params.{exc.key}"
+            raise ScenarioError(key, f"{exc} (in {self.source})") from None
+        self._check_fits(p)
+        return p
+
+    def check(self, params: RobotParams) -> None:
+        """Check that the scenario fits the robot ``params`` (before any work starts).
+
+        Raises
+        ------
+        ScenarioError
+            ``initial.x`` outside the track (``|x| < loop.track``), or ``sensors.delay`` (or
+            the robot's) not a whole number of control ticks at ``loop.rate``.
+        """
+        self.apply(params)
+
+    def _check_fits(self, p: RobotParams) -> None:
+        track = p.track
+        if not abs(self.x0[0]) < track:
+            raise ScenarioError("initial.x", f"{self.x0[0]:g} m lies outside the track (|x| < {track:g} m, "
+                                             f"loop.track) (in {self.source})")
+        for edge in (self.reference.amplitude, self.reference.low):
+            if self.reference.kind != "none" and not abs(edge) < track:
+                raise ScenarioError("reference.amplitude" if edge == self.reference.amplitude else "reference.low",
+                                    f"{edge:g} m lies outside the track (|x| < {track:g} m) (in {self.source})")
 
     def disturbance(self, t: np.ndarray | float) -> np.ndarray:
         """Finite disturbance force at time(s) ``t`` (N), Dirac impulses excluded."""

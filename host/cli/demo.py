@@ -17,6 +17,8 @@ import sys
 from pathlib import Path
 from typing import Any, Sequence
 
+from host.cli.args import nonempty
+
 __all__ = ["add_arguments", "run", "design_summary", "write_index"]
 
 
@@ -24,6 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``upright demo``."""
     parser.add_argument("--out", default="out", metavar="DIR", help="output root; files go to DIR/demo (default out)")
     parser.add_argument("--link", choices=("serial", "can"), default="serial", help="framing (default serial)")
+    parser.add_argument("--scenario", default="all", metavar="NAME", type=nonempty,
+                        help="scenario name(s) comma-separated, a TOML path, or 'all' (the report's; default)")
     parser.add_argument("--no-design", action="store_true", help="skip the design summary")
     parser.add_argument("--no-gif", action="store_true", help="skip the animated GIFs (faster)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
@@ -71,27 +75,42 @@ def write_index(runs: Sequence[Any], out: Path) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``upright demo``."""
-    from host.cli.hil import Progress, report
-    from host.hil.errors import HilError
-    from host.hil.runs import resolve_scenarios, run_scenarios
     from host.boards.vport import PortError
+    from host.cli.args import check_out_dir
+    from host.cli.hil import Progress, check_scenarios, report, write_summary
+    from host.cli.main import interrupted
+    from host.hil import runs as hil_runs
+    from host.hil.errors import HilError
 
-    out = Path(args.out) / "demo"
+    out = check_out_dir(Path(args.out) / "demo", "--out")
+    scenarios = hil_runs.resolve_scenarios(args.scenario)
+    check_scenarios(scenarios)
     if not args.no_design:
         summ = design_summary()
         if summ:
             print("Design (from `upright design`):\n" + summ + "\n")
-    scenarios = resolve_scenarios("all")
     if not args.quiet:
-        print(f"Running {len(scenarios)} scenarios of the design report with the firmware in the loop "
+        print(f"Running {len(scenarios)} scenario(s) of the design report with the firmware in the loop "
               f"(MicroPython unix port on a virtual serial port, {args.link} link, lockstep)...", file=sys.stderr)
+    done: list[Any] = []
     try:
-        runs = run_scenarios(scenarios, link=args.link, mode="lockstep", out=out, compare=True,
-                             gif=not args.no_gif, progress=Progress(enabled=not args.quiet))
-    except (PortError, HilError) as exc:
-        print(f"upright demo: {exc}", file=sys.stderr)
-        return 1
+        runs = hil_runs.run_scenarios(scenarios, link=args.link, mode="lockstep", out=out, compare=True,
+                                      gif=not args.no_gif, progress=Progress(enabled=not args.quiet),
+                                      on_result=done.append)
+    except (PortError, HilError, KeyboardInterrupt) as exc:
+        if not isinstance(exc, KeyboardInterrupt) and not interrupted():
+            print(f"upright demo: {exc}", file=sys.stderr)
+            return 1
+        sys.stderr.write("\n")
+        if done:
+            report(done, out=out)
+            write_index(done, out)
+        path = write_summary(done, out, planned=scenarios, interrupted=True)
+        print(f"interrupted: {len(done)} of {len(scenarios)} scenario(s) finished; partial summary: {path}",
+              file=sys.stderr)
+        raise KeyboardInterrupt from None
     status = report(runs, out=out)
+    write_summary(runs, out, planned=scenarios)
     index = write_index(runs, out)
     print(f"Open {index.resolve()} in a browser to see every run (plots and animations).")
     if status:

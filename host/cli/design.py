@@ -242,6 +242,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Print the design report and write the figures."""
+    from host.cli.args import check_out_dir
+
+    if not args.no_figures:
+        check_out_dir(args.out, "--out")
     params = load_params(args.params)
     text, _ = build_report(params, search=not args.no_search)
     print(f"Design report for {params.source}\n")

@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from host.cli import args as A
 from host.design.discrete import controller_ss
 from host.design.export import V_LIMIT, W_LIMIT, export, render
 from sim.params import load_params
@@ -16,27 +17,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--params", default=None, help="robot parameter TOML (default: the report's robot)")
     parser.add_argument("--out", default=None, help="write the gains module here (default: print to stdout)")
     parser.add_argument("--blob", default=None, help="also write the upload bytes (int32 LE) to this file")
-    parser.add_argument("--ki", type=float, default=0.0, help="integral gain on cart position, N/(m*s)")
-    parser.add_argument("--deadband", type=int, default=0, help="motor deadband compensation, duty counts")
-    parser.add_argument("--v-limit", type=float, default=None,
+    parser.add_argument("--ki", type=A.nonneg, default=0.0, help="integral gain on cart position, N/(m*s)")
+    parser.add_argument("--deadband", type=A.int_range(0, 32767), default=0, help="motor deadband compensation, duty counts")
+    parser.add_argument("--v-limit", type=A.positive, default=None,
                         help=f"clamp of the cart-speed estimate, m/s (default {V_LIMIT:g})")
-    parser.add_argument("--w-limit", type=float, default=None,
+    parser.add_argument("--w-limit", type=A.positive, default=None,
                         help=f"clamp of the tilt-rate estimate, rad/s (default {W_LIMIT:g})")
-    parser.add_argument("--rate", type=float, default=None, help="loop rate in Hz (default: from the parameters)")
+    parser.add_argument("--rate", type=A.in_range(0.0, 10000.0, lo_open=True, unit="Hz"), default=None, help="loop rate in Hz (default: from the parameters)")
     parser.add_argument("--design", choices=("lqr", "place"), default="lqr",
                         help="discrete design: dlqr (weights --Q/--R) or pole placement (the report's poles)")
-    parser.add_argument("--Q", type=float, nargs=4, default=None, metavar="q", help="LQR state weights (diagonal)")
-    parser.add_argument("--R", type=float, default=None, help="LQR input weight")
-    parser.add_argument("--u-max", type=float, default=None,
+    parser.add_argument("--Q", type=A.nonneg, nargs=4, default=None, metavar="q", help="LQR state weights (diagonal)")
+    parser.add_argument("--R", type=A.positive, default=None, help="LQR input weight")
+    parser.add_argument("--u-max", type=A.positive, default=None,
                         help="force clamp of the controller, N (default: 4.4 m/s^2 of cart acceleration from upright)")
-    parser.add_argument("--noise", type=float, nargs=2, default=None, metavar=("X_M", "PHI_RAD"),
+    parser.add_argument("--noise", type=A.positive, nargs=2, default=None, metavar=("X_M", "PHI_RAD"),
                         help="measurement noise (std, m and rad) the Kalman filter is designed for "
                              "(default: one encoder count, two ADC counts)")
 
 
 def run(args: argparse.Namespace) -> int:
     """Export the fixed-point tables (``upright export``)."""
+    A.check_out_file(args.out, "--out")
+    A.check_out_file(args.blob, "--blob")
     p = load_params(args.params)
+    if args.rate is not None:
+        ticks = p.delay * args.rate
+        if abs(ticks - round(ticks)) > 1e-6:
+            raise A.UsageError(f"--rate {args.rate:g}: the measurement delay {p.delay:g} s (sensors.delay) would be "
+                               f"{ticks:.4g} ticks; choose a rate at which it is a whole number of ticks")
     kw = {} if args.noise is None else {"sigma_meas": tuple(args.noise)}
     c = controller_ss(p, rate=args.rate, design=args.design, Q=args.Q, R=args.R, u_max=args.u_max, **kw)
     fd = export(p, c, ki=args.ki, deadband=args.deadband, v_limit=args.v_limit, w_limit=args.w_limit)

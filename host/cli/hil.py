@@ -14,7 +14,8 @@ A board running the firmware's HIL main on USB -- on the board (``main.py``)::
 
     from firmware import main_hil
     import machine
-    main_hil.main(uart=machine.UART(0, 115200), link="serial", mode="lockstep")
+    from firmware import board
+    main_hil.main(uart=machine.UART(0, board.UART_BAUD), link="serial", mode="lockstep")
 
 then on the host::
 
@@ -35,6 +36,8 @@ import time
 from pathlib import Path
 from typing import Any, Sequence, TextIO
 
+from host.cli import args as A
+
 __all__ = ["add_arguments", "run", "report", "Progress"]
 
 
@@ -49,17 +52,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="framing: COBS serial frames or CAN frames (default serial)")
     parser.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
                         help="lockstep: deterministic, as fast as the link; realtime: the firmware paces itself")
-    parser.add_argument("--scenario", default="all", metavar="NAME",
+    parser.add_argument("--scenario", default="all", metavar="NAME", type=A.nonempty,
                         help="scenario name(s) comma-separated, a TOML path, or 'all' (the report's; default)")
     parser.add_argument("--out", default="out/hil", metavar="DIR", help="output directory (default out/hil)")
     parser.add_argument("--can-interface", default="slcan", metavar="NAME",
                         help="python-can interface for --port with --link can (default slcan)")
-    parser.add_argument("--node", type=int, default=1, help="CAN node id of the board (default 1)")
-    parser.add_argument("--baudrate", type=int, default=115200, help="serial line rate for --port (default 115200)")
+    parser.add_argument("--node", type=A.int_range(0, 63), default=1, help="CAN node id of the board (default 1)")
+    parser.add_argument("--baudrate", type=A.positive_int, default=A.board_baud(),
+                        help=f"serial line rate for --port (default {A.board_baud()}: firmware/board.py UART_BAUD)")
     parser.add_argument("--no-gif", action="store_true", help="skip the animated GIFs (faster)")
     parser.add_argument("--no-plots", action="store_true", help="skip PNG and GIF")
     parser.add_argument("--no-compare", action="store_true", help="skip the float pure-simulation comparison")
-    parser.add_argument("--tolerance", type=float, default=0.01,
+    parser.add_argument("--tolerance", type=A.positive, default=0.01,
                         help="largest |phi_hil - phi_float| accepted (rad, default 0.01)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
 
@@ -161,27 +165,76 @@ def report(runs: Sequence[Any], *, tolerance: float = 0.01, out: str | Path | No
     return 1 if bad else 0
 
 
+def write_summary(runs: Sequence[Any], out: Path, *, planned: Sequence[Any], tolerance: float = 0.01,
+                  interrupted: bool = False) -> Path:
+    """Write ``<out>/summary.txt``: the summary table of the finished runs, marked partial when
+    the run was interrupted (and listing the scenarios that did not finish)."""
+    import io
+
+    buf = io.StringIO()
+    done = {r.name for r in runs}
+    if interrupted:
+        left = [s.name for s in planned if s.name not in done]
+        buf.write(f"PARTIAL: interrupted after {len(runs)} of {len(planned)} scenario(s); "
+                  f"not finished: {', '.join(left) or '-'}\n\n")
+    if runs:
+        report(runs, tolerance=tolerance, out=out, stream=buf)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "summary.txt"
+    path.write_text(buf.getvalue())
+    return path
+
+
+def check_scenarios(scenarios: Sequence[Any], params: Any = None) -> None:
+    """Refuse (before the board starts) a scenario list that is empty or does not fit the robot."""
+    from sim.params import load_params
+
+    if not scenarios:
+        raise A.UsageError("--scenario: no scenario named")
+    params = params or load_params()
+    for sc in scenarios:
+        sc.check(params)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``upright hil``."""
-    from host.hil.errors import HilError
-    from host.hil.runs import resolve_scenarios, run_scenarios
     from host.boards.vport import PortError
+    from host.cli.main import interrupted
+    from host.hil import runs as hil_runs
+    from host.hil.errors import HilError
 
-    if not args.tolerance > 0:
-        raise ValueError(f"--tolerance must be > 0, got {args.tolerance}")
-    scenarios = resolve_scenarios(args.scenario)
+    out = A.check_out_dir(args.out, "--out")
+    scenarios = hil_runs.resolve_scenarios(args.scenario)
+    check_scenarios(scenarios)
     prog = Progress(enabled=not args.quiet)
-    out = Path(args.out)
     where = "virtual board (MicroPython unix port on a pty)" if args.port is None else args.port
     if not args.quiet:
         print(f"upright hil: {len(scenarios)} scenario(s), {args.link} link, {args.mode}, {where}", file=sys.stderr)
+    done: list[Any] = []
     try:
-        runs = run_scenarios(
+        runs = hil_runs.run_scenarios(
             scenarios, port=args.port, link=args.link, mode=args.mode, out=out,
             compare=not args.no_compare, gif=not (args.no_gif or args.no_plots), plot=not args.no_plots,
             progress=prog, node=args.node, baudrate=args.baudrate, can_interface=args.can_interface,
+            on_result=done.append,
         )
     except (PortError, HilError) as exc:
-        print(f"upright hil: {exc}", file=sys.stderr)
-        return 1
+        if not interrupted():
+            print(f"upright hil: {exc}", file=sys.stderr)
+            return 1
+        _partial(done, out, scenarios, args.tolerance)
+        raise KeyboardInterrupt from None
+    except KeyboardInterrupt:
+        _partial(done, out, scenarios, args.tolerance)
+        raise
+    write_summary(runs, out, planned=scenarios, tolerance=args.tolerance)
     return report(runs, tolerance=args.tolerance, out=out)
+
+
+def _partial(done: Sequence[Any], out: Path, planned: Sequence[Any], tolerance: float) -> None:
+    """After Ctrl-C: the finished runs' table and a summary file marked partial."""
+    sys.stderr.write("\n")
+    if done:
+        report(done, tolerance=tolerance, out=out)
+    path = write_summary(done, out, planned=planned, tolerance=tolerance, interrupted=True)
+    print(f"interrupted: {len(done)} of {len(planned)} scenario(s) finished; partial summary: {path}", file=sys.stderr)

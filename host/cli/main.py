@@ -9,8 +9,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 from typing import Sequence
+
+from host.cli.args import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, OneLineParser, RunFailed, UsageError
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -44,7 +47,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     -------
     argparse.ArgumentParser
     """
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="upright",
         description="Design, simulate and run the firmware of a motorised inverted pendulum on a cart.",
     )
@@ -64,8 +67,48 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+_INTERRUPTED = False
+
+
+def interrupted() -> bool:
+    """True once SIGINT (Ctrl-C) reached this process: a failure that follows it (a board
+    that died of the same Ctrl-C, a closed link) is reported as the interruption."""
+    return _INTERRUPTED
+
+
+def _on_sigint(signum: int, frame: object) -> None:
+    global _INTERRUPTED
+    _INTERRUPTED = True
+    raise KeyboardInterrupt
+
+
+def _install_sigint() -> object:
+    global _INTERRUPTED
+    _INTERRUPTED = False
+    try:
+        old = signal.getsignal(signal.SIGINT)
+        if old is signal.default_int_handler:
+            signal.signal(signal.SIGINT, _on_sigint)
+            return old
+    except ValueError:  # pragma: no cover - not the main thread
+        pass
+    return None
+
+
+def _restore_sigint(old: object) -> None:
+    if old is not None:
+        try:
+            signal.signal(signal.SIGINT, old)  # type: ignore[arg-type]
+        except ValueError:  # pragma: no cover
+            pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``upright`` console script.
+
+    Exit status (every command): 0 done; 1 the run failed (its checks, a diverged run, a
+    port or scheduler that cannot be reached); 2 bad input or usage, refused before the work
+    starts; 130 interrupted (Ctrl-C), after writing what finished.
 
     Parameters
     ----------
@@ -77,23 +120,55 @@ def main(argv: Sequence[str] | None = None) -> int:
     int
         Process exit status.
     """
-    argv = list(sys.argv[1:] if argv is None else argv)
-    chosen = next((a for a in argv if not a.startswith("-")), None)
-    parser = build_parser(only=chosen if chosen in COMMANDS else "")
-    args = parser.parse_args(argv)
-    if getattr(args, "_command", None) is None:
-        parser.print_help()
-        return 2
+    old = _install_sigint()
+    name = "upright"
+    try:
+        argv = list(sys.argv[1:] if argv is None else argv)
+        chosen = next((a for a in argv if not a.startswith("-")), None)
+        parser = build_parser(only=chosen if chosen in COMMANDS else "")
+        args = parser.parse_args(argv)
+        if getattr(args, "_command", None) is None:
+            parser.print_help()
+            return EXIT_USAGE
+        name = f"upright {args._command}"
+        return _run(name, args)
+    except KeyboardInterrupt:
+        return _interrupted(name)
+    finally:
+        _restore_sigint(old)
+
+
+def _interrupted(name: str) -> int:
+    print(f"\n{name}: interrupted", file=sys.stderr)
+    return EXIT_INTERRUPTED
+
+
+def _run(name: str, args: argparse.Namespace) -> int:
     from sim.params import ParamError
+    from sim.scenario import ScenarioError
 
     try:
         return int(_lazy_module(args._command).run(args) or 0)
+    except KeyboardInterrupt:
+        raise
     except ParamError as exc:
-        print(f"upright {args._command}: bad parameter: {exc}", file=sys.stderr)
-        return 2
+        status, text = EXIT_USAGE, f"bad parameter: {exc}"
+    except ScenarioError as exc:
+        status, text = EXIT_USAGE, f"bad scenario: {exc}"
+    except UsageError as exc:
+        status, text = EXIT_USAGE, f"error: {exc}"
+    except RunFailed as exc:
+        status, text = EXIT_FAILED, f"failed: {exc}"
     except (OSError, ValueError) as exc:
-        print(f"upright {args._command}: error: {exc}", file=sys.stderr)
-        return 1
+        status, text = EXIT_FAILED, f"error: {exc}"
+    except RuntimeError as exc:  # the project's own run errors (HilError, DaskRunError, ...)
+        if type(exc).__module__.split(".")[0] not in ("host", "sim"):
+            raise
+        status, text = EXIT_FAILED, f"error: {exc}"
+    if interrupted():
+        return _interrupted(name)
+    print(f"{name}: {' '.join(text.split())}", file=sys.stderr)
+    return status
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -8,6 +8,7 @@ Examples::
     upright proto decode 000b0b0203...00                           # serial bytes (any number of frames)
     upright proto decode 02C#03 --can                              # CAN id#data
     upright proto dbc --node 3 > node3.dbc                           # CAN database for another node
+    upright proto dump                    # the board on /dev/ttyUSB0 at its UART rate (1 Mbaud)
     upright proto dump loop://            # or /dev/ttyACM0, can:socketcan:can0, can:serial:/dev/pts/3
 """
 
@@ -17,7 +18,11 @@ import argparse
 import sys
 import time
 
+from host.cli import args as A
 from host.link import messages as M
+
+DEFAULT_DUMP_PORT = "/dev/ttyUSB0"
+"""``upright proto dump``'s default link: the USB-serial adapter on the board's UART0 (GP0/GP1)."""
 
 __all__ = ["add_arguments", "run", "parse_fields", "format_can", "parse_can"]
 
@@ -33,7 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sp.add_argument("name", help="message name (see `upright proto list`)")
     sp.add_argument("fields", nargs="*", metavar="FIELD=VALUE", help="field values (raw ints; bytes as hex)")
     sp.add_argument("--physical", action="store_true", help="values are physical units (scaled by the table)")
-    sp.add_argument("--seq", type=int, default=0, help="serial sequence number (default 0)")
+    sp.add_argument("--seq", type=A.int_range(0, 255), default=0, help="serial sequence number (default 0)")
     _framing(sp)
     sp.set_defaults(_proto=_cmd_encode)
 
@@ -47,17 +52,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sp.set_defaults(_proto=_cmd_dbc)
 
     sp = sub.add_parser("dump", help="print every message received on a live link (like candump)")
-    sp.add_argument("link", help="serial port/URL (loop://, /dev/ttyACM0) or can:INTERFACE:CHANNEL")
-    sp.add_argument("--node", type=int, default=1, help="CAN node id (default 1)")
-    sp.add_argument("--baudrate", type=int, default=115200, help="serial baud rate")
-    sp.add_argument("--count", type=int, default=0, help="stop after this many messages (0 = no limit)")
-    sp.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0 = no limit)")
+    sp.add_argument("link", nargs="?", default=DEFAULT_DUMP_PORT, type=A.nonempty,
+                    help=f"serial port/URL (loop://, /dev/ttyACM0) or can:INTERFACE:CHANNEL (default {DEFAULT_DUMP_PORT})")
+    sp.add_argument("--node", type=A.int_range(0, 63), default=1, help="CAN node id (default 1)")
+    sp.add_argument("--baudrate", type=A.positive_int, default=A.board_baud(),
+                    help=f"serial baud rate (default {A.board_baud()}: firmware/board.py UART_BAUD)")
+    sp.add_argument("--count", type=A.nonneg_int, default=0, help="stop after this many messages (0 = no limit)")
+    sp.add_argument("--duration", type=A.in_range(0.0, 7 * 24 * 3600.0, unit="s"), default=0.0,
+                    help="stop after this many seconds (0 = no limit)")
     sp.set_defaults(_proto=_cmd_dump)
 
 
 def _framing(sp: argparse.ArgumentParser) -> None:
     sp.add_argument("--can", action="store_true", help="CAN framing (default: serial COBS framing)")
-    sp.add_argument("--node", type=int, default=1, help="CAN node id (default 1)")
+    sp.add_argument("--node", type=A.int_range(0, 63), default=1, help="CAN node id (default 1)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -165,6 +173,10 @@ def _cmd_decode(args: argparse.Namespace) -> int:
             print(f"node {node}  {msg}")
         return 0
     data = _hex(args.hex)
+    if not data.strip(b"\x00"):
+        what = "no bytes" if not data else f"only frame delimiters ({data.hex()})"
+        raise ValueError(f"nothing to decode: the input holds {what}, no frame; give a frame's bytes in hex "
+                         f"(e.g. from `upright proto encode`)")
     dec = M.SerialStreamDecoder()
     frames = dec.feed(data + b"\x00")
     for msg, seq in frames:

@@ -23,11 +23,15 @@ from __future__ import annotations
 
 import argparse
 import csv
+import math
 import sys
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
+
+from host.cli import args as A
+from host.cli.args import RunFailed, UsageError
 
 from sim.params import load_params
 from sim.plant import simulate
@@ -61,22 +65,53 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     mode.add_argument("--design", choices=DESIGNS, help="close the loop around this design (continuous-time, sampled at --dt)")
     mode.add_argument(
         "--scenario",
-        metavar="NAME",
+        metavar="NAME", type=A.nonempty,
         help="run a scenario (name in sim/scenarios or a TOML path) with the firmware's discrete controller in float",
     )
     parser.add_argument("--params", metavar="TOML", help="parameter file (default: the report's robot)")
-    parser.add_argument("--x0", type=float, default=0.0, help="initial cart position (m)")
-    parser.add_argument("--phi0", type=float, default=0.0, help="initial tilt from upright (rad)")
-    parser.add_argument("--reference", type=float, default=0.0, help="cart position reference (m) for state feedback")
-    parser.add_argument("--push", type=float, default=0.0, help="disturbance force (N)")
-    parser.add_argument("--push-start", type=float, default=0.0, help="when the push starts (s)")
-    parser.add_argument("--push-duration", type=float, default=5.0, help="how long the push lasts (s)")
-    parser.add_argument("--duration", type=float, default=5.0, help="simulated time (s)")
-    parser.add_argument("--dt", type=float, default=1e-3, help="log and controller sample period (s)")
-    parser.add_argument("--substeps", type=int, default=4, help="RK4 steps per sample")
-    parser.add_argument("--u-limit", type=float, default=None, help="saturate the controller force (N)")
+    parser.add_argument("--x0", type=A.finite, default=0.0, help="initial cart position (m, within the track)")
+    parser.add_argument("--phi0", type=A.tilt, default=0.0, help="initial tilt from upright (rad, |phi0| < pi/2)")
+    parser.add_argument("--reference", type=A.finite, default=0.0,
+                        help="cart position reference (m, within the track) for state feedback")
+    parser.add_argument("--push", type=A.finite, default=0.0, help="disturbance force (N)")
+    parser.add_argument("--push-start", type=A.nonneg, default=0.0, help="when the push starts (s)")
+    parser.add_argument("--push-duration", type=A.positive, default=5.0, help="how long the push lasts (s)")
+    parser.add_argument("--duration", type=A.duration(), default=5.0,
+                        help=f"simulated time (s, at most {A.MAX_DURATION_S:g})")
+    parser.add_argument("--dt", type=A.in_range(0.0, 0.1, lo_open=True, unit="s"), default=1e-3,
+                        help="log and controller sample period (s, at most 0.1)")
+    parser.add_argument("--substeps", type=A.int_range(1, 1000), default=4, help="RK4 steps per sample")
+    parser.add_argument("--u-limit", type=A.positive, default=None, help="saturate the controller force (N, > 0)")
     parser.add_argument("--csv", default="-", help="output CSV path ('-' for stdout, the default)")
     parser.add_argument("--plot", metavar="PNG", help="with --scenario: write the run's plot here")
+
+
+MAX_SAMPLES = 10_000_000
+"""Most samples a run may log (``duration / dt``): beyond it the CSV alone is gigabytes."""
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    A.check_out_file(args.csv, "--csv")
+    A.check_out_file(args.plot, "--plot")
+
+
+def check_run(t: np.ndarray, phi: np.ndarray, states: Sequence[np.ndarray], *, fall_expected: bool) -> None:
+    """Raise :class:`~host.cli.args.RunFailed` if a run diverged or fell when it should not have.
+
+    Diverged: a state that is not finite.  Fell: ``|phi|`` beyond pi/2 (the pendulum lies on
+    the cart) while ``fall_expected`` is false.
+    """
+    bad = ~np.all([np.isfinite(s) for s in states], axis=0)
+    if np.any(bad):
+        k = int(np.argmax(bad))
+        raise RunFailed(f"the simulation diverged: the state is not finite from t = {t[k]:.4g} s "
+                        f"(the output was written up to there)")
+    if not fall_expected:
+        over = np.abs(phi) > math.pi / 2
+        if np.any(over):
+            k = int(np.argmax(over))
+            raise RunFailed(f"the pendulum fell: |phi| passed pi/2 at t = {t[k]:.4g} s with no fall expected "
+                            f"(the output was written)")
 
 
 def run_scenario(args: argparse.Namespace) -> int:
@@ -86,10 +121,16 @@ def run_scenario(args: argparse.Namespace) -> int:
     from sim.plantsim import run_scenario_float
     from sim.scenario import load_scenario
 
+    _check_outputs(args)
     params = load_params(args.params)
     scenario = load_scenario(args.scenario)
-    log = run_scenario_float(scenario, params, controller_for(scenario, params), init="measured")
+    scenario.check(params)
+    with np.errstate(all="ignore"):
+        log = run_scenario_float(scenario, params, controller_for(scenario, params), init="measured")
     write_csv(args.csv, {"force": log["force"], **{k: log[k] for k in ("t", "x", "xdot", "phi", "phidot")}})
+    states = [log[k] for k in ("x", "xdot", "phi", "phidot")]
+    if not all(np.all(np.isfinite(v)) for v in states):
+        check_run(log["t"], log["phi"], states, fall_expected=True)
     summary = evaluate(log, scenario, params, name=scenario.name)
     print(summary_table([summary], title="Float simulation of the firmware's discrete controller"), file=sys.stderr)
     if args.plot:
@@ -97,37 +138,41 @@ def run_scenario(args: argparse.Namespace) -> int:
 
         plot_run(log, args.plot, params, title=f"{scenario.name}: float simulation", metrics=summary.metrics)
         print(f"plot: {args.plot}", file=sys.stderr)
+    check_run(log["t"], log["phi"], states, fall_expected=scenario.expect.phi_max != "pass")
     return 0
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the simulation and write the CSV."""
-    if args.scenario:
+    if args.scenario is not None:
         return run_scenario(args)
+    _check_outputs(args)
     params = load_params(args.params)
-    if args.duration <= 0 or args.dt <= 0 or args.substeps < 1:
-        raise ValueError("--duration, --dt and --substeps must be positive")
+    if args.duration / args.dt > MAX_SAMPLES:
+        raise UsageError(f"--duration {args.duration:g} s at --dt {args.dt:g} s is {args.duration / args.dt:.3g} samples "
+                         f"(at most {MAX_SAMPLES:.0e}): raise --dt or shorten the run")
+    for flag, v in (("--x0", args.x0), ("--reference", args.reference)):
+        if not abs(v) < params.track:
+            raise UsageError(f"{flag} {v:g} m lies outside the track (|x| < {params.track:g} m, loop.track)")
     controller = None
     if args.design:
         from host.design.controllers import make_controller
 
         controller = make_controller(params, args.design, reference=args.reference, dt=args.dt)
     force = push_profile(args.push, args.push_start, args.push_duration) if args.push else None
-    res = simulate(
-        params,
-        [args.x0, 0.0, args.phi0, 0.0],
-        args.duration,
-        force=force,
-        controller=controller,
-        dt=args.dt,
-        substeps=args.substeps,
-        u_limit=args.u_limit,
-    )
+    with np.errstate(all="ignore"):
+        res = simulate(params, [args.x0, 0.0, args.phi0, 0.0], args.duration, force=force, controller=controller,
+                       dt=args.dt, substeps=args.substeps, u_limit=args.u_limit)
     write_csv(args.csv, res)
+    states = [res[k] for k in ("x", "xdot", "phi", "phidot")]
+    if not all(np.all(np.isfinite(v)) for v in states):
+        check_run(res["t"], res["phi"], states, fall_expected=True)
     if args.csv != "-":
         print(
             f"wrote {args.csv}: {len(res['t'])} samples, final phi {res['phi'][-1]:+.4f} rad, "
             f"peak |phi| {np.max(np.abs(res['phi'])):.4f} rad, final x {res['x'][-1]:+.4f} m",
             file=sys.stderr,
         )
+    # open loop the pendulum is expected to fall; around a design it is not
+    check_run(res["t"], res["phi"], states, fall_expected=args.open_loop)
     return 0

@@ -10,19 +10,22 @@ import sys
 import time
 from typing import Sequence
 
+from host.cli import args as A
 from host.hil.errors import HilError
-from host.hil.soak import soak
+from host.hil.soak import SoakResult, soak
+
+MAX_SOAK_S = 7 * 24 * 3600.0
 
 
 # ---------------------------------------------------------------- command line
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``upright soak`` / ``python -m host.cli.soak``."""
-    parser.add_argument("--sim-seconds", type=float, default=3600.0, metavar="S",
-                        help="simulated time (default 3600)")
+    parser.add_argument("--sim-seconds", type=A.duration(MAX_SOAK_S), default=3600.0, metavar="S",
+                        help="simulated time (default 3600, at most a week)")
     parser.add_argument("--link", choices=("serial", "can"), default="serial", help="framing (default serial)")
-    parser.add_argument("--chunk", type=float, default=None, metavar="S",
+    parser.add_argument("--chunk", type=A.positive, default=None, metavar="S",
                         help="seconds per metrics chunk, whole 4.4 s periods (default: a tenth of the run)")
-    parser.add_argument("--tolerance", type=float, default=0.1,
+    parser.add_argument("--tolerance", type=A.in_range(0.0, 1.0, lo_open=True, hi_open=True), default=0.1,
                         help="relative difference allowed between chunks' metrics (default 0.1)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
 
@@ -36,9 +39,19 @@ def run(args: argparse.Namespace) -> int:
             el = time.perf_counter() - t0
             print(f"  {done:8.1f} / {total:g} s simulated, {el:6.0f} s wall", file=sys.stderr, flush=True)
 
+    from host.cli.main import interrupted
+
+    res = SoakResult()
     try:
-        res = soak(args.sim_seconds, link=args.link, chunk_s=args.chunk, tolerance=args.tolerance, progress=prog)
+        soak(args.sim_seconds, link=args.link, chunk_s=args.chunk, tolerance=args.tolerance, progress=prog,
+             result=res)
+    except KeyboardInterrupt:
+        _partial(res, args.sim_seconds)
+        raise
     except (HilError, OSError, ValueError) as exc:
+        if interrupted():
+            _partial(res, args.sim_seconds)
+            raise KeyboardInterrupt from None
         print(f"upright soak: {exc}", file=sys.stderr)
         return 1
     wall = time.perf_counter() - t0
@@ -61,6 +74,15 @@ def run(args: argparse.Namespace) -> int:
     for msg in res.failures:
         print(f"  - {msg}")
     return 1
+
+
+def _partial(res: SoakResult, total: float) -> None:
+    """After Ctrl-C: the chunks that finished, marked partial (no verdict)."""
+    done = res.chunks[-1]["t1"] if res.chunks else 0.0
+    print(f"soak: PARTIAL: interrupted after {done:g} of {total:g} s simulated "
+          f"({len(res.chunks)} chunk(s) finished); no verdict")
+    if res.chunks:
+        print(res.table())
 
 
 def main(argv: Sequence[str] | None = None) -> int:

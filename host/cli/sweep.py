@@ -25,6 +25,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from host.cli import args as A
+
 __all__ = ["add_arguments", "run", "parse_noise", "write_table", "ProgressBar"]
 
 KINDS = ("robustness", "tune", "tilt")
@@ -78,7 +80,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--n", type=_positive_int, default=None,
                         help="runs (robustness, default 1000) or runs per design (tune, default 100)")
     parser.add_argument("--seed", type=_seed, default=0, help="base seed (runs are seeded per run)")
-    parser.add_argument("--scheduler", default=None, metavar="ADDR", help="Dask scheduler, e.g. tcp://host:8786")
+    parser.add_argument("--scheduler", default=None, metavar="ADDR", type=A.scheduler_address,
+                        help="Dask scheduler, e.g. tcp://host:8786")
     parser.add_argument("--out", default="out/sweep", help="output directory (CSV, Parquet, PNG, scenarios)")
     parser.add_argument("--params", default=None, metavar="TOML", help="robot parameter file (default sim/robot.toml)")
     parser.add_argument("--chunk", type=_positive_int, default=500, help="runs per task")
@@ -87,16 +90,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="measurement noise: none | uniform:AMPLITUDE | white:POWER (default uniform:0.001)")
     parser.add_argument("--drive", choices=("motor", "force"), default="motor",
                         help="motor: duty through the DC motor model; force: ideal force actuator")
-    parser.add_argument("--tilt0", type=float, default=0.03, help="robustness: initial tilt range +-rad")
-    parser.add_argument("--u-max", type=float, default=None, dest="u_max", help="controller force saturation (N)")
-    parser.add_argument("--q-x", type=float, default=None, dest="q_x", help="design: LQR weight on x (robustness, tilt)")
-    parser.add_argument("--q-phi", type=float, default=None, dest="q_phi", help="design: LQR weight on phi")
+    parser.add_argument("--tilt0", type=A.in_range(0.0, math.pi / 2, hi_open=True, unit="rad"), default=0.03,
+                        help="robustness: initial tilt range +-rad")
+    parser.add_argument("--u-max", type=A.positive, default=None, dest="u_max", help="controller force saturation (N)")
+    parser.add_argument("--q-x", type=A.nonneg, default=None, dest="q_x", help="design: LQR weight on x (robustness, tilt)")
+    parser.add_argument("--q-phi", type=A.nonneg, default=None, dest="q_phi", help="design: LQR weight on phi")
     parser.add_argument("--r", type=float, default=None, help="design: LQR input weight R")
     parser.add_argument("--observer", type=float, default=1.0, help="design: observer speed factor (>1 faster)")
-    parser.add_argument("--worst", type=int, default=5, help="robustness: worst runs exported as scenarios")
+    parser.add_argument("--worst", type=A.nonneg_int, default=5, help="robustness: worst runs exported as scenarios")
     parser.add_argument("--search", choices=("grid", "random"), default="grid", help="tune: grid or random search")
     parser.add_argument("--designs", type=_positive_int, default=20, help="tune --search random: number of designs")
-    parser.add_argument("--step", type=float, default=0.005, help="tilt: tilt grid step (rad)")
+    parser.add_argument("--step", type=A.in_range(0.0, 1.0, lo_open=True, unit="rad"), default=0.005,
+                        help="tilt: tilt grid step (rad)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -181,26 +186,54 @@ def run(args: argparse.Namespace) -> int:
     from sim.params import load_params
     from host.studies.sweep import Design, SweepConfig, Uncertainty
 
-    if not args.duration > 0:
-        raise ValueError(f"--duration must be > 0, got {args.duration}")
+    # --duration, --observer, --r and --noise are checked here (exit 1), as they always were
+    if not 0 < args.duration <= A.MAX_DURATION_S:
+        raise ValueError(f"--duration must be in (0, {A.MAX_DURATION_S:g}] s, got {args.duration}")
+    if args.r is not None and not math.isfinite(args.r):
+        raise ValueError(f"--r must be a finite number, got {args.r}")
     if not 0 <= args.tilt0 < math.pi / 2:
         raise ValueError(f"--tilt0 must be in [0, pi/2), got {args.tilt0}")
     if args.worst < 0:
         raise ValueError(f"--worst must be >= 0, got {args.worst}")
+    out = A.check_out_dir(args.out, "--out")
     params = load_params(args.params)
     noise = parse_noise(args.noise)
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     bar = ProgressBar(f"sweep {args.kind}", enabled=not args.quiet)
     base = SweepConfig(params=params, design=_chosen_design(args), uncertainty=Uncertainty(tilt=args.tilt0),
                        seed=args.seed, duration=args.duration, noise=noise, drive=args.drive)
     where = f"on Dask at {args.scheduler}" if args.scheduler else "in this process"
     print(f"upright sweep {args.kind}: seed {args.seed}, noise {args.noise}, drive {args.drive}, {where}")
-    if args.kind == "robustness":
-        return _robustness(args, base, out, bar)
-    if args.kind == "tune":
-        return _tune(args, base, out, bar)
-    return _tilt(args, params, out, bar, noise)
+    from host.studies.sweep import SweepInterrupted
+
+    try:
+        if args.kind == "robustness":
+            return _robustness(args, base, out, bar)
+        if args.kind == "tune":
+            return _tune(args, base, out, bar)
+        return _tilt(args, params, out, bar, noise)
+    except SweepInterrupted as exc:
+        _write_partial(args, exc, out)
+        raise
+
+
+def _write_partial(args: argparse.Namespace, exc: Any, out: Path) -> None:
+    """After Ctrl-C: the finished runs as CSV + Parquet and a summary marked partial."""
+    from host.studies.sweep import summarise
+
+    sys.stderr.write("\n")
+    stem = {"robustness": "robustness", "tune": "tune_runs", "tilt": "tilt_runs"}[args.kind]
+    table = exc.table
+    files = write_table(table, out / stem) if table else []
+    summary: dict[str, Any] = {"partial": True, "kind": args.kind, "runs_done": exc.runs_done,
+                               "runs_planned": exc.runs_total, "seed": args.seed}
+    if table and args.kind == "robustness":
+        summary.update(summarise(table))
+    path = out / f"{args.kind}_summary.json"
+    path.write_text(json.dumps(summary, indent=2, default=float))
+    files.append(path)
+    print(f"interrupted: {exc.runs_done} of {exc.runs_total} runs finished; partial results: "
+          + ", ".join(str(f) for f in files), file=sys.stderr)
 
 
 def _custom(args: argparse.Namespace) -> bool:

@@ -19,11 +19,38 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-__all__ = ["DaskRunError", "run_on_dask"]
+__all__ = ["DaskRunError", "check_reachable", "run_on_dask"]
 
 
 class DaskRunError(RuntimeError):
     """The cluster could not be reached or a task failed on it."""
+
+
+def check_reachable(address: str, timeout: float = 10.0) -> None:
+    """Fail fast when nothing listens at a ``tcp://HOST:PORT`` scheduler address (a refused
+    connection is known at once; the Dask client would retry until its timeout).
+
+    Raises
+    ------
+    DaskRunError
+        The address is malformed or the connection is refused or times out.
+    """
+    import socket
+    from urllib.parse import urlsplit
+
+    if not address.startswith("tcp://"):
+        return
+    try:
+        u = urlsplit(address)
+        host, port = u.hostname, u.port
+    except ValueError as exc:
+        raise DaskRunError(f"bad Dask scheduler address {address!r}: {exc}") from exc
+    if not host or port is None:
+        raise DaskRunError(f"bad Dask scheduler address {address!r}: expected tcp://HOST:PORT")
+    try:
+        socket.create_connection((host, port), timeout=timeout).close()
+    except OSError as exc:
+        raise DaskRunError(f"cannot reach the Dask scheduler at {address!r}: {exc.strerror or exc}") from exc
 
 
 def run_on_dask(
@@ -32,6 +59,7 @@ def run_on_dask(
     fn: Callable[[Any, int, int], dict[str, np.ndarray]],
     *,
     progress: Callable[[int, int], None] | None = None,
+    on_result: Callable[[int, dict[str, np.ndarray]], None] | None = None,
     timeout: float = 10.0,
 ) -> list[dict[str, np.ndarray]]:
     """Run sweep tasks on a Dask cluster; the tables in task order.
@@ -47,6 +75,9 @@ def run_on_dask(
         (:func:`host.studies.sweep.run_task`); passed in so this module needs no sweep.
     progress : callable, optional
         ``progress(runs_done, runs_total)`` after each finished task.
+    on_result : callable, optional
+        ``on_result(task_index, table)`` as each task finishes (in completion order), so a
+        caller interrupted mid-sweep keeps what finished.
     timeout : float
         Seconds to wait for the connection to the scheduler.
 
@@ -60,9 +91,12 @@ def run_on_dask(
     DaskRunError
         If the scheduler cannot be reached or a task raises on a worker (chained).
     """
+    if isinstance(scheduler, str):
+        check_reachable(scheduler, timeout)
     from distributed import Client, as_completed
 
     own = not isinstance(scheduler, Client)
+    futures: list[Any] = []
     try:
         client = Client(scheduler, timeout=timeout) if own else scheduler
     except (OSError, TimeoutError) as exc:
@@ -81,10 +115,16 @@ def run_on_dask(
                 out[i] = fut.result()
             except Exception as exc:  # noqa: BLE001 - re-raised with context
                 raise DaskRunError(f"sweep task {i} (runs {tasks[i][1]}..{tasks[i][2]}) failed: {exc}") from exc
+            if on_result is not None:
+                on_result(i, out[i])  # type: ignore[arg-type]
             done += tasks[i][2] - tasks[i][1]
             if progress is not None:
                 progress(done, total)
         return [t for t in out if t is not None]
+    except KeyboardInterrupt:
+        for f in futures:
+            f.cancel()
+        raise
     finally:
         if own:
             client.close()

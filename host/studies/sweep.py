@@ -27,6 +27,7 @@ from sim.sensors import NoiseModel, delay_steps
 
 __all__ = [
     "SweepError",
+    "SweepInterrupted",
     "Uncertainty",
     "Design",
     "SweepConfig",
@@ -58,6 +59,33 @@ _DOTTED = {k.split(".", 1)[1]: k for k in SCHEMA}
 
 class SweepError(ValueError):
     """Bad sweep inputs (sizes, ranges, designs)."""
+
+
+class SweepInterrupted(KeyboardInterrupt):
+    """A sweep stopped by Ctrl-C; carries the tables of the tasks that had finished.
+
+    It is a ``KeyboardInterrupt``, so code that does not look at the partial results still
+    stops as on any Ctrl-C.
+
+    Attributes
+    ----------
+    tables : list of dict
+        The finished tasks' tables, in task order (possibly with gaps on Dask: each table's
+        ``run`` column says which runs it holds).
+    runs_done, runs_total : int
+        Runs finished, runs planned.
+    """
+
+    def __init__(self, tables: list[dict[str, np.ndarray]], runs_done: int, runs_total: int) -> None:
+        super().__init__(f"interrupted after {runs_done} of {runs_total} runs")
+        self.tables = tables
+        self.runs_done = runs_done
+        self.runs_total = runs_total
+
+    @property
+    def table(self) -> dict[str, np.ndarray]:
+        """The finished runs as one table (empty when none finished)."""
+        return concat(self.tables)
 
 
 @dataclass(frozen=True)
@@ -374,21 +402,38 @@ def run_tasks(
     """Run tasks in this process, or on the Dask cluster at ``scheduler``; tables in task order.
 
     ``progress(runs_done, runs_total)`` is called after each task.
-    """
-    if scheduler is not None:
-        from .dask_run import run_on_dask
 
-        return run_on_dask(tasks, scheduler, run_task, progress=progress)
+    Raises
+    ------
+    SweepInterrupted
+        On Ctrl-C (``KeyboardInterrupt``), with the tables of the tasks that had finished.
+    """
     total = sum(b - a for _, a, b in tasks)
-    out, done = [], 0
-    if progress is not None:
-        progress(0, total)
-    for cfg, a, b in tasks:
-        out.append(run_task(cfg, a, b))
-        done += b - a
+    finished: dict[int, dict[str, np.ndarray]] = {}
+
+    def keep(i: int, table: dict[str, np.ndarray]) -> None:
+        finished[i] = table
+
+    try:
+        if scheduler is not None:
+            from .dask_run import run_on_dask
+
+            return run_on_dask(tasks, scheduler, run_task, progress=progress, on_result=keep)
+        done = 0
         if progress is not None:
-            progress(done, total)
-    return out
+            progress(0, total)
+        for i, (cfg, a, b) in enumerate(tasks):
+            keep(i, run_task(cfg, a, b))
+            done += b - a
+            if progress is not None:
+                progress(done, total)
+        return [finished[i] for i in range(len(tasks))]
+    except KeyboardInterrupt as exc:
+        if isinstance(exc, SweepInterrupted):
+            raise
+        tables = [finished[i] for i in sorted(finished)]
+        done = sum(tasks[i][2] - tasks[i][1] for i in finished)
+        raise SweepInterrupted(tables, done, total) from None
 
 
 # ------------------------------------------------------------------ robustness

@@ -1,0 +1,129 @@
+"""Every ``upright ...`` command line README.md shows works as shown (issue 11 item 5).
+
+The command lines are read from README.md itself (inline code and code blocks), so a new one
+is run without touching this file.  Each runs in a temporary directory with exit status 0
+expected.  Long ones get short settings added (:data:`SHORTEN`, the reason next to each);
+the ones that cannot run here are in :data:`SKIP`, each with its reason -- a README command
+in neither list is run as it stands.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+README = ROOT / "README.md"
+
+# README command (after expansion) -> why it is not run here
+SKIP: dict[str, str] = {
+    "upright proto dump": "needs a board on /dev/ttyUSB0 (its default link); "
+                          "tests/test_proto_cli.py dumps a live pty instead",
+    "upright generate": "rewrites the repository's tracked generated files; the `--check` form is run, "
+                        "and tests/test_generated.py renders every file",
+}
+
+# command prefix -> arguments added to keep the test short (the reason in the comment)
+SHORTEN: dict[str, list[str]] = {
+    "upright design": ["--no-search"],  # the LQR weight search alone is ~20 s
+    "upright hil --virtual": ["--scenario", "tilt_0p1", "--no-gif"],  # all eight scenarios: a minute
+    "upright demo": ["--scenario", "tilt_0p1", "--no-gif"],  # all eight scenarios with GIFs: minutes
+    "upright soak": ["--sim-seconds", "17.6"],  # an hour by default
+    "upright sweep robustness": ["--n", "4", "--duration", "0.5", "--no-plots"],
+    "upright sweep tune": ["--search", "random", "--designs", "2", "--n", "2", "--duration", "0.5", "--no-plots"],
+    "upright sweep tilt": ["--step", "0.2", "--duration", "0.5", "--no-plots"],
+}
+
+# placeholders in the README's command lines -> what the test gives
+PLACEHOLDERS = {"DIR": "outdir"}
+
+
+def _expand(cmd: str) -> list[str]:
+    """``[--opt]`` -> without and with; ``a/b/c`` subcommand lists -> one command each."""
+    out = [cmd]
+    if "[" in cmd:
+        out = [re.sub(r"\s*\[[^\]]*\]", "", cmd), re.sub(r"\[([^\]]*)\]", r"\1", cmd)]
+    done = []
+    for c in out:
+        words = c.split()
+        for i, w in enumerate(words):
+            if "/" in w and not w.startswith(("-", "/", ".")) and re.fullmatch(r"[a-z]+(/[a-z]+)+", w):
+                done += [" ".join([*words[:i], alt, *words[i + 1:]]) for alt in w.split("/")]
+                break
+        else:
+            done.append(c)
+    return [" ".join(PLACEHOLDERS.get(w, w) for w in c.split()) for c in done]
+
+
+def readme_commands(text: str | None = None) -> list[str]:
+    """Every ``upright ...`` command line of README.md, expanded, in order, without repeats."""
+    text = README.read_text() if text is None else text
+    found = re.findall(r"`(upright [^`\n]+)`", text)
+    for block in re.findall(r"```[a-z]*\n(.*?)```", text, re.S):
+        found += [ln.split("#")[0].strip() for ln in block.splitlines() if ln.startswith("upright ")]
+    cmds: list[str] = []
+    for c in found:
+        for e in _expand(c.strip()):
+            if e not in cmds:
+                cmds.append(e)
+    return cmds
+
+
+COMMANDS = readme_commands()
+
+
+def test_the_readme_shows_commands() -> None:
+    # the extraction works: the table's commands are all there, also soak and the expansions
+    for c in ("upright soak", "upright export --out gains.py", "upright proto dump", "upright sweep tilt",
+              "upright report seed", "upright report seed --json", "upright design --out outdir"):
+        assert c in COMMANDS, COMMANDS
+    assert set(SKIP) <= set(COMMANDS), "a skip for a command the README no longer shows"
+
+
+@pytest.mark.parametrize("cmd", COMMANDS)
+def test_readme_command_works_as_shown(cmd: str, tmp_path: Path) -> None:
+    if cmd in SKIP:
+        pytest.skip(SKIP[cmd])
+    argv = shlex.split(cmd)
+    for prefix, extra in SHORTEN.items():
+        if cmd == prefix or cmd.startswith(prefix + " "):
+            argv += extra
+    if "--out" not in argv and argv[1] in ("hil", "demo", "sweep"):
+        argv += ["--out", str(tmp_path / "out")]  # as shown it writes under ./out: the temp dir anyway
+    r = subprocess.run([sys.executable, "-m", "host.cli.main", *argv[1:]], cwd=tmp_path, capture_output=True,
+                       text=True, timeout=600)
+    assert r.returncode == 0, f"{' '.join(argv)}\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}"
+    assert "Traceback" not in r.stderr
+
+
+def test_readme_scenario_format_loads_and_runs(tmp_path: Path) -> None:
+    """The scenario TOML the README documents is a valid scenario, and it runs."""
+    from sim.scenario import load_scenario
+
+    text = README.read_text().split("### Scenario files", 1)[1]
+    block = re.search(r"```toml\n(.*?)```", text, re.S).group(1)  # type: ignore[union-attr]
+    tomllib.loads(block)
+    path = tmp_path / "readme.toml"
+    path.write_text(block)
+    s = load_scenario(path)
+    assert s.name == "push_0p2N_5s" and len(s.forces) == 2 and s.reference.kind == "step"
+    r = subprocess.run([sys.executable, "-m", "host.cli.main", "simulate", "--scenario", str(path), "--csv",
+                        str(tmp_path / "o.csv")], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+
+
+def test_host_tools_default_to_the_boards_uart_rate() -> None:
+    from firmware.board import UART_BAUD
+    from host.cli.main import build_parser
+
+    p = build_parser(only="hil")
+    assert p.parse_args(["hil"]).baudrate == UART_BAUD == 1_000_000
+    p = build_parser(only="proto")
+    a = p.parse_args(["proto", "dump"])
+    assert a.baudrate == UART_BAUD and a.link == "/dev/ttyUSB0"
