@@ -17,7 +17,13 @@
 #             watchdog_ms=0 switches the watchdog off (bench/tests only).
 #   app.step()   one control tick (allocation-free): read sensors, supervise, estimate,
 #                control, drive the motor.  Returns the duty.
-#   app.run(n=0) pace step() at the loop rate with the HAL's ticks (n steps, 0 = forever).
+#   app.run(n=0, lock=True)  pace step() and the link's poll() at the loop rate with the
+#                HAL's ticks (n steps, 0 = forever), the heap locked (micropython.heap_lock()
+#                where the port has it; lock=False: tests on a port where locking misbehaves).
+#                An allocation in the loop then raises MemoryError: it is caught, latched as
+#                F_LOOP (fault, motor off) and the loop goes on.  Locked, MicroPython also
+#                puts a large call frame (Controller.step's) on the C stack instead of
+#                allocating and freeing it on the heap at every call.
 #
 # Target methods for firmware/commands.py return msgtable.OK or a reason code.
 
@@ -27,6 +33,12 @@ except ImportError:
     def const(x):
         return x
 
+try:
+    from micropython import heap_lock as _heap_lock, heap_unlock as _heap_unlock
+except ImportError:  # CPython, or a port without them
+    _heap_lock = None
+    _heap_unlock = None
+
 from array import array
 
 from . import fixmath
@@ -34,10 +46,9 @@ from . import msgtable as T
 from .controller import Controller
 from .motor import Motor
 from .sensors import Sensors
-from .supervisor import BALANCING, DISARMED, FAULT, F_GAINS, Supervisor
+from .supervisor import BALANCING, DISARMED, FAULT, F_GAINS, F_LOOP, Supervisor
 from .timing import Timing
 
-_TICKS_MASK = const(0x3FFFFFFF)
 STALL_MS = const(100)  # no-motion check (F_STALL) default: this long without a count
 STALL_DUTY = const(800)  # ... at |duty| at least this
 _I16 = const(32767)
@@ -157,11 +168,12 @@ class App:
             duty = self.motor.duty(u, c.vh)
         self._set_motor(duty)
         self.duty = duty
-        self.tick = (self.tick + 1) & _TICKS_MASK
+        # counters wrap at 2**30 without computing it (not a small int on 32 bits)
+        self.tick = fixmath.ticks_next(self.tick)
         f = self._us_frac + self.period_us
         while f >= 1000:
             f -= 1000
-            self.uptime_ms = (self.uptime_ms + 1) & _TICKS_MASK
+            self.uptime_ms = fixmath.ticks_next(self.uptime_ms)
         self._us_frac = f
         self.step_us = tm.end(t0, self._ticks())
         return duty
@@ -172,24 +184,46 @@ class App:
         self.link = link
         self._poll = link.poll if link is not None else None
 
-    def run(self, n=0):
-        # real-time mode: one step every period_us (busy-wait on the HAL clock)
+    def run(self, n=0, lock=True):
+        # real-time mode: one step (and the link's poll) every period_us, busy-waiting on
+        # the HAL clock; a late tick starts the next period from now (no catch-up burst)
         ticks = self._ticks
         diff = fixmath.ticks_diff
+        add = fixmath.ticks_add
         step = self._step
         poll = self._poll
-        deadline = ticks()
+        locked = lock and _heap_lock is not None
         k = 0
-        while n == 0 or k < n:
-            while diff(deadline, ticks()) > 0:
-                pass
-            step()
-            if poll is not None:
-                poll()
-            deadline = (deadline + self.period_us) & _TICKS_MASK
-            if diff(ticks(), deadline) > self.period_us:
-                deadline = ticks() & _TICKS_MASK
-            k += 1
+        deadline = ticks()
+        if locked:
+            _heap_lock()
+        try:
+            while n == 0 or k < n:
+                while diff(deadline, ticks()) > 0:
+                    pass
+                try:
+                    step()
+                    if poll is not None:
+                        poll()
+                except MemoryError:
+                    self._loop_fault()
+                deadline = add(deadline, self.period_us)
+                if diff(ticks(), deadline) > self.period_us:
+                    deadline = ticks()
+                if n:
+                    # counted only when bounded: forever, k would outgrow a small int
+                    k += 1
+        finally:
+            if locked:
+                _heap_unlock()
+
+    def _loop_fault(self):
+        # the loop could not complete a tick (see run()): latch, motor off
+        sup = self.sup
+        sup.faults |= F_LOOP
+        sup.state = FAULT
+        self._set_motor(0)
+        self.duty = 0
 
     # ---- target of firmware/commands.py ----
     def feed_watchdog(self):

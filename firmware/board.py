@@ -29,6 +29,8 @@ UART_ID = const(0)
 UART_TX_PIN = const(0)
 UART_RX_PIN = const(1)
 UART_BAUD = const(1000000)
+UART_RXBUF = const(1024)  # bytes of receive / transmit buffer (rp2 default: 256)
+UART_TXBUF = const(512)
 LED_PIN = const(25)
 
 # sensor/actuator directions (+1 or -1): flip instead of rewiring when the first

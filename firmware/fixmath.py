@@ -15,9 +15,11 @@ from array import array
 
 SMALL_MAX = const(0x3FFFFFFF)
 SMALL_MIN = const(-0x40000000)
+# tick counters: period 2**30 (time.ticks_us on every port), wrapped values 0 .. 2**30-1.
+# 2**30 itself is no small int on a 32-bit port: no expression here may compute it
 _TICKS_MASK = const(0x3FFFFFFF)
 _TICKS_HALF = const(0x20000000)
-_TICKS_PERIOD = const(0x40000000)
+_TICKS_HIGH = const(~0x3FFFFFFF)  # -2**30: every bit from 30 up set
 
 
 def clamp(v, lim):
@@ -37,12 +39,37 @@ def rshift(acc, s):
 
 
 def ticks_diff(a, b):
-    # a - b for tick counters that wrap at a multiple of 2**30 (time.ticks_us on every
-    # port); the result is in -2**29 .. 2**29-1
+    # a - b for tick counters a, b in 0 .. 2**30-1 (time.ticks_diff(a, b)), or from any
+    # clock whose period is a multiple of 2**30; the result is in -2**29 .. 2**29-1.
+    # On 32 bits, a - b is in -(2**30-1) .. 2**30-1 and the masked value in
+    # 0 .. 2**30-1; a value of the upper half becomes negative by setting the bits from
+    # 30 up (= d - 2**30), so nothing leaves the small-int range of a 32-bit port
     d = (a - b) & _TICKS_MASK
     if d >= _TICKS_HALF:
-        d -= _TICKS_PERIOD
+        d |= _TICKS_HIGH
     return d
+
+
+def ticks_add(t, d):
+    # t + d wrapped to 0 .. 2**30-1 (time.ticks_add(t, d) on a 32-bit port) for |d| <
+    # 2**29; the sum is compared before it is formed, so it never reaches 2**30.  t is
+    # masked first: a clock whose period is a larger multiple of 2**30 (time.ticks_us of
+    # the 64-bit unix port: 2**62) gives the same result mod 2**30, as ticks_diff reads it
+    t &= _TICKS_MASK
+    if d >= 0:
+        if t > _TICKS_MASK - d:
+            return t - (_TICKS_MASK - d) - 1
+        return t + d
+    if t < -d:
+        return t + d + _TICKS_MASK + 1
+    return t + d
+
+
+def ticks_next(t):
+    # t + 1 wrapped to 0 .. 2**30-1 (tick and uptime counters)
+    if t < _TICKS_MASK:
+        return t + 1
+    return 0
 
 
 def s32_le(buf, i):

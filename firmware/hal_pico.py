@@ -71,7 +71,6 @@ class HalPico:
         machine.Pin(board.ENC_B_PIN, machine.Pin.IN, machine.Pin.PULL_UP)
         self._sm = rp2.StateMachine(board.ENC_PIO_SM, _quadrature, in_base=pa)
         self._sm.active(1)
-        self._enc = 0
         self._pwm = machine.PWM(machine.Pin(board.PWM_PIN))
         self._pwm.freq(board.PWM_FREQ)
         self._pwm.duty_u16(0)
@@ -91,10 +90,18 @@ class HalPico:
         return self._read_u16() >> self._adc_shift
 
     def read_encoder(self):
-        # the latest pushed count (drain the FIFO; keep the last value if none)
-        while self._rx_fifo():
-            self._enc = self._get() & 0xFFFF
-        return self._enc
+        # the latest count.  The program pushes on every sampling pass (a few cycles
+        # apart), so `while rx_fifo(): get()` would never see the FIFO empty.  As
+        # pico-examples' quadrature_encoder does: take FIFO level + 1 values -- the level
+        # read once (at most the FIFO depth), the last get() waits for the next push,
+        # which comes within one sampling pass: bounded time by construction, and the
+        # value is the one the program pushed after this call began
+        n = self._rx_fifo()
+        v = self._get()
+        while n > 0:
+            v = self._get()
+            n -= 1
+        return v & 0xFFFF
 
     def set_motor(self, duty):
         if self._msign < 0:
@@ -119,9 +126,13 @@ class HalPico:
         return time.ticks_diff(a, b)
 
     def uart(self):
-        # the host-link UART of the board config (start-up only)
+        # the host-link UART of the board config (start-up only).  Receive buffer: the
+        # link reads at most 64 bytes a tick, so a burst of commands waits here (1024
+        # bytes = 10 ms of line at 1 Mbaud); transmit buffer: a tick's telemetry,
+        # heartbeat and replies go out without write() waiting for the line
         b = self.b
-        return machine.UART(b.UART_ID, b.UART_BAUD, tx=machine.Pin(b.UART_TX_PIN), rx=machine.Pin(b.UART_RX_PIN))
+        return machine.UART(b.UART_ID, b.UART_BAUD, tx=machine.Pin(b.UART_TX_PIN), rx=machine.Pin(b.UART_RX_PIN),
+                            rxbuf=b.UART_RXBUF, txbuf=b.UART_TXBUF)
 
     def off(self):
         # motor off and driver disabled (on exit / exception)

@@ -1,11 +1,15 @@
 # Host link of a board in normal (not HIL) operation: COBS serial frames on a UART
-# (framing.py), commands dispatched to the app (commands.py), telemetry every
-# telem_div ticks and a heartbeat every heartbeat_ms.  poll() is called by App.run()
-# once per tick after the control step; it allocates nothing.  Every valid frame feeds
-# the app's command watchdog.
+# (framing.py), commands dispatched to the app (commands.py), telemetry and heartbeats
+# paced by pacer.Pacer (as in the HIL main).  poll() is called by App.run() once per
+# tick after the control step; it allocates nothing.  Every valid frame feeds the
+# app's command watchdog.
 #
-# uart: machine.UART-like with any() and readinto(buf, n); write(buf) takes a whole
-# buffer, so one memoryview per frame length is made here, once.
+# uart: machine.UART-like with any() (bytes waiting; a port may say 1 when there are
+# more) and readinto(buf, n).  Only bytes any() reported are read: rp2's readinto waits
+# for all n bytes (up to an inter-character timeout of >= 1 ms at 1 Mbaud), a stall of
+# half a loop period.  At most _RX bytes per tick (bounded time); the rest waits in the
+# UART's receive buffer (HalPico.uart() makes it large) for the next tick.  write(buf)
+# takes a whole buffer, so one memoryview per frame length is made here, once.
 
 try:
     from micropython import const
@@ -17,7 +21,7 @@ from . import codec
 from . import commands
 from . import crc16
 from . import framing
-from . import msgtable as T
+from .pacer import Pacer
 
 _RX = const(64)
 
@@ -34,11 +38,9 @@ class SerialLink:
         self._views = [mv[:k] for k in range(len(enc.out) + 1)]
         self.tx = framing.SerialTx(enc, self._write)
         self.disp = commands.Dispatcher(app, layout, self.tx, table)
+        self.pacer = Pacer(app, self.disp)
         self.rx = bytearray(_RX)
-        self.tseq = 0
-        self._telem_left = 0
-        self._hb_ticks = 0
-        self._feed = self.dec.feed
+        self._scan = self.dec.scan
         self._uart_write = uart.write
         self._readinto = uart.readinto
         self._any = uart.any
@@ -47,29 +49,31 @@ class SerialLink:
         self._uart_write(self._views[n])
 
     def poll(self):
+        rx = self.rx
+        left = _RX
+        while left > 0:
+            n = self._any()
+            if not n:
+                break
+            if n > left:
+                n = left
+            n = self._readinto(rx, n)
+            if not n:
+                break
+            left -= n
+            self._frames(n)
+        self.pacer.tick()
+
+    def _frames(self, n):
+        # decode rx[0:n]; every complete valid frame is dispatched
         app = self.app
-        if self._any():
-            n = self._readinto(self.rx, _RX)
-            if n:
-                rx = self.rx
-                feed = self._feed
-                dec = self.dec
-                for i in range(n):
-                    mid = feed(rx[i])
-                    if mid >= 0:
-                        app.feed_watchdog()
-                        self.disp.handle(mid, dec.seq, dec.buf, 2)
-        div = app.param_get(T.P_TELEM_DIV)
-        if div > 0:
-            self._telem_left -= 1
-            if self._telem_left <= 0:
-                self._telem_left = div
-                self.tseq = (self.tseq + 1) & 0xFF
-                self.disp.send_telemetry(self.tseq)
-        hb = app.param_get(T.P_HEARTBEAT_MS)
-        if hb > 0:
-            self._hb_ticks += app.period_us
-            if self._hb_ticks >= hb * 1000:
-                self._hb_ticks = 0
-                self.tseq = (self.tseq + 1) & 0xFF
-                self.disp.send_heartbeat(self.tseq)
+        dec = self.dec
+        scan = self._scan
+        rx = self.rx
+        i = 0
+        while i < n:
+            mid = scan(rx, i, n)
+            i = dec.next
+            if mid >= 0:
+                app.feed_watchdog()
+                self.disp.handle(mid, dec.seq, dec.buf, 2)

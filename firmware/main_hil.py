@@ -17,8 +17,10 @@
 #       so a frame that arrives before a step is the one that step uses.
 # Both modes decode every other frame through commands.Dispatcher (arm, parameters,
 # requests...) and send telemetry every telem_div steps and a heartbeat every
-# heartbeat_ms.  The loop allocates nothing (tests/test_hil_*.py run it under
-# micropython.heap_lock()).  main() returns 0 when the host hangs up.
+# heartbeat_ms of board time (pacer.Pacer, as the board's own link does; in lockstep a
+# host that sends nothing still gets heartbeats, _IDLE_MS of board time per idle wait).
+# The loop allocates nothing: app.run() holds the heap lock in real time, main() takes
+# it in lockstep when asked (tests/test_hil_*.py).  main() returns 0 when the host hangs up.
 
 try:
     from micropython import const
@@ -32,10 +34,13 @@ from . import codec
 from . import commands
 from . import crc16
 from . import msgtable as T
+from .fixmath import ticks_add, ticks_diff
 from .hal_hil import HilHal
+from .pacer import Pacer
 
 _RX = const(256)
 _IDLE_MS = const(50)
+_IDLE_US = const(50000)
 # real time: stop serving the link this long before the next step (app.run spins it)
 _GUARD_US = const(250)
 
@@ -127,16 +132,12 @@ class HilMain:
             self.app = app_factory(self.hal, rt_link)
         self.hal.set_status(self.app.fill_heartbeat)
         self.disp = commands.Dispatcher(self.app, layout, self.tx, table)
+        self.pacer = Pacer(self.app, self.disp)
         self.rx = bytearray(_RX)
         self.sv = array("i", [0] * 4)
-        self.tseq = 0
         self.n_steps = 0
         self.n_frames = 0
-        self._telem_left = 0
-        self._hb_last = 0
         self.running = True
-        # micropython module when the loop must run heap-locked (see main())
-        self._lock = None
         # made now: raising it at the end must not allocate (the heap may be locked)
         self._hangup = HangUp()
         # cached bound methods (no allocation when called in the loop)
@@ -144,7 +145,8 @@ class HilMain:
         self._feed = self.dec.feed
         self._readinto = uart.readinto
         self._ticks_us = self.hal.ticks_us
-        self._diff = self.hal.ticks_diff
+        # the deadline arithmetic is mod 2**30 (fixmath), whatever the port's ticks period
+        self._diff = ticks_diff
         self._timing = self.app.timing
         # every valid frame from the host feeds the command watchdog (sensor frames via
         # the HAL's n_sensor; command frames here, as link_serial does on a board)
@@ -187,34 +189,14 @@ class HilMain:
         self._step()
         self.hal.end_tick()
         self.n_steps += 1
-        self._periodic()
-
-    def _periodic(self):
-        # telemetry every telem_div steps, heartbeat every heartbeat_ms
-        div = self.app.param_get(T.P_TELEM_DIV)
-        if div > 0:
-            self._telem_left -= 1
-            if self._telem_left <= 0:
-                self._telem_left = div
-                self.tseq = (self.tseq + 1) & 0xFF
-                self.disp.send_telemetry(self.tseq)
-        self._heartbeat()
-
-    def _heartbeat(self):
-        hb = self.app.param_get(T.P_HEARTBEAT_MS)
-        if hb > 0:
-            now = self.hal.ticks_ms()
-            if self._diff(now, self._hb_last) >= hb:
-                self._hb_last = now
-                self.tseq = (self.tseq + 1) & 0xFF
-                self.disp.send_heartbeat(self.tseq)
+        self.pacer.tick()
 
     # ---- the loops ----
     def run_lockstep(self):
         uart = self.uart
         while self.running:
             if not uart.wait(_IDLE_MS):
-                self._heartbeat()
+                self.pacer.elapse(_IDLE_US)
                 continue
             if self._drain(True) == 0 and self._hung_up():
                 return 0
@@ -223,15 +205,11 @@ class HilMain:
     def poll(self):
         # real time, called by app.run() after each step: answer, periodic messages,
         # then serve the link until _GUARD_US before the next step
-        if self._lock is not None:
-            # app.run() has finished its set-up (it binds our poll): lock from here on
-            self._lock.heap_lock()
-            self._lock = None
         self.hal.end_tick()
         self.n_steps += 1
-        self._periodic()
+        self.pacer.tick()
         uart = self.uart
-        deadline = self._timing.last_us + self.app.period_us
+        deadline = ticks_add(self._timing.last_us, self.app.period_us)
         diff = self._diff
         ticks = self._ticks_us
         while True:
@@ -262,8 +240,9 @@ class HilMain:
 
 def main(port=None, link="serial", mode="lockstep", node=1, uart=None, heap_lock=False, boot_file=None):
     # port: tty path for the unix port; uart: a ready UART object (a board).
-    # heap_lock: run the loop under micropython.heap_lock() -- any allocation in it
-    # then raises MemoryError and ends the run (tests use it as the allocation proof).
+    # heap_lock: lockstep runs under micropython.heap_lock() -- any allocation in it then
+    # raises MemoryError and ends the run (tests use it as the allocation proof).  Real
+    # time is always locked by app.run(), where an allocation latches F_LOOP (motor off).
     if uart is None:
         from .uart_unix import UnixUART
         uart = UnixUART(port)
@@ -276,18 +255,16 @@ def main(port=None, link="serial", mode="lockstep", node=1, uart=None, heap_lock
         from .main import boot_count
         config = {"boot": boot_count(boot_file)}
     m = HilMain(uart, link, mode, node, None, config)
-    if heap_lock:
+    lock = heap_lock and mode == "lockstep"
+    if lock:
         import gc
         import micropython
         gc.collect()
-        if mode == "realtime":
-            m._lock = micropython  # locked at the first poll(), after app.run()'s set-up
-        else:
-            micropython.heap_lock()
+        micropython.heap_lock()
     try:
         return m.run()
     finally:
-        if heap_lock:
+        if lock:
             import micropython
             micropython.heap_unlock()
         close = getattr(uart, "close", None)

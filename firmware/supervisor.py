@@ -13,6 +13,8 @@ F_TRACK = 16     # cart beyond the track (1.25 x the reference limit) while bala
 F_GAINS = 32     # the gain table failed its check at start-up (controller not usable)
 F_STALL = 64     # |duty| >= stall_duty for stall_ms with no encoder count while balancing:
                  # driver dead, motor or encoder disconnected, encoder stuck (App: on by default)
+F_LOOP = 128     # the paced loop failed (an allocation with the heap locked: MemoryError);
+                 # motor off, the loop goes on serving the link (App.run)
 
 try:
     from micropython import const

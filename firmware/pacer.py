@@ -1,0 +1,57 @@
+# Periodic messages of a host link, in one place for every main (the board's UART link,
+# firmware/link_serial.py, and the HIL main, firmware/main_hil.py): TELEM_STATE +
+# TELEM_CTRL every telem_div control ticks and a HEARTBEAT every heartbeat_ms.  Both
+# are counted in the board's own time -- control ticks of period_us at the loop rate,
+# the clock of uptime_ms -- not in the wall clock of whatever runs the loop.  One
+# sequence counter numbers telemetry and heartbeats (the host counts lost periodic
+# frames by it).  The first tick sends both, so a host sees a (re)started board at
+# once.  Allocation-free.
+#
+#   pacer = Pacer(app, disp)   app: param_get(index), period_us; disp: commands.Dispatcher
+#   pacer.tick()               after every control step
+#   pacer.elapse(us)           board time passing without control ticks (a HIL
+#                              lockstep link waiting for the host): heartbeats only
+
+try:
+    from micropython import const
+except ImportError:
+    def const(x):
+        return x
+
+from . import msgtable as T
+
+# above any heartbeat_ms (msgtable: at most 10000 ms): the first elapse() sends
+_HB_DUE_US = const(10000000)
+
+
+class Pacer:
+    def __init__(self, app, disp):
+        self.app = app
+        self.disp = disp
+        self.seq = 0
+        self._telem_left = 0
+        self._hb_us = _HB_DUE_US
+
+    def tick(self):
+        app = self.app
+        div = app.param_get(T.P_TELEM_DIV)
+        if div > 0:
+            self._telem_left -= 1
+            if self._telem_left <= 0:
+                self._telem_left = div
+                self.seq = (self.seq + 1) & 0xFF
+                self.disp.send_telemetry(self.seq)
+        self.elapse(app.period_us)
+
+    def elapse(self, us):
+        # us: 0 .. 2**20 per call (a period or an idle wait); the sum stays below 2**25
+        hb = self.app.param_get(T.P_HEARTBEAT_MS)
+        if hb <= 0:
+            return
+        t = self._hb_us + us
+        if t < hb * 1000:
+            self._hb_us = t
+            return
+        self._hb_us = 0
+        self.seq = (self.seq + 1) & 0xFF
+        self.disp.send_heartbeat(self.seq)
