@@ -28,6 +28,8 @@ LAYERS: tuple[str, ...] = (
     "host.boards",
     "host.hil",
     "host.studies",
+    "host.operate",
+    "host.dashboard",
     "host.bench",
     "host.cli",
 )
