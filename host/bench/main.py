@@ -24,6 +24,7 @@ BENCHES: dict[str, str] = {
     "proto_fuzz": "host.bench.proto:bench_fuzz",
     "firmware": "host.bench.firmware:bench",
     "hil": "host.bench.hil:bench_hil",
+    "rp2040": "host.bench.rp2040:bench",
 }
 
 

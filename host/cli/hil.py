@@ -48,6 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="run the firmware under the MicroPython unix port on a pty (default)")
     where.add_argument("--port", metavar="DEV",
                        help="a board running firmware.main_hil: serial device, or CAN channel with --link can")
+    where.add_argument("--emulate", choices=("rp2040",), metavar="BOARD",
+                       help="rp2040: the board firmware (main.py) on an emulated Pico, the plant on its pins")
     parser.add_argument("--link", choices=("serial", "can"), default="serial",
                         help="framing: COBS serial frames or CAN frames (default serial)")
     parser.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
@@ -66,6 +68,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tolerance", type=A.positive, default=0.01,
                         help="largest |phi_hil - phi_float| accepted (rad, default 0.01)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
+    parser.add_argument("--json", metavar="FILE",
+                        help="also write one JSON object per scenario (verdict, metrics, loop tick time)")
 
 
 class Progress:
@@ -204,9 +208,14 @@ def run(args: argparse.Namespace) -> int:
     from host.hil.errors import HilError
 
     out = A.check_out_dir(args.out, "--out")
+    json_path = A.check_out_file(args.json, "--json")
     scenarios = hil_runs.resolve_scenarios(args.scenario)
     check_scenarios(scenarios)
     prog = Progress(enabled=not args.quiet)
+    if args.emulate:
+        from host.cli.emulate import hil_emulated
+
+        return hil_emulated(args, out, scenarios, prog, json_path, cli=sys.modules[__name__])
     where = "virtual board (MicroPython unix port on a pty)" if args.port is None else args.port
     if not args.quiet:
         print(f"upright hil: {len(scenarios)} scenario(s), {args.link} link, {args.mode}, {where}", file=sys.stderr)
@@ -228,6 +237,10 @@ def run(args: argparse.Namespace) -> int:
         _partial(done, out, scenarios, args.tolerance)
         raise
     write_summary(runs, out, planned=scenarios, tolerance=args.tolerance)
+    if json_path is not None:
+        from host.hil.records import write_records
+
+        write_records(runs, json_path)
     return report(runs, tolerance=args.tolerance, out=out)
 
 

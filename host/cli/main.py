@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "generate": ("host.cli.generate", "regenerate every generated file (or --check that none is stale)"),
     "proto": ("host.cli.proto", "encode/decode protocol messages (serial or CAN framing) and dump a live link"),
     "hil": ("host.cli.hil", "close the firmware in a hardware-in-the-loop run with the simulated plant"),
+    "emulate": ("host.cli.emulate", "run the firmware on an emulated board (rp2040) with its host link on a pty"),
     "sweep": ("host.cli.sweep", "batch Monte Carlo: robustness, weight tuning, largest recoverable tilt"),
     "soak": ("host.cli.soak", "long lockstep HIL run: firmware heap, timing drift, telemetry accounted for, metrics stable"),
     "demo": ("host.cli.demo", "the main job: the report's scenarios balanced by the firmware, summary and plots"),

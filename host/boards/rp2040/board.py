@@ -118,6 +118,11 @@ class StepResult:
         CPU seconds node spent on it (the speed figure that does not depend on machine load).
     log : list of str
         New emulator warnings (unimplemented registers or instructions).
+    loop_iters : list of (int, int)
+        With the loop probe on (:meth:`EmulatedBoard.loop_probe`): ``(start, end)`` cycles of
+        the firmware loop iterations that ended during the interval.
+    timer_reads : list of int
+        With the probe's ``raw`` option: the cycle of every TIMER read.
     """
 
     cycles: int
@@ -141,6 +146,8 @@ class StepResult:
     wall_s: float
     cpu_s: float = 0.0
     log: list[str] = field(default_factory=list)
+    loop_iters: list[tuple[int, int]] = field(default_factory=list)
+    timer_reads: list[int] = field(default_factory=list)
 
     @classmethod
     def from_answer(cls, a: dict[str, Any]) -> "StepResult":
@@ -169,6 +176,8 @@ class StepResult:
             wall_s=a.get("wall_ms", 0.0) / 1000.0,
             cpu_s=a.get("cpu_ms", 0.0) / 1000.0,
             log=list(a.get("log", [])),
+            loop_iters=[(e[0], e[1]) for e in a.get("loop_iters", ())],
+            timer_reads=list(a.get("timer_reads", ())),
         )
 
 
@@ -275,6 +284,7 @@ class EmulatedBoard:
         self._uart_tail = bytearray()
         self._usb_buf = bytearray()  # USB output not yet consumed by exec()
         self._raw = False
+        self.loop_iters: list[tuple[int, int]] = []  # every loop iteration the probe found (see loop_probe)
         self._proc: subprocess.Popen[bytes] | None = None
         self._tmp = tempfile.TemporaryDirectory(prefix="upright-rp2040-")
         tmp = Path(self._tmp.name)
@@ -359,13 +369,30 @@ class EmulatedBoard:
         """Set an ADC input (12-bit ``value``; channel 0 is GP26, the angle potentiometer)."""
         self._request({"cmd": "adc", "ch": int(channel), "value": int(value) & 0xFFF})
 
-    def set_encoder(self, count: int) -> None:
+    def set_encoder(self, count: int, within_us: float | None = None) -> None:
         """Quadrature position to reach during the next :meth:`run` (x4 counts, A=GP2, B=GP3).
 
-        The edges are spread evenly over that interval; a count going up makes B lead A (the
-        firmware's PIO decoder counts up).  The position starts at 0 at reset.
+        The edges are spread evenly over that interval (over its first ``within_us`` when
+        given); a count going up makes B lead A (the firmware's PIO decoder counts up).  The
+        position starts at 0 at reset.
         """
-        self._request({"cmd": "encoder", "count": int(count)})
+        req: dict[str, Any] = {"cmd": "encoder", "count": int(count)}
+        if within_us:
+            req["within_us"] = float(within_us)
+        self._request(req)
+
+    def loop_probe(self, on: bool = True, *, gap_us: float = 40.0, min_reads: int = 3, raw: bool = False) -> None:
+        """Find the firmware loop's iterations from its TIMER reads (``StepResult.loop_iters``).
+
+        The paced loop (``App.run``) busy-waits reading ``ticks_us()``: clusters of at least
+        ``min_reads`` TIMER reads each within ``gap_us`` of the previous are its waits; an
+        iteration runs from the last read of one cluster to the first of the next (see
+        ``harness.mjs``).  ``raw`` also returns every read's cycle (``StepResult.timer_reads``).
+        Every iteration found is also appended to :attr:`loop_iters` (the last 100,000 kept), also
+        those of the runs :meth:`exec` makes.
+        """
+        lp = {"gap_us": float(gap_us), "min_reads": int(min_reads), "raw": bool(raw)} if on else None
+        self._request({"cmd": "config", "loop_probe": lp})
 
     def uart_write(self, data: bytes) -> None:
         """Send bytes to UART0 RX (GP1), one character time apart at the configured baud."""
@@ -391,6 +418,9 @@ class EmulatedBoard:
         r = StepResult.from_answer(ans)
         self.cycles = r.cycles
         self.uart_baud = r.uart_baud
+        if r.loop_iters:
+            self.loop_iters += r.loop_iters
+            del self.loop_iters[:-100_000]
         if r.usb_tx:
             self._usb_tail += r.usb_tx
             del self._usb_tail[:-8192]

@@ -5,15 +5,20 @@
 //
 // Requests (one JSON object a line; every request gets exactly one JSON answer line):
 //   {"cmd":"adc","ch":0,"value":2048}        ADC input channel (12-bit value)
-//   {"cmd":"encoder","count":N}             quadrature position target (x4 counts, A=GP2 B=GP3):
-//                                           reached by edges spread evenly over the next "run"
+//   {"cmd":"encoder","count":N,"within_us":W}  quadrature position target (x4 counts, A=GP2
+//                                           B=GP3): reached by edges spread evenly over the next
+//                                           "run" (or over its first W us when given)
 //   {"cmd":"uart","data":"<hex>"}           bytes onto UART0 RX, one after another at the line's
 //                                           byte time (start + data + parity + stop bits at the
 //                                           baud rate the firmware configured)
 //   {"cmd":"usb","data":"<hex>"}            bytes from the USB host to the CDC OUT endpoint
 //   {"cmd":"run","us":1000}                 run for that much emulated time; answers the state
 //   {"cmd":"state"}                         the state answer without running
-//   {"cmd":"config","pwm":16,"dir":17,"en":18,"watch":[17,18],"pwm_edges":false}
+//   {"cmd":"config","pwm":16,"dir":17,"en":18,"watch":[17,18],"pwm_edges":false,
+//    "loop_probe":{"gap_us":40,"min_reads":3,"raw":false}}
+//                                           loop_probe: find the firmware's loop iterations from
+//                                           its reads of the TIMER (see "loop probe" below);
+//                                           null switches it off
 //   {"cmd":"quit"}
 // Answers: {"ok":true,...} or {"ok":false,"error":"..."}.  A "run" answer holds the cycle count,
 // the PWM slice of the PWM pin (raw registers and the double-buffered values in force), DIR/EN
@@ -453,6 +458,7 @@ let encPos = 0;
 let encTarget = 0;
 const encEdges = []; // nanos of the pending edges of this interval
 let encStep = 0;
+let encWithin = 0; // ns: edges of the next interval within this much of its start (0: all of it)
 function encApply(pos) {
   const v = GRAY[pos & 3];
   const a = !!(v & 1), b = !!(v & 2);
@@ -477,7 +483,8 @@ function encPlan(intervalNanos) {
   if (!n) return;
   encStep = encTarget > encPos ? 1 : -1;
   const t0 = clock.nanos;
-  for (let k = 0; k < n; k++) encEdges.push(t0 + ((k + 0.5) * intervalNanos) / n);
+  const span = encWithin > 0 && encWithin < intervalNanos ? encWithin : intervalNanos;
+  for (let k = 0; k < n; k++) encEdges.push(t0 + ((k + 0.5) * span) / n);
   encAlarm.schedule(encEdges[0] - t0);
 }
 encApply(0);
@@ -526,6 +533,45 @@ function pwmState() {
       const p = pwmState();
       pwmEvents.push([Math.round(clock.nanos / NS_PER_CYCLE), p.compare, p.top, p.enabled ? 1 : 0, p.div]);
     }
+  };
+}
+
+
+// ---------------------------------------------------------------- loop probe
+// The firmware's paced loop (App.run) busy-waits for its deadline reading ticks_us() -- the
+// TIMER's raw count -- every few microseconds, and reads it at the start and end of each step;
+// a loop iteration (step + link poll) reads it rarely.  So the reads form clusters (at least
+// min_reads reads, each within gap_us of the previous): a wait.  The last read of a cluster
+// starts an iteration (the step's own first ticks_us()), the first read of the next cluster
+// ends it (the loop's deadline check after the poll).  An overrun leaves no wait, but the
+// loop's deadline reset and its checks still read the TIMER back to back: a short cluster.
+// Measured in emulated cycles, from the outside: the firmware is not changed.
+const probe = { on: false, gap: 40 * 125, minReads: 3, raw: false, last: -Infinity, run: 0, runStart: 0,
+                iterStart: null, iters: [], reads: [] };
+function probeRead() {
+  const c = cyc; // cycle count at the start of the instruction doing the read
+  const p = probe;
+  if (p.raw) p.reads.push(c);
+  if (c - p.last <= p.gap) {
+    p.run++;
+  } else {
+    if (p.run >= p.minReads) p.iterStart = p.last;
+    p.run = 1;
+    p.runStart = c;
+  }
+  if (p.run === p.minReads && p.iterStart !== null) {
+    p.iters.push([p.iterStart, p.runStart]);
+    p.iterStart = null;
+  }
+  p.last = c;
+}
+{
+  const timer = mcu.peripherals[0x40054];
+  const orig = timer.readUint32.bind(timer);
+  timer.readUint32 = (offset) => {
+    // TIMELR 0x0c, TIMERAWH 0x24, TIMERAWL 0x28
+    if (probe.on && (offset === 0x28 || offset === 0x0c)) probeRead();
+    return orig(offset);
   };
 }
 
@@ -603,6 +649,14 @@ function stateAnswer(extra) {
     log: logCount > lastLog ? logTail.slice(-Math.min(logCount - lastLog, LOG_KEEP)) : [],
     ...extra,
   };
+  if (probe.on) {
+    out.loop_iters = probe.iters;
+    probe.iters = [];
+    if (probe.raw) {
+      out.timer_reads = probe.reads;
+      probe.reads = [];
+    }
+  }
   lastLog = logCount;
   edges = [];
   pwmEvents = [];
@@ -616,6 +670,7 @@ function handle(req) {
       return { ok: true };
     case 'encoder':
       encTarget = Math.trunc(req.count);
+      encWithin = Math.max(0, Number(req.within_us ?? 0) * 1000);
       return { ok: true };
     case 'uart':
       uarts[req.id ?? 0].queueRx(Buffer.from(req.data, 'hex'));
@@ -642,6 +697,20 @@ function handle(req) {
       if (req.en !== undefined) cfg.en = req.en;
       if (req.watch !== undefined) cfg.watch = req.watch;
       if (req.pwm_edges !== undefined) cfg.pwmEdges = !!req.pwm_edges;
+      if (req.loop_probe !== undefined) {
+        const lp = req.loop_probe;
+        probe.on = !!lp;
+        if (lp) {
+          probe.gap = Math.round(Number(lp.gap_us ?? 40) * 125);
+          probe.minReads = Math.max(2, Math.trunc(lp.min_reads ?? 3));
+          probe.raw = !!lp.raw;
+        }
+        probe.last = -Infinity;
+        probe.run = 0;
+        probe.iterStart = null;
+        probe.iters = [];
+        probe.reads = [];
+      }
       watchPins();
       return { ok: true, config: cfg };
     case 'quit':

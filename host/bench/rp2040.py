@@ -1,0 +1,180 @@
+"""Per-tick cost on the emulated RP2040 at 125 MHz, by part and by code emitter (``make bench``).
+
+On the emulated Pico (:class:`host.boards.rp2040.board.EmulatedBoard`: MicroPython's rp2 port,
+the project's bundle on its flash) with the real ``HalPico`` and the UART0 link, balancing
+(armed, pendulum upright), each part of a tick is timed with the board's own ``time.ticks_us``
+(emulated time: ideal Cortex-M0+ cycles, no flash-cache misses, so a real board is equal or
+slower), one call at a time with a pause between calls (the UART drains), the measuring
+overhead subtracted:
+
+sensors      ``HalPico.read_angle_raw`` + ``read_encoder`` + ``Sensors.update``
+supervisor   ``Supervisor.update``
+controller   the controller step of the emitter (``Controller.step`` / ``fastpath.step_native`` /
+             ``step_viper``: ``App(config={"emitter": ...})``)
+motor        ``Motor.duty`` + ``HalPico.set_motor``
+link poll    ``SerialLink.poll`` with nothing received and no telemetry due
+telemetry    one TELEM_STATE + TELEM_CTRL pair encoded and written to the UART
+app.step     the whole control step (``App.step``, balancing)
+loop tick    the whole paced-loop iteration (``App.run``: step + link poll, telemetry every
+             10th tick as ``main.py`` runs it), found from the outside by the harness's loop
+             probe; mean and max over 250 ticks
+
+Then a 10 s scenario closed on the pins (:mod:`host.hil.emulated`, ``main.py`` as flashed):
+its worst loop tick as a percentage of the period, and the emulator's speed (board seconds per
+wall second).  The unix-port figures of the same code are :mod:`host.bench.firmware`'s rows
+(``make bench`` prints both).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+import time
+from typing import Any
+
+import numpy as np
+
+from host.boards.rp2040.board import FIRMWARE, ROOT, EmulatedBoard
+
+__all__ = ["bench", "EMITTERS", "SCENARIO"]
+
+EMITTERS = ("bytecode", "native", "viper")
+SCENARIO = "square_wave_20cm_2p2s"
+SCENARIO_S = 10.0
+PARTS = ("sensors", "supervisor", "controller", "motor", "link poll", "telemetry", "app.step")
+
+SETUP = """
+import gc, time
+import firmware.board as B
+from firmware.hal_pico import HalPico
+from firmware.app import App
+from firmware.link_serial import SerialLink
+hal = HalPico(B)
+uart = hal.uart()
+T = time.ticks_us
+D = time.ticks_diff
+
+
+def mk(em, td):
+    cfg = B.config()
+    cfg['watchdog_ms'] = 10000
+    cfg['telem_div'] = td
+    cfg['emitter'] = em
+    a = App(hal, config=cfg)
+    a.set_link(SerialLink(uart, a))
+    return a
+
+
+def per(fn, n):
+    # mean us of one call, each call timed alone, 0.4 ms apart (the UART drains)
+    acc = 0
+    for i in range(n):
+        t0 = T()
+        fn()
+        acc += D(T(), t0)
+        time.sleep_us(400)
+    return acc / n
+
+
+def parts(em, n):
+    a = mk(em, 0)
+    a.sup.arm()
+    for i in range(3):
+        a.step()
+    s = a.sensors
+    sup = a.sup
+    c = a.ctrl
+    m = a.motor
+    cs = a._cstep
+    L = a.link
+    e = per(lambda: None, n)
+    r = {}
+    r['sensors'] = per(lambda: s.update(hal.read_angle_raw(), hal.read_encoder()), n) - e
+    r['supervisor'] = per(lambda: sup.update(s.counts, s.pos, s.rail, s.jump, s.delta, a.duty), n) - e
+    r['controller'] = per(lambda: cs(c, s.yx, s.yp, a.ref), n) - e
+    r['motor'] = per(lambda: hal.set_motor(m.duty(c.u, c.vh)), n) - e
+    r['link poll'] = per(L.poll, n) - e
+    r['telemetry'] = per(lambda: L.disp.send_telemetry(1), n) - e
+    r['app.step'] = per(a.step, n) - e
+    print(r, a.sup.state)
+    hal.set_motor(0)
+"""
+
+
+def _parts(board: EmulatedBoard, em: str, n: int = 40) -> tuple[dict[str, float], int]:
+    out = board.exec(f"parts({em!r}, {n})", timeout=10.0).strip()
+    d, state = out.rsplit(" ", 1)
+    import ast
+
+    return {k: float(v) for k, v in ast.literal_eval(d).items()}, int(state)
+
+
+def _loop(board: EmulatedBoard, em: str, ticks: int = 250) -> np.ndarray:
+    board.exec(f"a = mk({em!r}, 10)\na.sup.arm()", timeout=2.0)
+    board.loop_probe(gap_us=50.0)
+    board.loop_iters.clear()
+    board.exec(f"a.run(n={ticks})", timeout=ticks * 0.004 + 1.0)
+    board.loop_probe(False)
+    it = np.array([(e - s) / 125.0 for s, e in board.loop_iters])
+    return it[2:] if it.size > 4 else it  # the first iterations include the exec's start
+
+
+def bench() -> dict[str, Any]:
+    """The emulated RP2040's per-tick figures (see the module docstring)."""
+    notes: list[str] = []
+    if shutil.which("node") is None or not (ROOT / "node_modules" / "rp2040js").is_dir() or not FIRMWARE.is_file():
+        return {"title": "emulated RP2040: per-tick cost", "rows": [],
+                "notes": ["skipped: node, rp2040js or build/rp2040/firmware.bin missing (make setup)"]}
+    from sim.params import load_params
+
+    rows: list[dict[str, Any]] = []
+    t0 = time.perf_counter()
+    with EmulatedBoard(main=False) as b:
+        b.set_adc(int(round(load_params().pot_offset)))
+        b.exec(SETUP, timeout=5.0)
+        c0, w0 = b.cycles, time.perf_counter()
+        per_em: dict[str, dict[str, float]] = {}
+        for em in EMITTERS:
+            try:
+                p, state = _parts(b, em)
+            except Exception as exc:  # noqa: BLE001 - an emitter the port cannot run is a note, not a crash
+                notes.append(f"{em}: {str(exc).splitlines()[0]}")
+                continue
+            it = _loop(b, em)
+            per_em[em] = p
+            row: dict[str, Any] = {"emitter": em}
+            row.update({f"{k} us": round(v, 1) for k, v in p.items()})
+            row["loop tick us mean"] = round(float(it.mean()), 1) if it.size else float("nan")
+            row["loop tick us max"] = round(float(it.max()), 1) if it.size else float("nan")
+            row["state"] = "balancing" if state == 2 else f"state {state}"
+            rows.append(row)
+        parts_speed = (b.cycles - c0) / 125e6 / (time.perf_counter() - w0)
+    notes.append("emulated time at 125 MHz (ideal M0+ cycles, no flash-cache misses: a real board is equal or slower); "
+                 "loop tick = App.run iteration (step + link poll, telemetry every 10th tick), mean/max of 250")
+    if "bytecode" in per_em and "viper" in per_em:
+        bc, vp = per_em["bytecode"], per_em["viper"]
+        notes.append(f"viper vs bytecode: controller {bc['controller'] / max(vp['controller'], 1e-9):.1f}x faster, "
+                     f"app.step {bc['app.step'] / max(vp['app.step'], 1e-9):.2f}x")
+    # a 10 s scenario closed on the pins: worst tick as % of the period, emulator speed
+    from host.hil.emulated import EmulatedHil
+    from sim.scenario import load_scenario
+
+    sc = load_scenario(SCENARIO)
+    sc = dataclasses.replace(sc, duration=SCENARIO_S)
+    with EmulatedHil() as hil:
+        run = hil.run(sc)
+    st = run.stats
+    s = run.summary()
+    rows.append({
+        "emitter": f"main.py ({SCENARIO}, {SCENARIO_S:g} s)",
+        "loop tick us mean": round(st["tick_us_mean"], 1), "loop tick us max": round(st["tick_us_max"], 1),
+        "worst tick % of period": round(100 * st["tick_us_max"] / st["period_us"], 1),
+        "overruns": st["overruns"], "emulator board s/wall s": round(st["emu_speed"], 3),
+        "state": "as expected" if s.as_expected else "NOT as expected",
+    })
+    notes.append(f"emulator speed: {st['emu_speed']:.3f} board s per wall s closing the plant on the pins "
+                 f"({st['board_s']:.1f} board s in {st['wall_s']:.0f} s), {parts_speed:.3f} timing the parts; "
+                 f"targets: whole tick <= 500 us, worst tick of a 10 s scenario <= 70 % of the period")
+    return {"title": "emulated RP2040 (125 MHz): per-tick cost by part and emitter", "rows": rows, "notes": notes,
+            "scenario": {"name": SCENARIO, "duration_s": SCENARIO_S, **{k: v for k, v in st.items() if k != "nacks"}},
+            "total_wall_s": time.perf_counter() - t0}

@@ -1,0 +1,148 @@
+"""The emulated Pico's host link (UART0) on a pseudo-terminal: a port any ``--port`` tool opens.
+
+:class:`PtyBridge` runs an :class:`~host.boards.rp2040.board.EmulatedBoard` with ``main.py`` (the
+board as after ``make flash``) and copies bytes between its UART0 and the master end of a pty:
+what a tool writes to the slave (``/dev/pts/N``) goes onto the board's RX line at the line's
+byte timing, what the board sends comes out of the slave.  The sensors are held still (the
+pendulum upright at the potentiometer's offset, the encoder at 0) unless ``set_adc`` /
+``set_encoder`` of :attr:`PtyBridge.board` say otherwise.
+
+The emulation runs at most as fast as real time (in practice slower: about 0.1 board
+seconds per wall second with the firmware's busy-waiting loop), so a tool's timeouts, counted
+on the wall clock, are generous in board time.
+
+The bridge keeps its own handle on the slave end, so a tool may close the port and another
+open it again; what the board sends while nobody reads is dropped once the pty's buffer is
+full (as a USB-serial adapter with no host does).
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import select
+import termios
+import time
+import tty
+from pathlib import Path
+from typing import Callable
+
+from host.boards.rp2040.board import CYCLES_PER_US, FIRMWARE, EmulatedBoard
+
+__all__ = ["PtyBridge"]
+
+
+class PtyBridge:
+    """An emulated board whose UART0 is bridged to a new pty (see the module docstring).
+
+    Parameters
+    ----------
+    bundle_dir : Path, optional
+        Firmware bundle (default: built into a temporary directory).
+    firmware : Path
+        The MicroPython image.
+    chunk_us : float
+        Board time run between two looks at the pty.
+    adc : int, optional
+        ADC0 input held during the run (default: ``sensors.pot_offset`` of ``sim/robot.toml``,
+        the pendulum upright).
+
+    Attributes
+    ----------
+    port : str
+        The slave path (``/dev/pts/N``) tools open.
+    board : EmulatedBoard
+        The running board.
+    """
+
+    def __init__(self, bundle_dir: Path | None = None, *, firmware: Path = FIRMWARE, chunk_us: float = 2000.0,
+                 adc: int | None = None) -> None:
+        self.chunk_us = float(chunk_us)
+        self._master, self._slave = os.openpty()
+        self.port = os.ttyname(self._slave)
+        try:
+            tty.setraw(self._slave)  # no echo, no line editing before a tool sets its own mode
+            os.set_blocking(self._master, False)
+            self.board = EmulatedBoard(bundle_dir, firmware=firmware, main=True)
+            if adc is None:
+                from sim.params import load_params
+
+                adc = int(round(load_params().pot_offset))
+            self.board.set_adc(int(adc))
+        except BaseException:
+            self._close_fds()
+            raise
+        self.rx_bytes = 0
+        self.tx_bytes = 0
+        self.tx_dropped = 0
+
+    def _close_fds(self) -> None:
+        for fd in (self._master, self._slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        self._master = self._slave = -1
+
+    def close(self) -> None:
+        """Stop the board and remove the pty."""
+        board = getattr(self, "board", None)
+        if board is not None:
+            board.close()
+            self.board = None  # type: ignore[assignment]
+        self._close_fds()
+
+    def __enter__(self) -> "PtyBridge":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            try:
+                n = os.write(self._master, view)
+            except BlockingIOError:
+                # nobody reads the port: drop what waits there (stale for the next tool)
+                termios.tcflush(self._slave, termios.TCIFLUSH)
+                try:
+                    n = os.write(self._master, view)
+                except BlockingIOError:
+                    self.tx_dropped += len(view)
+                    return
+            view = view[n:]
+        self.tx_bytes += len(data)
+
+    def step(self) -> None:
+        """Copy what a tool wrote onto the board's RX line, run ``chunk_us``, copy the board's output out."""
+        try:
+            data = os.read(self._master, 4096)
+        except BlockingIOError:
+            data = b""
+        except OSError as exc:  # pragma: no cover - EIO when no slave is open (we hold one)
+            if exc.errno != errno.EIO:
+                raise
+            data = b""
+        if data:
+            self.rx_bytes += len(data)
+            self.board.uart_write(data)
+        r = self.board.run(self.chunk_us)
+        if r.uart_tx:
+            self._write(r.uart_tx)
+
+    def serve(self, stop: Callable[[], bool] = lambda: False) -> None:
+        """Run until ``stop()`` is true, never faster than real time.
+
+        Raises
+        ------
+        BoardError
+            The board raised or stopped (quoting its last output).
+        """
+        t0 = time.monotonic()
+        c0 = self.board.cycles
+        while not stop():
+            self.step()
+            ahead = (self.board.cycles - c0) / (CYCLES_PER_US * 1e6) - (time.monotonic() - t0)
+            if ahead > 0:
+                select.select([self._master], [], [], ahead)
