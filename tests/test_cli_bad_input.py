@@ -206,11 +206,11 @@ def test_proto_decode_of_nothing_is_one_line(capsys, frame: str, needle: str) ->
     assert out == ""
 
 
-def test_sweep_flags_checked_at_run_time_keep_exit_1(capsys, tmp_path: Path) -> None:
-    # as tests/test_sweep_cli.py pins for -1: the same check refuses nan and absurd values
+def test_sweep_flags_checked_at_run_time_exit_2(capsys, tmp_path: Path) -> None:
+    # bad input, whether argparse or the command finds it: exit 2 (tests/test_sweep_cli.py pins -1)
     for v in ("nan", "1e9"):
         rc, _, err = _run(capsys, ["sweep", "robustness", "--duration", v, "--out", str(tmp_path)])
-        _one_line(rc, err, 1, "--duration")
+        _one_line(rc, err, 2, "--duration")
 
 
 # ---------------------------------------------------------------- main: one convention

@@ -199,7 +199,7 @@ def test_cli_export(tmp_path) -> None:
     assert len(blob.read_bytes()) % 4 == 0
     assert cli.main(["export", "--design", "place", "--out", str(out)]) == 0
     assert "design=place" in out.read_text()
-    assert cli.main(["export", "--design", "place", "--Q", "1", "0", "1", "0"]) == 1  # clear error, exit 1
+    assert cli.main(["export", "--design", "place", "--Q", "1", "0", "1", "0"]) == 2  # bad flag combination: exit 2
 
 
 @pytest.mark.parametrize("v_limit, w_limit, v_want, w_want",

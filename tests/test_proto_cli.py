@@ -95,4 +95,4 @@ def test_dbc_for_another_node(capsys):
     db = cantools.database.load_string(out, "dbc")
     assert rc == 0 and db.get_message_by_name("heartbeat").frame_id == (3 << 5) | M.Heartbeat.ID
     rc, _, err = _out(capsys, ["proto", "dbc", "--node", "64"])
-    assert rc == 1 and "0..63" in err
+    assert rc == 2 and "0..63" in err

@@ -70,6 +70,6 @@ def test_soak_checks_can_fail(over, probe, needle: str) -> None:
 def test_soak_cli_refuses_too_short_in_one_line() -> None:
     r = subprocess.run([sys.executable, "-m", "host.cli", "soak", "--sim-seconds", "3", "--quiet"], cwd=ROOT,
                        capture_output=True, text=True, timeout=60)
-    assert r.returncode == 1
+    assert r.returncode == 2
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert "sim_seconds" in r.stderr

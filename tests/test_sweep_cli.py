@@ -46,12 +46,12 @@ def test_tune_and_tilt_smoke(tmp_path, capsys) -> None:
 
 
 def test_bad_arguments_are_clear_errors(tmp_path, capsys) -> None:
-    assert cli.main(["sweep", "robustness", "--noise", "pink:1", "--out", str(tmp_path)]) == 1
+    assert cli.main(["sweep", "robustness", "--noise", "pink:1", "--out", str(tmp_path)]) == 2
     assert "--noise" in capsys.readouterr().err
-    assert cli.main(["sweep", "robustness", "--duration", "-1", "--out", str(tmp_path)]) == 1
-    assert cli.main(["sweep", "robustness", "--r", "-1", "--quiet", "--out", str(tmp_path)]) == 1
+    assert cli.main(["sweep", "robustness", "--duration", "-1", "--out", str(tmp_path)]) == 2
+    assert cli.main(["sweep", "robustness", "--r", "-1", "--quiet", "--out", str(tmp_path)]) == 2
     assert "R > 0" in capsys.readouterr().err
-    assert cli.main(["sweep", "robustness", "--observer", "0", "--quiet", "--out", str(tmp_path)]) == 1
+    assert cli.main(["sweep", "robustness", "--observer", "0", "--quiet", "--out", str(tmp_path)]) == 2
     with pytest.raises(SystemExit):
         cli.main(["sweep", "robustness", "--n", "0"])
     with pytest.raises(SystemExit):

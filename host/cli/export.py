@@ -45,6 +45,8 @@ def run(args: argparse.Namespace) -> int:
         if abs(ticks - round(ticks)) > 1e-6:
             raise A.UsageError(f"--rate {args.rate:g}: the measurement delay {p.delay:g} s (sensors.delay) would be "
                                f"{ticks:.4g} ticks; choose a rate at which it is a whole number of ticks")
+    if args.design != "lqr" and (args.Q is not None or args.R is not None):
+        raise A.UsageError(f"--Q/--R are LQR weights: they do not apply to --design {args.design}")
     kw = {} if args.noise is None else {"sigma_meas": tuple(args.noise)}
     c = controller_ss(p, rate=args.rate, design=args.design, Q=args.Q, R=args.R, u_max=args.u_max, **kw)
     fd = export(p, c, ki=args.ki, deadband=args.deadband, v_limit=args.v_limit, w_limit=args.w_limit)

@@ -191,7 +191,7 @@ def _cmd_dbc(args: argparse.Namespace) -> int:
     from host.link.dbc import render_dbc
 
     if args.node is not None and not 0 <= args.node < 64:
-        raise ValueError(f"--node must be 0..63, got {args.node}")
+        raise A.UsageError(f"--node must be 0..63, got {args.node}")
     sys.stdout.write(render_dbc(args.node))
     return 0
 

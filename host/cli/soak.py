@@ -12,7 +12,7 @@ from typing import Sequence
 
 from host.cli import args as A
 from host.hil.errors import HilError
-from host.hil.soak import SoakResult, soak
+from host.hil.soak import PERIOD_S, SoakResult, soak
 
 MAX_SOAK_S = 7 * 24 * 3600.0
 
@@ -41,6 +41,9 @@ def run(args: argparse.Namespace) -> int:
 
     from host.cli.main import interrupted
 
+    if not args.sim_seconds >= 2 * PERIOD_S:
+        raise A.UsageError(f"--sim-seconds (sim_seconds) must be at least {2 * PERIOD_S:g} "
+                           f"(two reference periods), got {args.sim_seconds:g}")
     res = SoakResult()
     try:
         soak(args.sim_seconds, link=args.link, chunk_s=args.chunk, tolerance=args.tolerance, progress=prog,

@@ -186,18 +186,20 @@ def run(args: argparse.Namespace) -> int:
     from sim.params import load_params
     from host.studies.sweep import Design, SweepConfig, Uncertainty
 
-    # --duration, --observer, --r and --noise are checked here (exit 1), as they always were
     if not 0 < args.duration <= A.MAX_DURATION_S:
-        raise ValueError(f"--duration must be in (0, {A.MAX_DURATION_S:g}] s, got {args.duration}")
-    if args.r is not None and not math.isfinite(args.r):
-        raise ValueError(f"--r must be a finite number, got {args.r}")
+        raise A.UsageError(f"--duration must be in (0, {A.MAX_DURATION_S:g}] s, got {args.duration}")
+    if args.r is not None and not (math.isfinite(args.r) and args.r > 0):
+        raise A.UsageError(f"--r: the LQR input weight must be finite with R > 0, got {args.r}")
     if not 0 <= args.tilt0 < math.pi / 2:
-        raise ValueError(f"--tilt0 must be in [0, pi/2), got {args.tilt0}")
+        raise A.UsageError(f"--tilt0 must be in [0, pi/2), got {args.tilt0}")
     if args.worst < 0:
-        raise ValueError(f"--worst must be >= 0, got {args.worst}")
+        raise A.UsageError(f"--worst must be >= 0, got {args.worst}")
     out = A.check_out_dir(args.out, "--out")
     params = load_params(args.params)
-    noise = parse_noise(args.noise)
+    try:
+        noise = parse_noise(args.noise)
+    except ValueError as exc:
+        raise A.UsageError(str(exc)) from exc
     out.mkdir(parents=True, exist_ok=True)
     bar = ProgressBar(f"sweep {args.kind}", enabled=not args.quiet)
     base = SweepConfig(params=params, design=_chosen_design(args), uncertainty=Uncertainty(tilt=args.tilt0),
@@ -250,7 +252,7 @@ def _chosen_design(args: argparse.Namespace) -> Any:
     from host.studies.sweep import Design
 
     if not args.observer > 0:
-        raise ValueError(f"--observer must be > 0, got {args.observer}")
+        raise A.UsageError(f"--observer must be > 0, got {args.observer}")
     if not _custom(args):
         return Design("lqr", u_max=args.u_max)
     qx = Q_DEFAULT[0] if args.q_x is None else args.q_x
@@ -328,7 +330,7 @@ def _tilt(args: argparse.Namespace, params: Any, out: Path, bar: ProgressBar, no
     from host.studies.sweep import default_tilt_designs, tilt
 
     if not args.step > 0:
-        raise ValueError(f"--step must be > 0, got {args.step}")
+        raise A.UsageError(f"--step must be > 0, got {args.step}")
     if _custom(args):
         designs = [_chosen_design(args)]
     else:

@@ -51,9 +51,9 @@ from sim.params import RobotParams, load_params
 from sim.plantsim import PlantSim
 from sim.scenario import load_scenario, scenario_from_dict
 
-__all__ = ["SoakResult", "soak"]
+__all__ = ["PERIOD_S", "SoakResult", "soak"]
 
-_PERIOD_S = 4.4  # the square wave's period: chunks are whole periods
+PERIOD_S = 4.4  # the square wave's period: chunks are whole periods
 _BALANCING = 2
 
 
@@ -136,15 +136,15 @@ def soak(sim_seconds: float, *, link: str = "serial", chunk_s: float | None = No
     -------
     SoakResult
     """
-    if not sim_seconds >= 2 * _PERIOD_S:
-        raise ValueError(f"sim_seconds must be at least {2 * _PERIOD_S:g} (two reference periods), got {sim_seconds!r}")
+    if not sim_seconds >= 2 * PERIOD_S:
+        raise ValueError(f"sim_seconds must be at least {2 * PERIOD_S:g} (two reference periods), got {sim_seconds!r}")
     if link not in ("serial", "can"):
         raise ValueError(f"link must be 'serial' or 'can', got {link!r}")
     if not 0 < tolerance < 1:
         raise ValueError(f"tolerance must be in (0, 1), got {tolerance!r}")
     params = params or load_params()
-    periods = max(1, round((chunk_s if chunk_s else sim_seconds / 10) / _PERIOD_S))
-    chunk_s = periods * _PERIOD_S
+    periods = max(1, round((chunk_s if chunk_s else sim_seconds / 10) / PERIOD_S))
+    chunk_s = periods * PERIOD_S
     res = SoakResult() if result is None else result
     scen = _scenario(sim_seconds)
     sess = HilSession(link=link, timeout=timeout, probe=True)
