@@ -43,7 +43,8 @@ $(NODE_STAMP): package.json package-lock.json
 # The emulated board's firmware: MicroPython's rp2 port (RPI_PICO) built from Debian trixie
 # sources with the machine's ARM toolchain, pinned and checksummed (docs/firmware.md).
 # The apt step installs only the missing packages; `apt-get update` only if that fails.
-APT_PACKAGES := gcc-arm-none-eabi libnewlib-arm-none-eabi libstdc++-arm-none-eabi-newlib cmake make gcc libc6-dev debian-archive-keyring
+# chromium: the dashboard's browser test (tests/test_dashboard_browser.py, playwright-core drives /usr/bin/chromium)
+APT_PACKAGES := gcc-arm-none-eabi libnewlib-arm-none-eabi libstdc++-arm-none-eabi-newlib cmake make gcc libc6-dev debian-archive-keyring chromium
 APT_STAMP    := build/.apt-installed
 SUDO         := $(if $(filter 0,$(shell id -u)),,sudo)
 
