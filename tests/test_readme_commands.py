@@ -25,6 +25,8 @@ README = ROOT / "README.md"
 SKIP: dict[str, str] = {
     "upright proto dump": "needs a board on /dev/ttyUSB0 (its default link); "
                           "tests/test_proto_cli.py dumps a live pty instead",
+    "upright emulate rp2040 --pty": "serves its pty until Ctrl-C; "
+                                    "tests/test_rp2040_hil.py::test_emulate_pty_serves_the_host_link opens it",
     "upright generate": "rewrites the repository's tracked generated files; the `--check` form is run, "
                         "and tests/test_generated.py renders every file",
 }
@@ -33,6 +35,7 @@ SKIP: dict[str, str] = {
 SHORTEN: dict[str, list[str]] = {
     "upright design": ["--no-search"],  # the LQR weight search alone is ~20 s
     "upright hil --virtual": ["--scenario", "tilt_0p1", "--no-gif"],  # all eight scenarios: a minute
+    "upright hil --emulate rp2040": ["--scenario", "tilt_0p1", "--no-gif"],  # one scenario: ~40 s wall
     "upright demo": ["--scenario", "tilt_0p1", "--no-gif"],  # all eight scenarios with GIFs: minutes
     "upright soak": ["--sim-seconds", "17.6"],  # an hour by default
     "upright sweep robustness": ["--n", "4", "--duration", "0.5", "--no-plots"],
