@@ -25,8 +25,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "proto": ("host.cli.proto", "encode/decode protocol messages (serial or CAN framing) and dump a live link"),
     "hil": ("host.cli.hil", "close the firmware in a hardware-in-the-loop run with the simulated plant"),
     "emulate": ("host.cli.emulate", "run the firmware on an emulated board (rp2040) with its host link on a pty"),
+    "board": ("host.cli.board", "operate a board: status, arm/disarm, parameters, gains, log, calibrate, excite"),
     "sweep": ("host.cli.sweep", "batch Monte Carlo: robustness, weight tuning, largest recoverable tilt"),
     "soak": ("host.cli.soak", "long lockstep HIL run: firmware heap, timing drift, telemetry accounted for, metrics stable"),
+    "dashboard": ("host.cli.dashboard", "a live web page for a board: plots, state, arm/disarm, reference, gains, recording"),
     "demo": ("host.cli.demo", "the main job: the report's scenarios balanced by the firmware, summary and plots"),
 }
 

@@ -1,0 +1,465 @@
+"""``upright board``: operate a board -- status, arm, parameters, gains, recording, calibration.
+
+Works the same on a real board (``--port /dev/ttyUSB0``), on the emulated Pico
+(``upright emulate rp2040 --pty`` prints the port) and on the virtual board
+(:mod:`host.boards.vport`).  Examples::
+
+    upright board --port /dev/ttyUSB0 status [--watch] [--json]
+    upright board --port /dev/ttyUSB0 arm --seconds 30       # host heartbeat while armed; Ctrl-C disarms
+    upright board --port /dev/ttyUSB0 params get max_duty
+    upright board --port /dev/ttyUSB0 params set max_duty 8000
+    upright board --port /dev/ttyUSB0 gains upload --params robot.toml --save
+    upright board --port /dev/ttyUSB0 log --seconds 10 --out run.parquet
+    upright board --port /dev/ttyUSB0 calibrate --out robot.toml
+    upright board --port /dev/ttyUSB0 excite --arm --seconds 20 --amplitude 0.02 --out prbs.csv
+
+Exit status: 0 done, 1 the board failed/refused/did not answer or the link was lost, 2 bad input
+(a parameter name or value outside the table, a file), 130 Ctrl-C -- after disarming the
+board where it can still be reached and closing every recording with all its rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import select
+import sys
+import time
+from typing import Any, Callable
+
+from host.cli import args as A
+
+__all__ = ["add_arguments", "run"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``upright board``."""
+    parser.add_argument("--port", required=True, metavar="DEV",
+                        help="serial device or pty (a CAN channel with --link can)")
+    parser.add_argument("--link", choices=("serial", "can"), default="serial", help="framing (default serial)")
+    parser.add_argument("--baud", "--baudrate", dest="baud", type=A.positive_int, default=A.board_baud(),
+                        help=f"serial line rate (default {A.board_baud()}: firmware/board.py UART_BAUD)")
+    parser.add_argument("--node", type=A.int_range(0, 63), default=1, help="CAN node id (default 1)")
+    parser.add_argument("--can-interface", default="slcan", metavar="NAME",
+                        help="python-can interface with --link can (default slcan)")
+    parser.add_argument("--timeout", type=A.in_range(0.01, 60), default=0.3,
+                        help="seconds per request attempt (default 0.3; 3 retries)")
+    parser.add_argument("--answer-timeout", type=A.in_range(0.1, 600), default=3.0,
+                        help="seconds for the board to answer at all (default 3)")
+    sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+
+    sp = sub.add_parser("status", help="identity, state, fault flags, heartbeat rate, link statistics")
+    sp.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    sp.add_argument("--watch", action="store_true", help="live view, refreshed until Ctrl-C")
+    sp.add_argument("--interval", type=A.in_range(0.1, 60), default=0.5, help="--watch refresh period (s)")
+
+    sp = sub.add_parser("arm", help="arm and keep the host heartbeat going; disarm on Ctrl-C, exit or --seconds")
+    sp.add_argument("--seconds", type=A.in_range(0, 86400, lo_open=True), default=None,
+                    help="disarm after this long (default: until Ctrl-C)")
+    sp.add_argument("--clear", action="store_true", help="clear latched faults first")
+    sub.add_parser("disarm", help="disarm (motor off)")
+    sub.add_parser("clear", help="clear latched faults (while disarmed)")
+
+    sp = sub.add_parser("params", help="parameters by name, with units and ranges from the parameter table")
+    psub = sp.add_subparsers(dest="params_action", metavar="get|set|save|list", required=True)
+    g = psub.add_parser("get", help="read parameters (all without a name)")
+    g.add_argument("names", nargs="*", metavar="NAME")
+    g.add_argument("--json", action="store_true")
+    s = psub.add_parser("set", help="write a parameter")
+    s.add_argument("name", metavar="NAME")
+    s.add_argument("value", metavar="VALUE")
+    psub.add_parser("save", help="persist parameters and gain table on the board")
+    psub.add_parser("list", help="the parameter table (no board needed beyond the connection)")
+
+    sp = sub.add_parser("gains", help="gain tables")
+    gsub = sp.add_subparsers(dest="gains_action", metavar="upload", required=True)
+    u = gsub.add_parser("upload", help="upload a table (a file or a design), read its CRC back")
+    u.add_argument("file", nargs="?", metavar="FILE", help=".py gain module (upright export --out) or .bin")
+    u.add_argument("--design", action="store_true", help="the shipped design (default without FILE)")
+    u.add_argument("--params", metavar="TOML", help="robot parameters for --design (upright board calibrate writes one)")
+    u.add_argument("--save", action="store_true", help="persist it on the board")
+
+    sp = sub.add_parser("log", help="record telemetry to CSV or Parquet")
+    _record_args(sp)
+
+    sp = sub.add_parser("calibrate", help="guided commissioning: offsets, scales and signs; robot TOML + board params")
+    sp.add_argument("--out", default="robot.toml", metavar="TOML", help="robot file to write (default robot.toml)")
+    sp.add_argument("--params", metavar="TOML", help="robot file to start from (default sim/robot.toml)")
+    sp.add_argument("--tilt-deg", type=A.in_range(2, 45), default=10.0, help="tilt of step 2 (degrees, default 10)")
+    sp.add_argument("--move-cm", type=A.in_range(1, 200), default=10.0, help="roll of step 3 (cm, default 10)")
+    sp.add_argument("--yes", action="store_true", help="do not wait for Enter (scripted runs)")
+    sp.add_argument("--no-motor", action="store_true", help="skip the motor-sign step")
+    sp.add_argument("--no-save", action="store_true", help="set the parameters on the board but do not persist them")
+
+    sp = sub.add_parser("excite", help="PRBS on the cart reference (identification), recorded like log")
+    _record_args(sp)
+    sp.add_argument("--amplitude", type=A.in_range(0, 0.2, lo_open=True), default=0.02, help="m (default 0.02)")
+    sp.add_argument("--bit", type=A.in_range(0.01, 10), default=0.2, help="PRBS bit time, s (default 0.2)")
+    sp.add_argument("--order", type=A.int_range(5, 10), default=7, help="LFSR order (period 2**order - 1 bits)")
+    sp.add_argument("--arm", action="store_true", help="arm first (and disarm at the end)")
+
+
+def _record_args(sp: argparse.ArgumentParser) -> None:
+    sp.add_argument("--seconds", type=A.in_range(0, 86400, lo_open=True), default=10.0,
+                    help="how long (default 10 s)")
+    sp.add_argument("--out", required=True, metavar="FILE", help=".csv or .parquet")
+    sp.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+# ------------------------------------------------------------------ helpers
+def _say(text: str = "") -> None:
+    print(text, flush=True)
+
+
+def _err(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def _bar(k: float, n: float, extra: str = "", width: int = 30) -> None:
+    frac = 0.0 if n <= 0 else max(0.0, min(1.0, k / n))
+    fill = int(width * frac)
+    tty = sys.stderr.isatty()
+    line = f"[{'#' * fill}{'.' * (width - fill)}] {100 * frac:3.0f}% {k:5.1f}/{n:g} s {extra}"
+    sys.stderr.write(("\r" + line) if tty else (line + "\n"))
+    sys.stderr.flush()
+
+
+def _open(args: argparse.Namespace) -> Any:
+    from host.operate.board import Board
+
+    return Board.open(args.port, link=args.link, baudrate=args.baud, node=args.node,
+                      can_interface=args.can_interface, timeout=args.timeout, answer_timeout=args.answer_timeout)
+
+
+def _fmt_hash(v: Any) -> str:
+    return f"{v:#06x}" if isinstance(v, int) else "-"
+
+
+def render_status(st: dict[str, Any]) -> str:
+    """The status dict as a few lines of text."""
+    from host.operate.board import fault_table
+
+    idn = st["identity"]
+    hb = st["heartbeat"]
+    lines = [f"board on {st['port']}"]
+    if idn.get("version_message"):
+        match = idn.get("table_match")
+        lines.append(f"  firmware {idn.get('fw_version_text', idn.get('fw_version'))}  message table "
+                     f"{_fmt_hash(idn.get('table_hash'))} ({'matches this host' if match else 'DIFFERS'})  "
+                     f"params {_fmt_hash(idn.get('param_hash'))}  gains CRC {_fmt_hash(idn.get('gains_crc'))}  "
+                     f"reset cause {idn.get('reset_cause_name', idn.get('reset_cause'))}")
+    else:
+        crc8 = hb.get("gains_crc")
+        lines.append("  identity: this firmware has no VERSION message" +
+                     (f"; gains CRC low byte {crc8:#04x}" if isinstance(crc8, int) else ""))
+    lines.append(f"  state {st['state']}  boot {hb.get('boot')}  uptime {hb.get('uptime_ms')} ms"
+                 + (f"  arming epoch {hb['epoch']}" if "epoch" in hb else ""))
+    if st["faults"]:
+        ft = fault_table()
+        lines.append(f"  faults {st['faults']:#x}:")
+        for bit, (name, doc) in ft.items():
+            if st["faults"] & bit:
+                lines.append(f"    {name:10s} {doc}")
+    else:
+        lines.append("  faults none")
+    rate = st["heartbeat_hz"]
+    lines.append(f"  heartbeat {rate:.1f} Hz" if rate else "  heartbeat rate: fewer than two heartbeats seen")
+    lk = st["link"]
+    drops = ", ".join(f"{k} {v}" for k, v in lk["drops"].items() if v) or "none"
+    lines.append(f"  link: {lk['sent']} frames sent, {lk['received']} received, host drops {drops}")
+    bs = st.get("board_stats", {})
+    if "decode" in bs:
+        d = bs["decode"]
+        lines.append("  board decoder drops: " + ", ".join(f"{k} {v}" for k, v in d.items()))
+    if "frames" in bs:
+        lines.append(f"  board frames: {bs['frames'].get('frames_in')} in, {bs['frames'].get('frames_out')} out")
+    if "loop" in bs:
+        lp = bs["loop"]
+        lines.append("  board loop: " + ", ".join(f"{k} {v:g}" for k, v in lp.items()))
+    if "timing" in bs:
+        tm = bs["timing"]
+        lines.append("  timing: " + ", ".join(f"{k} {v}" for k, v in tm.items()))
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------ actions
+def _status(b: Any, args: argparse.Namespace) -> int:
+    if not args.watch:
+        st = b.status(listen=1.0)
+        if args.json:
+            print(json.dumps(st, indent=2, default=str))
+        else:
+            _say(render_status(st))
+        return 0
+    tty = sys.stdout.isatty()
+    b.poll(0.2)
+    while True:
+        st = b.status(listen=args.interval)
+        text = render_status(st)
+        if args.json:
+            print(json.dumps(st, default=str), flush=True)
+        elif tty:
+            sys.stdout.write("\x1b[H\x1b[2J" + text + "\n\n(Ctrl-C to stop)\n")
+            sys.stdout.flush()
+        else:
+            _say(text)
+
+
+def _hold_armed(b: Any, seconds: float | None, tick: Callable[[float], None] | None = None) -> str:
+    """Keep the host heartbeat going while armed; returns why it ended."""
+    t0 = time.monotonic()
+    last_state = None
+    while True:
+        b.keepalive()
+        b.poll(0.02)
+        el = time.monotonic() - t0
+        hb = b.heartbeat
+        if hb is not None:
+            from host.link import messages as M
+
+            name = M.STATES.get(hb.state, str(hb.state))
+            if name != last_state:
+                _err(f"upright board: {name}")
+                last_state = name
+            if name == "fault":
+                from host.operate.board import fault_names
+
+                return "fault: " + ",".join(fault_names(hb.faults))
+        if tick is not None:
+            tick(el)
+        if seconds is not None and el >= seconds:
+            return "time"
+
+
+def _arm(b: Any, args: argparse.Namespace) -> int:
+    from host.cli.args import RunFailed
+
+    if args.clear:
+        b.clear_faults()
+    b.arm()
+    _err(f"upright board: armed; host heartbeat running ({'for %g s' % args.seconds if args.seconds else 'Ctrl-C'}"
+         " disarms)")
+    why = _hold_armed(b, args.seconds)
+    b.disarm()
+    _err("upright board: disarmed")
+    if why.startswith("fault"):
+        raise RunFailed(f"the board latched a fault while armed ({why[7:]})")
+    return 0
+
+
+def _params(b: Any, args: argparse.Namespace) -> int:
+    from host.operate.board import param_info, param_table
+
+    act = args.params_action
+    if act == "list":
+        for name, p in param_table().items():
+            _say(f"{name:18s} {p['unit'] or '-':6s} {p['min']}..{p['max']} (default {p['default']})  {p['doc']}")
+        return 0
+    if act == "get":
+        names = args.names or list(param_table())
+        for n in names:
+            param_info(n)
+        vals = {n: b.param_get(n) for n in names}
+        if args.json:
+            print(json.dumps(vals, indent=2))
+        else:
+            for n, v in vals.items():
+                p = param_info(n)
+                _say(f"{n:18s} {v} {p['unit']}".rstrip() + f"    ({p['min']}..{p['max']}, default {p['default']})")
+        return 0
+    if act == "set":
+        v = b.param_set(args.name, args.value)
+        p = param_info(args.name)
+        _say(f"{args.name} = {v} {p['unit']}".rstrip())
+        return 0
+    name = b.save()
+    _say(f"saved on the board ({name})")
+    return 0
+
+
+def _gains(b: Any, args: argparse.Namespace) -> int:
+    from host.cli.args import UsageError
+    from host.operate.board import NotSupported, gains_blob_from_design, gains_blob_from_file
+
+    if args.file and (args.design or args.params):
+        raise UsageError("gains upload: give FILE or --design/--params, not both")
+    if args.file:
+        blob, label = gains_blob_from_file(args.file), args.file
+    else:
+        blob, label = gains_blob_from_design(args.params)
+    res = b.upload_gains(blob)
+    crc = res["crc"]
+    if res["verified"] is None:
+        _say(f"uploaded {label}: {res['nbytes']} bytes, CRC {crc:#06x} (this firmware reports no CRC to read back)")
+    else:
+        back = res.get("board_crc")
+        back_txt = f"{back:#06x}" if back is not None else f"low byte {res.get('board_crc_low8'):#04x}"
+        _say(f"uploaded {label}: {res['nbytes']} bytes, CRC {crc:#06x}; board reports {back_txt}: verified")
+    if args.save:
+        try:
+            _say(f"saved on the board ({b.save()})")
+        except NotSupported as exc:
+            _say(f"not saved: {exc}")
+    return 0
+
+
+def _record(b: Any, args: argparse.Namespace, excite: bool = False) -> int:
+    from host.cli.args import RunFailed
+    from host.cli.main import interrupted
+    from host.operate.board import BoardError
+    from host.operate.record import Recorder
+
+    extra = ("ref_cmd",) if excite else ()
+    rec = Recorder(b, args.out, extra=extra)
+    levels: list[float] = []
+    if excite:
+        from host.operate.excite import prbs_levels
+
+        lim_m = b.param_get("ref_limit_um") * 1e-6
+        if args.amplitude > lim_m:
+            raise A.UsageError(f"--amplitude {args.amplitude:g} m beyond the board's ref_limit_um ({lim_m:g} m)")
+        levels = prbs_levels(args.amplitude, int(args.seconds / args.bit) + 1, args.order)
+        rec.extra_values["ref_cmd"] = 0.0
+    armed_here = False
+    failure: str | None = None
+    t0 = time.monotonic()
+    last_bar = -1.0
+    try:
+        if excite and args.arm:
+            st = b.state(fresh=True)
+            if st["faults"]:
+                b.clear_faults()
+            b.arm()
+            armed_here = True
+        bit = -1
+        while True:
+            el = time.monotonic() - t0
+            if el >= args.seconds:
+                break
+            if excite:
+                k = int(el / args.bit)
+                if k != bit and k < len(levels):
+                    bit = k
+                    b.set_reference(levels[k])
+                    rec.extra_values["ref_cmd"] = levels[k]
+            if b.armed_by_us or excite:
+                b.keepalive()
+            b.poll(0.02)
+            if not args.quiet and el - last_bar >= 0.25:
+                last_bar = el
+                _bar(el, args.seconds, f"{rec.rows} rows, {rec.lost} lost")
+        if not args.quiet:
+            _bar(args.seconds, args.seconds, f"{rec.rows} rows, {rec.lost} lost")
+            if sys.stderr.isatty():
+                sys.stderr.write("\n")
+    except BoardError as exc:
+        failure = str(exc)
+    finally:
+        if excite:
+            try:
+                b.set_reference(0.0)
+            except Exception:  # noqa: BLE001 - the board may be gone; the rows still go to disk
+                pass
+        if armed_here:
+            b.safe_disarm()
+            b.armed_by_us = False
+        rec.close()
+        s = rec.summary()
+        msg = (f"upright board: {s['rows']} rows ({s['telemetry_frames']} telemetry frames) to {s['file']}; "
+               f"{s['lost']} lost")
+        _err(msg)
+    if failure is not None:
+        if interrupted():
+            raise KeyboardInterrupt
+        raise RunFailed(f"{failure} (kept {rec.rows} rows in {args.out})")
+    return 0
+
+
+def _ask_factory(args: argparse.Namespace) -> Callable[..., str]:
+    def ask(prompt: str, idle: Callable[[], None] | None = None) -> str:
+        print(prompt, flush=True)
+        if args.yes:
+            return "y" if prompt.rstrip().endswith("[y/n]") else ""
+        buf = b""
+        fd = sys.stdin.fileno()
+        while True:
+            r = select.select([fd], [], [], 0.05)[0]
+            if r:
+                import os
+
+                chunk = os.read(fd, 1024)
+                if not chunk:
+                    raise A.RunFailed("end of input while waiting for an answer")
+                buf += chunk
+                if b"\n" in buf:
+                    return buf.split(b"\n", 1)[0].decode(errors="replace")
+            elif idle is not None:
+                idle()
+    return ask
+
+
+def _calibrate(b: Any, args: argparse.Namespace) -> int:
+    from host.operate.calibrate import run_calibration
+
+    A.check_out_file(args.out, "--out")
+    res = run_calibration(b, _ask_factory(args), _say, robot_in=args.params, robot_out=args.out,
+                          tilt_deg=args.tilt_deg, move_m=args.move_cm / 100, motor_check=not args.no_motor,
+                          save=not args.no_save)
+    _say(f"calibration written to {res['robot_out']}; next: upright board --port {args.port} gains upload "
+         f"--params {res['robot_out']} --save")
+    return 0
+
+
+ACTIONS: dict[str, Callable[[Any, argparse.Namespace], int]] = {
+    "status": _status, "arm": _arm, "disarm": lambda b, a: (b.disarm(), _say("disarmed"))[1] or 0,
+    "clear": lambda b, a: (b.clear_faults(), _say("faults cleared"))[1] or 0,
+    "params": _params, "gains": _gains, "log": _record,
+    "excite": lambda b, a: _record(b, a, excite=True), "calibrate": _calibrate,
+}
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``upright board``."""
+    from host.operate.board import BoardError, ParamInputError, check_param, param_info
+    from host.operate.record import format_of
+
+    # bad input is refused before the board is touched
+    try:
+        if args.action in ("log", "excite"):
+            A.check_out_file(args.out, "--out")
+            format_of(args.out)
+        if args.action == "params" and args.params_action == "set":
+            check_param(args.name, args.value)
+        if args.action == "params" and args.params_action == "get":
+            for n in args.names:
+                param_info(n)
+        if args.action == "gains" and args.file:
+            from host.operate.board import gains_blob_from_file
+
+            gains_blob_from_file(args.file)
+        if args.action == "gains" and args.params:
+            from sim.params import load_params
+
+            load_params(args.params)
+    except (ParamInputError, ValueError) as exc:
+        if isinstance(exc, A.UsageError):
+            raise
+        raise A.UsageError(str(exc)) from None
+    b = _open(args)
+    try:
+        try:
+            return int(ACTIONS[args.action](b, args) or 0)
+        except ParamInputError as exc:
+            raise A.UsageError(str(exc)) from None
+        except KeyboardInterrupt:
+            if b.armed_by_us:
+                ok = b.safe_disarm()
+                _err("upright board: " + ("disarmed" if ok else "could not reach the board to disarm it"))
+            raise
+    except BoardError as exc:
+        if b.armed_by_us:
+            ok = b.safe_disarm()
+            _err("upright board: " + ("disarmed" if ok else "could not reach the board to disarm it"))
+        raise A.RunFailed(str(exc)) from None
+    finally:
+        b.close()

@@ -1,0 +1,605 @@
+"""A board on a link, operated from the host: identity, status, arming, parameters, gains.
+
+One :class:`Board` wraps an open :class:`host.link.clients.Link` (serial or CAN; a real board,
+the emulated Pico of ``upright emulate rp2040 --pty`` or the virtual board of
+:mod:`host.boards.vport` -- the same code).  It learns what the firmware offers from the one
+message table (:mod:`firmware.msgtable`): the VERSION and STATS messages, the host heartbeat,
+the arming epoch, the save command and the raw-sensor message are used when the table has
+them, and left out otherwise.
+
+Every failure is a :class:`BoardError` (one line, exit status 1 in the CLI) or, for a bad
+parameter name or value, a :class:`ParamInputError` (exit status 2).
+
+Example
+-------
+>>> with Board.open("/dev/ttyUSB0") as b:             # doctest: +SKIP
+...     print(b.status()["state"])
+...     b.param_set("max_duty", 8000)
+"""
+
+from __future__ import annotations
+
+import collections
+import re
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+from firmware import msgtable as T
+from host.link import messages as M
+from host.link.clients import CommandRefused, Link, LinkError, LinkTimeout, open_link
+
+__all__ = [
+    "BoardError", "NotSupported", "ParamInputError", "IdentityMismatch",
+    "Board", "fault_table", "fault_names", "param_table", "param_info", "check_param",
+    "periodic_kinds", "has_message", "gains_blob_from_file", "gains_blob_from_design",
+]
+
+
+class BoardError(RuntimeError):
+    """The board could not be operated (no answer, refused, link lost): one line."""
+
+
+class NotSupported(BoardError):
+    """The firmware on the board (or this message table) has no such command."""
+
+
+class IdentityMismatch(BoardError):
+    """The board speaks another message table than this host."""
+
+
+class ParamInputError(ValueError):
+    """A parameter name or value that the parameter table refuses (before anything is sent)."""
+
+
+# ------------------------------------------------------------------ tables
+def has_message(name: str) -> bool:
+    """True if the message table has a message of this name."""
+    return name in M.BY_NAME
+
+
+def fault_table() -> dict[int, tuple[str, str]]:
+    """Fault bit -> ``(name, doc)``: names from ``firmware/supervisor.py`` ``F_*``, docs from
+    ``msgtable.FAULTS`` where the table has it, else from the supervisor's comments."""
+    from firmware import supervisor
+
+    src = Path(supervisor.__file__).read_text()
+    comments = {m.group(1): m.group(3).strip() for m in re.finditer(r"^(F_\w+)\s*=\s*(\d+)\s*#\s*(.*)$", src, re.M)}
+    out: dict[int, tuple[str, str]] = {}
+    for name, v in vars(supervisor).items():
+        if name.startswith("F_") and isinstance(v, int) and v > 0:
+            out[v] = (name[2:].lower(), comments.get(name, ""))
+    for row in getattr(T, "FAULTS", ()):
+        bit, name, doc = row[0], row[1], row[2]
+        out[bit] = (out.get(bit, (name, ""))[0], doc)
+    return dict(sorted(out.items()))
+
+
+def fault_names(flags: int) -> list[str]:
+    """Names of the fault bits set in ``flags`` (unknown bits as ``bit<N>``)."""
+    table = fault_table()
+    names = []
+    bit = 1
+    while flags >= bit:
+        if flags & bit:
+            names.append(table[bit][0] if bit in table else f"bit{bit.bit_length() - 1}")
+        bit <<= 1
+    return names
+
+
+def param_table() -> dict[str, dict[str, Any]]:
+    """Parameter name -> ``index, unit, min, max, default, doc`` (``firmware.msgtable.PARAMS``)."""
+    return {p[1]: {"index": p[0], "unit": p[2], "min": p[3], "max": p[4], "default": p[5], "doc": p[6]}
+            for p in T.PARAMS}
+
+
+def param_info(name: str) -> dict[str, Any]:
+    """One parameter's row.
+
+    Raises
+    ------
+    ParamInputError
+        Unknown name (the message lists the known ones).
+    """
+    table = param_table()
+    if name not in table:
+        raise ParamInputError(f"unknown parameter {name!r}; known: {', '.join(table)}")
+    return table[name]
+
+
+def check_param(name: str, value: Any) -> int:
+    """``value`` as the parameter's integer, checked against its range.
+
+    Raises
+    ------
+    ParamInputError
+        Unknown name, not an integer, or outside ``min..max``.
+    """
+    p = param_info(name)
+    try:
+        f = float(value)
+        v = int(f)
+        if v != f:
+            raise ValueError
+    except (TypeError, ValueError, OverflowError):
+        raise ParamInputError(f"{name}: expected an integer in {p['unit'] or 'counts'}, got {value!r}") from None
+    if not p["min"] <= v <= p["max"]:
+        u = f" {p['unit']}" if p["unit"] else ""
+        raise ParamInputError(f"{name}: {v}{u} outside {p['min']}..{p['max']}{u}")
+    return v
+
+
+def periodic_kinds() -> tuple[str, ...]:
+    """Messages the board's pacer numbers with its own sequence counter (lost ones are counted)."""
+    return ("heartbeat", "telem_state")
+
+
+def _save_message() -> str | None:
+    # the persistence command, whatever the firmware calls it
+    for cls in M.BY_NAME.values():
+        if cls.DIRECTION == "to_board" and "save" in cls.NAME and not cls.FIELDS:
+            return cls.NAME
+    for cls in M.BY_NAME.values():
+        if cls.DIRECTION == "to_board" and "save" in cls.NAME:
+            return cls.NAME
+    return None
+
+
+# ------------------------------------------------------------------ gain tables
+def gains_blob_from_file(path: str | Path) -> bytes:
+    """A gain table from a file: the raw upload bytes (``.bin``) or a gain module (``.py``,
+    ``upright export --out FILE``; its ``FLAT`` list as little-endian int32).
+
+    Raises
+    ------
+    ParamInputError
+        Missing/unreadable file, or a module without a ``FLAT`` list of ints.
+    """
+    import struct
+
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except OSError as exc:
+        raise ParamInputError(f"gain table {str(path)!r}: {exc.strerror or exc}") from None
+    if p.suffix != ".py":
+        if not data or len(data) % 4 or len(data) > T.GAINS_MAX:
+            raise ParamInputError(f"gain table {str(path)!r}: {len(data)} bytes; expected a multiple of 4 "
+                                  f"in 4..{T.GAINS_MAX} (int32 little-endian), or a .py gain module")
+        return data
+    ns: dict[str, Any] = {}
+    try:
+        exec(compile(data.decode(), str(p), "exec"), {"const": lambda x: x, "__name__": "gains"}, ns)
+    except Exception as exc:  # noqa: BLE001 - any error in a user file is bad input
+        raise ParamInputError(f"gain table {str(path)!r}: not a gain module ({type(exc).__name__}: {exc})") from None
+    flat = ns.get("FLAT")
+    if not isinstance(flat, (list, tuple)) or not flat or not all(isinstance(v, int) for v in flat):
+        raise ParamInputError(f"gain table {str(path)!r}: no FLAT list of ints (write one with `upright export --out`)")
+    return struct.pack(f"<{len(flat)}i", *flat)
+
+
+def gains_blob_from_design(params: str | Path | None = None) -> tuple[bytes, str]:
+    """The shipped design's table for a robot (``params``: a robot TOML, default ``sim/robot.toml``)."""
+    from host.design.export import export
+    from sim.params import load_params
+
+    fd = export(params=load_params(params) if params else None)
+    return fd.blob(), f"design for {params or 'sim/robot.toml'}"
+
+
+# ------------------------------------------------------------------ the board
+class Board:
+    """An open link to a board with the state the host keeps about it.
+
+    Parameters
+    ----------
+    link : Link
+        An open link (:func:`host.link.clients.open_link`, ``SerialLink``, ``CanLink``).
+    port : str
+        Name for messages.
+    timeout, retries : float, int
+        Per request.
+    """
+
+    def __init__(self, link: Link, *, port: str = "", timeout: float = 0.3, retries: int = 3) -> None:
+        self.link = link
+        self.port = port or getattr(link, "url", "") or "board"
+        self.timeout = float(timeout)
+        self.retries = int(retries)
+        self.heartbeat: Any = None
+        self.hb_times: collections.deque[float] = collections.deque(maxlen=64)
+        self.identity: dict[str, Any] = {}
+        self.armed_by_us = False
+        self._last_keepalive = 0.0
+        self._closed = False
+        self.listeners: list[Callable[[Any, int | None, float], None]] = []
+
+    # ---- opening ----
+    @classmethod
+    def open(cls, port: str, *, link: str = "serial", baudrate: int | None = None, node: int = 1,
+             can_interface: str = "slcan", timeout: float = 0.3, retries: int = 3,
+             answer_timeout: float = 3.0, check_identity: bool = True) -> "Board":
+        """Open ``port``, wait for the board to answer and check who it is.
+
+        Raises
+        ------
+        BoardError
+            Port cannot be opened, no answer within ``answer_timeout`` s, or a board whose
+            message table differs from this host's (:class:`IdentityMismatch`).
+        """
+        if baudrate is None:
+            from firmware.board import UART_BAUD
+
+            baudrate = int(UART_BAUD)
+        spec = f"can:{can_interface}:{port}" if link == "can" else port
+        try:
+            lk = open_link(spec, node_id=node, baudrate=baudrate)
+        except (LinkError, ValueError) as exc:
+            raise BoardError(str(exc).splitlines()[0]) from exc
+        b = cls(lk, port=port, timeout=timeout, retries=retries)
+        try:
+            b.connect(answer_timeout=answer_timeout, check_identity=check_identity)
+        except BaseException:
+            b.close(disarm=False)
+            raise
+        return b
+
+    def connect(self, *, answer_timeout: float = 3.0, check_identity: bool = True) -> dict[str, Any]:
+        """Wait for a heartbeat (asking for one), then read the identity."""
+        deadline = time.monotonic() + answer_timeout
+        while True:
+            try:
+                self.query("heartbeat", timeout=min(self.timeout, answer_timeout), retries=0)
+                break
+            except BoardError as exc:
+                if not isinstance(exc.__cause__, LinkTimeout) or time.monotonic() >= deadline:
+                    if isinstance(exc.__cause__, LinkTimeout):
+                        raise BoardError(f"no answer from {self.port} within {answer_timeout:g} s: is the board "
+                                         "powered, running the upright firmware, on this port and baud rate?") from None
+                    raise
+        return self.identify(check=check_identity)
+
+    def identify(self, *, check: bool = True) -> dict[str, Any]:
+        """Identity: firmware version, table hashes, gain CRC, reset cause (VERSION where the
+        firmware has it; else what the heartbeat carries).
+
+        Raises
+        ------
+        IdentityMismatch
+            ``check`` and the board's message-table hash differs from this host's.
+        """
+        ident: dict[str, Any] = {"version_message": False}
+        try:
+            from host.link import identity as I
+
+            ident["host_table_hash"] = I.table_hash()
+            ident["host_param_hash"] = I.param_hash()
+        except ImportError:  # pragma: no cover - before the identity module
+            I = None  # noqa: N806
+        if has_message("version"):
+            try:
+                v = self.query("version")
+            except (NotSupported, BoardError):
+                v = None
+            if v is not None:
+                ident["version_message"] = True
+                ident.update(v.physical())
+                fw = ident.get("fw_version")
+                if isinstance(fw, int):
+                    ident["fw_version_text"] = f"{fw >> 4}.{fw & 15}"
+                rc = ident.get("reset_cause")
+                names = {r[0]: r[1] for r in getattr(T, "RESET_CAUSES", ())}
+                if rc is not None:
+                    ident["reset_cause_name"] = names.get(rc, str(rc))
+        hb = self.heartbeat
+        if hb is not None and "gains_crc" not in ident and hasattr(hb, "gains_crc"):
+            ident["gains_crc_low8"] = hb.gains_crc
+        if "table_hash" in ident and "host_table_hash" in ident:
+            ident["table_match"] = ident["table_hash"] == ident["host_table_hash"]
+            if check and not ident["table_match"]:
+                raise IdentityMismatch(
+                    f"{self.port}: board's message table hash {ident['table_hash']:#06x} differs from this host's "
+                    f"{ident['host_table_hash']:#06x}: flash this checkout's firmware (make firmware && make flash)")
+        self.identity = ident
+        return ident
+
+    # ---- receiving ----
+    def _observe(self, msg: Any, seq: int | None, t: float) -> None:
+        if msg.NAME == "heartbeat":
+            self.heartbeat = msg
+            self.hb_times.append(t)
+        for fn in self.listeners:
+            fn(msg, seq, t)
+
+    def poll(self, timeout: float = 0.0) -> list[tuple[Any, int | None, float]]:
+        """Every message that arrives within ``timeout`` s (at least what is already waiting).
+
+        Raises
+        ------
+        BoardError
+            The link failed (unplugged, closed).
+        """
+        out = []
+        deadline = time.monotonic() + timeout
+        try:
+            while True:
+                left = max(0.0, deadline - time.monotonic())
+                msg = self.link.recv(timeout=left)
+                if msg is None:
+                    break
+                t = time.monotonic()
+                item = (msg, self.link.last_seq, t)
+                self._observe(*item)
+                out.append(item)
+                if not left:
+                    # drain what is queued, then return
+                    continue
+        except LinkError as exc:
+            raise _link_error(self.port, exc) from exc
+        return out
+
+    # ---- requests ----
+    def request(self, msg: Any, **kw: Any) -> Any:
+        """:meth:`Link.request` with the board's timeouts; errors as :class:`BoardError`."""
+        kw.setdefault("timeout", self.timeout)
+        kw.setdefault("retries", self.retries)
+        try:
+            return self.link.request(msg, **kw)
+        except CommandRefused as exc:
+            if exc.reason == T.R_NOT_SUPPORTED or exc.reason_name == "unknown":
+                raise NotSupported(f"{self.port}: {exc}") from exc
+            raise BoardError(f"{self.port}: {exc}") from exc
+        except LinkTimeout as exc:
+            raise BoardError(f"{self.port}: {exc}") from exc
+        except LinkError as exc:
+            raise _link_error(self.port, exc) from exc
+
+    def query(self, kind: str, **kw: Any) -> Any:
+        """Ask for one message now (heartbeat, telem_state, timing, version, stats_...)."""
+        cls = M.message_class(kind)
+        m = self.request(M.BY_NAME["request"](msg_id=cls.ID), reply=cls, **kw)
+        # a reply carries the request's sequence number, not the board's periodic counter
+        self._observe(m, None, time.monotonic())
+        return m
+
+    def send(self, msg: Any) -> None:
+        """Send without waiting for an answer."""
+        try:
+            self.link.send(msg)
+        except LinkError as exc:
+            raise _link_error(self.port, exc) from exc
+
+    # ---- the host heartbeat ----
+    def keepalive(self, period: float = 0.05) -> bool:
+        """Feed the board's link watchdog if ``period`` s passed since the last feed: the
+        host heartbeat where the table has one, else a request for TIMING (any valid frame
+        fed the watchdog before the host heartbeat).  Returns True if something was sent."""
+        now = time.monotonic()
+        if now - self._last_keepalive < period:
+            return False
+        self._last_keepalive = now
+        if has_message("host_heartbeat"):
+            self.send(M.BY_NAME["host_heartbeat"]())
+        else:
+            self.send(M.BY_NAME["request"](msg_id=M.BY_NAME["timing"].ID))
+        return True
+
+    # ---- state ----
+    def state(self, fresh: bool = True) -> dict[str, Any]:
+        """The last heartbeat as names (``fresh``: ask for one first)."""
+        if fresh or self.heartbeat is None:
+            self.query("heartbeat")
+        hb = self.heartbeat
+        d = hb.physical()
+        d["state_name"] = M.STATES.get(hb.state, str(hb.state))
+        d["fault_names"] = fault_names(hb.faults)
+        return d
+
+    def heartbeat_rate(self) -> float | None:
+        """Heartbeats per second seen recently (None with fewer than two)."""
+        ts = list(self.hb_times)
+        if len(ts) < 2 or ts[-1] <= ts[0]:
+            return None
+        return (len(ts) - 1) / (ts[-1] - ts[0])
+
+    def stats(self) -> dict[str, Any]:
+        """The board's own counters (STATS messages, where the firmware has them) and TIMING."""
+        out: dict[str, Any] = {}
+        if has_message("stats_decode"):
+            try:
+                first = self.query("stats_decode")
+                out["decode"] = first.physical()
+                for name in ("stats_frames", "stats_loop"):
+                    if has_message(name):
+                        out[name.split("_", 1)[1]] = self.link.expect(name, timeout=self.timeout * 2).physical()
+            except (BoardError, LinkError):
+                pass
+        try:
+            out["timing"] = self.query("timing").physical()
+        except BoardError:
+            pass
+        return out
+
+    def status(self, listen: float = 1.0) -> dict[str, Any]:
+        """Everything ``upright board status`` shows, as one dict (JSON-ready).
+
+        ``listen``: seconds of passive listening to measure the heartbeat rate.
+        """
+        self.poll(listen)
+        st = self.state(fresh=self.heartbeat is None)
+        ident = self.identity or self.identify(check=False)
+        link = self.link
+        return {
+            "port": self.port,
+            "identity": ident,
+            "state": st["state_name"],
+            "state_code": st["state"],
+            "faults": st["faults"],
+            "fault_names": st["fault_names"],
+            "heartbeat": {k: v for k, v in st.items() if k not in ("state_name", "fault_names")},
+            "heartbeat_hz": self.heartbeat_rate(),
+            "link": {"sent": link.sent, "received": link.received, "drops": link.drops},
+            "board_stats": self.stats(),
+        }
+
+    # ---- commands ----
+    def arm(self) -> None:
+        """Arm (with the board's arming epoch where the protocol has one)."""
+        cls = M.BY_NAME["arm"]
+        fields = [f.name for f in cls.FIELDS]
+        if "epoch" in fields:
+            for attempt in range(2):
+                self.query("heartbeat")
+                try:
+                    self.request(cls(epoch=getattr(self.heartbeat, "epoch", 0)))
+                    break
+                except BoardError as exc:
+                    cause = exc.__cause__
+                    if attempt or not isinstance(cause, CommandRefused) or cause.reason_name != "stale_epoch":
+                        raise
+        else:
+            self.request(cls())
+        self.armed_by_us = True
+        self._last_keepalive = time.monotonic()
+
+    def disarm(self) -> None:
+        """Disarm (always accepted)."""
+        self.request(M.BY_NAME["disarm"]())
+        self.armed_by_us = False
+
+    def clear_faults(self) -> None:
+        """Clear latched faults (refused while armed)."""
+        self.request(M.BY_NAME["clear_faults"]())
+
+    def set_reference(self, x_m: float) -> None:
+        """Cart position reference (m); feeds the watchdog."""
+        self.request(M.BY_NAME["set_reference"].from_physical(x_um=x_m))
+        self._last_keepalive = time.monotonic()
+
+    def param_get(self, name: str) -> int:
+        """A parameter by name (:class:`ParamInputError` for an unknown name)."""
+        p = param_info(name)
+        return self.request(M.BY_NAME["param_get"](index=p["index"])).value
+
+    def param_set(self, name: str, value: Any) -> int:
+        """Set a parameter by name after the table's range check; returns the value in force."""
+        v = check_param(name, value)
+        p = param_info(name)
+        return self.request(M.BY_NAME["param_set"](index=p["index"], value=v)).value
+
+    def params(self) -> dict[str, int]:
+        """Every parameter's current value."""
+        return {name: self.param_get(name) for name in param_table()}
+
+    def save(self) -> str:
+        """Persist the parameters and the active gain table on the board.
+
+        Raises
+        ------
+        NotSupported
+            The message table has no save command, or the firmware refuses it as unknown.
+        """
+        name = _save_message()
+        if name is None:
+            raise NotSupported("this firmware has no save command (parameters and gains live in RAM until reset)")
+        cls = M.BY_NAME[name]
+        self.request(cls(**{f.name: 0 for f in cls.FIELDS}), timeout=max(self.timeout, 1.0))
+        return name
+
+    def upload_gains(self, blob: bytes) -> dict[str, Any]:
+        """Upload a gain table (only while the motor is off) and read its CRC back.
+
+        Returns
+        -------
+        dict
+            ``crc`` (of the bytes sent), ``board_crc`` (read back: VERSION's full CRC, or
+            the heartbeat's low 8 bits as ``board_crc_low8``), ``verified`` (bool or None
+            when the firmware reports no CRC).
+        """
+        crc = M.crc16(bytes(blob))
+        try:
+            self.link.upload_gains(blob, timeout=self.timeout, retries=self.retries)
+        except CommandRefused as exc:
+            raise BoardError(f"{self.port}: gain table refused: {exc}") from exc
+        except LinkTimeout as exc:
+            raise BoardError(f"{self.port}: {exc}") from exc
+        except LinkError as exc:
+            raise _link_error(self.port, exc) from exc
+        out: dict[str, Any] = {"crc": crc, "nbytes": len(blob), "board_crc": None, "verified": None}
+        ident = self.identify(check=False)
+        if "gains_crc" in ident and ident.get("version_message"):
+            out["board_crc"] = ident["gains_crc"]
+            out["verified"] = ident["gains_crc"] == crc
+        else:
+            hb = self.query("heartbeat")
+            if hasattr(hb, "gains_crc"):
+                out["board_crc_low8"] = hb.gains_crc
+                out["verified"] = hb.gains_crc == crc & 0xFF
+        if out["verified"] is False:
+            raise BoardError(f"{self.port}: gain table CRC read back {out.get('board_crc', out.get('board_crc_low8'))!r} "
+                             f"differs from the uploaded table's {crc:#06x}")
+        return out
+
+    def raw_sensors(self) -> dict[str, int]:
+        """One raw reading: ADC counts, the 16-bit encoder counter (``sensors_raw`` message).
+
+        Raises
+        ------
+        NotSupported
+            The firmware cannot report its raw sensors.
+        """
+        if not has_message("sensors_raw"):
+            raise NotSupported("this firmware cannot report its raw sensors (no sensors_raw message)")
+        return self.query("sensors_raw").physical()
+
+    # ---- lifetime ----
+    def safe_disarm(self) -> bool:
+        """Disarm if the board can still be reached; True if it answered."""
+        try:
+            self.disarm()
+            return True
+        except (BoardError, LinkError, OSError):
+            return False
+
+    def close(self, disarm: bool | None = None) -> None:
+        """Close the link; disarm first if this host armed the board (or ``disarm=True``)."""
+        if self._closed:
+            return
+        if disarm or (disarm is None and self.armed_by_us):
+            self.safe_disarm()
+        self._closed = True
+        try:
+            self.link.close()
+        except (LinkError, OSError):
+            pass
+
+    def __enter__(self) -> "Board":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _link_error(port: str, exc: BaseException) -> BoardError:
+    # the link's own identity check (host.link.clients.IncompatibleBoard) or a lost link
+    if type(exc).__name__ == "IncompatibleBoard":
+        return IdentityMismatch(f"{port}: {_one(exc)}")
+    return BoardError(f"link to {port} lost: {_one(exc)}")
+
+
+def _one(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+def wait_state(board: Board, states: Iterable[str], timeout: float, keepalive: bool = True) -> str:
+    """Poll heartbeats until the board is in one of ``states`` (or ``timeout`` s); returns the state."""
+    want = set(states)
+    deadline = time.monotonic() + timeout
+    st = board.state(fresh=True)["state_name"]
+    while st not in want and time.monotonic() < deadline:
+        if keepalive:
+            board.keepalive()
+        board.poll(0.05)
+        st = board.state(fresh=True)["state_name"]
+    return st

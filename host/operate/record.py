@@ -1,0 +1,193 @@
+"""Record a board's telemetry: every frame a row, every lost frame counted, every row kept.
+
+A :class:`Recorder` listens to a :class:`host.operate.board.Board` and turns each pair
+TELEM_STATE + TELEM_CTRL (one control tick) into a row, with the host time, the board's
+sequence number, the latest heartbeat's state and faults and any extra columns the caller
+sets (``excite`` adds the reference it commanded).  The board's pacer numbers its periodic
+frames (heartbeats and telemetry) with one counter, so a gap in it is a lost frame
+(serial framing; CAN frames carry no sequence number and losses are not counted there).
+
+Rows go to disk as they come: CSV flushed at least every ``flush_s`` s, Parquet (``.parquet``
+or ``.pq``, pyarrow) in row groups of the same interval -- so Ctrl-C, a closed link or an
+exception loses nothing already received (:meth:`Recorder.close` runs in ``finally``).
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from pathlib import Path
+from typing import Any
+
+__all__ = ["COLUMNS", "Recorder", "SeqCounter", "format_of"]
+
+COLUMNS = ("t", "seq", "x", "xdot", "phi", "phidot", "ref", "force", "duty", "step_us", "state", "faults")
+
+
+def format_of(path: str | Path) -> str:
+    """``"csv"`` or ``"parquet"`` from a file name (anything else: ValueError)."""
+    suf = Path(path).suffix.lower()
+    if suf in (".csv", ".txt"):
+        return "csv"
+    if suf in (".parquet", ".pq"):
+        return "parquet"
+    raise ValueError(f"{str(path)!r}: record to .csv or .parquet")
+
+
+class SeqCounter:
+    """Lost frames from an 8-bit sequence counter (one per periodic frame)."""
+
+    def __init__(self) -> None:
+        self.last: int | None = None
+        self.lost = 0
+        self.seen = 0
+
+    def see(self, seq: int | None) -> int:
+        """Account for a frame with ``seq``; returns how many were lost before it."""
+        if seq is None:
+            return 0
+        self.seen += 1
+        gap = 0
+        if self.last is not None:
+            gap = (seq - self.last - 1) & 0xFF
+            # a repeat (gap 255) is a duplicate, not 255 losses
+            if gap == 0xFF:
+                gap = 0
+        self.last = seq
+        self.lost += gap
+        return gap
+
+
+class Recorder:
+    """Telemetry rows from a board into a file.
+
+    Parameters
+    ----------
+    board : Board
+        Its messages are observed (:attr:`Board.listeners`).
+    path : str or Path
+        ``.csv`` or ``.parquet``.
+    extra : sequence of str
+        Extra columns; their values are :attr:`extra_values` at the time of each row.
+    flush_s : float
+        Longest time between writes to disk.
+    """
+
+    def __init__(self, board: Any, path: str | Path, extra: tuple[str, ...] = (), flush_s: float = 0.5) -> None:
+        self.board = board
+        self.path = Path(path)
+        self.fmt = format_of(self.path)
+        self.columns = (*COLUMNS, *extra)
+        self.extra_values: dict[str, Any] = {k: None for k in extra}
+        self.flush_s = float(flush_s)
+        self.rows = 0
+        self.telemetry_frames = 0  # TELEM_STATE and TELEM_CTRL received
+        self.unpaired = 0  # a half of a tick whose other half did not come
+        self.seqs = SeqCounter()
+        self.t0: float | None = None
+        self._pending: Any = None
+        self._pending_seq: int | None = None
+        self._buf: list[tuple[Any, ...]] = []
+        self._last_flush = time.monotonic()
+        self._state = None
+        self._faults = None
+        self._closed = False
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.fmt == "csv":
+            self._fh = open(self.path, "w", newline="")
+            self._csv = csv.writer(self._fh)
+            self._csv.writerow(self.columns)
+            self._fh.flush()
+            self._pq = None
+        else:
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+
+            self._pa = pa
+            types = {"seq": pa.int32(), "duty": pa.int32(), "step_us": pa.int32(), "state": pa.int32(),
+                     "faults": pa.int32()}
+            self._schema = pa.schema([(c, types.get(c, pa.float64())) for c in self.columns])
+            self._pq = pq.ParquetWriter(str(self.path), self._schema)
+            self._fh = None
+        board.listeners.append(self._on)
+
+    # ---- accounting ----
+    @property
+    def lost(self) -> int:
+        """Periodic frames lost (sequence gaps) plus halves of ticks whose pair was broken."""
+        return self.seqs.lost + self.unpaired
+
+    def _on(self, msg: Any, seq: int | None, t: float) -> None:
+        if self._closed:
+            return
+        name = msg.NAME
+        if self.t0 is None:
+            self.t0 = t
+        if name == "heartbeat":
+            self._state, self._faults = msg.state, msg.faults
+            self.seqs.see(seq)
+        elif name == "telem_state":
+            self.telemetry_frames += 1
+            if self._pending is not None:
+                self.unpaired += 1
+            self.seqs.see(seq)
+            self._pending, self._pending_seq = (msg, t), seq
+        elif name == "telem_ctrl":
+            self.telemetry_frames += 1
+            if self._pending is None or (seq is not None and seq != self._pending_seq):
+                # (the second half of a tick before the first TELEM_STATE: the recording
+                # started between the two, nothing was lost)
+                if self.seqs.seen or self._pending is not None:
+                    self.unpaired += 1
+                self._pending = None
+                return
+            st, ts = self._pending
+            self._pending = None
+            a, b = st.physical(), msg.physical()
+            row = (round(ts - self.t0, 6), -1 if seq is None else seq, a["x"], a["xdot"], a["phi"], a["phidot"],
+                   b["ref"], b["force"], b["duty"], b["step_us"],
+                   -1 if self._state is None else self._state, -1 if self._faults is None else self._faults,
+                   *(self.extra_values[k] for k in self.columns[len(COLUMNS):]))
+            self._buf.append(row)
+            self.rows += 1
+            if t - self._last_flush >= self.flush_s:
+                self.flush()
+
+    # ---- disk ----
+    def flush(self) -> None:
+        """Write the buffered rows to disk now."""
+        self._last_flush = time.monotonic()
+        if not self._buf:
+            return
+        rows, self._buf = self._buf, []
+        if self._pq is None:
+            self._csv.writerows(rows)
+            self._fh.flush()
+        else:
+            cols = list(zip(*rows))
+            arrays = [self._pa.array(list(c), type=self._schema.field(i).type) for i, c in enumerate(cols)]
+            self._pq.write_table(self._pa.Table.from_arrays(arrays, schema=self._schema))
+
+    def close(self) -> None:
+        """Write what is left and close the file (idempotent; safe in ``finally``)."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            # a tick cut in half by the end of the recording is not a loss
+            self._pending = None
+            self.flush()
+        finally:
+            if self._pq is not None:
+                self._pq.close()
+            if self._fh is not None:
+                self._fh.close()
+            try:
+                self.board.listeners.remove(self._on)
+            except ValueError:
+                pass
+
+    def summary(self) -> dict[str, Any]:
+        """Rows written, telemetry frames received, frames lost."""
+        return {"file": str(self.path), "rows": self.rows, "telemetry_frames": self.telemetry_frames,
+                "lost": self.lost, "lost_periodic": self.seqs.lost, "unpaired": self.unpaired}
