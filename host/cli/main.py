@@ -29,7 +29,6 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sweep": ("host.cli.sweep", "batch Monte Carlo: robustness, weight tuning, largest recoverable tilt"),
     "soak": ("host.cli.soak", "long lockstep HIL run: firmware heap, timing drift, telemetry accounted for, metrics stable"),
     "dashboard": ("host.cli.dashboard", "a live web page for a board: plots, state, arm/disarm, reference, gains, recording"),
-    "dashboard": ("host.cli.dashboard", "a live web page for a board: plots, state, arm/disarm, reference, gains, recording"),
     "demo": ("host.cli.demo", "the main job: the report's scenarios balanced by the firmware, summary and plots"),
 }
 
