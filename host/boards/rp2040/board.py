@@ -42,7 +42,8 @@ from typing import Any, Callable, Sequence
 
 from host.boards.rp2040.fsimage import FS_OFFSET, build_image
 
-__all__ = ["BoardError", "BoardExecError", "StepResult", "EmulatedBoard", "bootrom_bytes", "ROOT", "FIRMWARE"]
+__all__ = ["BoardError", "BoardExecError", "StepResult", "EmulatedBoard", "apply_flash_ops", "bootrom_bytes", "ROOT",
+           "FIRMWARE"]
 
 ROOT = Path(__file__).resolve().parents[3]
 FIRMWARE = ROOT / "build" / "rp2040" / "firmware.bin"
@@ -123,6 +124,16 @@ class StepResult:
         the firmware loop iterations that ended during the interval.
     timer_reads : list of int
         With the probe's ``raw`` option: the cycle of every TIMER read.
+    can_tx : list of (int, int, bytes)
+        With an MCP2515 attached (``harness_args``, :mod:`host.boards.rp2040.can`): ``(cycle, id,
+        data)`` of every CAN frame the controller finished sending.
+    can : dict
+        The controller's state at the end (mode, TEC/REC/EFLG, bit time, bus and SPI counters).
+    resets : list of (int, int)
+        Watchdog resets of the chip during the interval: ``(cycle, reason)``, reason 1 when the
+        watchdog timer expired, 2 when the firmware forced it (``machine.reset()``).  The harness
+        resets the chip as the hardware does (RAM cleared, WATCHDOG scratch registers kept) and
+        boot2 runs again; the pins fall back to inputs (``dir``/``en`` then ``None``).
     """
 
     cycles: int
@@ -148,6 +159,9 @@ class StepResult:
     log: list[str] = field(default_factory=list)
     loop_iters: list[tuple[int, int]] = field(default_factory=list)
     timer_reads: list[int] = field(default_factory=list)
+    can_tx: list[tuple[int, int, bytes]] = field(default_factory=list)
+    can: dict[str, Any] = field(default_factory=dict)
+    resets: list[tuple[int, int]] = field(default_factory=list)
 
     @classmethod
     def from_answer(cls, a: dict[str, Any]) -> "StepResult":
@@ -178,7 +192,31 @@ class StepResult:
             log=list(a.get("log", [])),
             loop_iters=[(e[0], e[1]) for e in a.get("loop_iters", ())],
             timer_reads=list(a.get("timer_reads", ())),
+            can_tx=[(e[0], e[1], bytes.fromhex(e[2])) for e in a.get("can_tx", ())],
+            can=dict(a.get("can", {})),
+            resets=[(e[0], e[1]) for e in a.get("resets", ())],
         )
+
+
+def apply_flash_ops(image: bytearray, ops: Sequence[tuple[str, int, int, bytes]], base: int = FS_OFFSET,
+                    cut: tuple[int, int] | None = None) -> bytearray:
+    """Replay logged flash operations (:meth:`EmulatedBoard.flash_log`) on ``image`` (the flash from
+    offset ``base``) as the harness does them: erase sets 0xff, program ANDs (NOR flash).
+    ``cut=(k, m)``: the power goes in operation ``k`` after its first ``m`` bytes (the harness's
+    ``power_cut``); operations after it are not done.  Returns ``image`` (changed in place)."""
+    for i, (kind, addr, count, data) in enumerate(ops):
+        n = count
+        if cut is not None and i == cut[0]:
+            n = max(0, min(count, cut[1]))
+        o = addr - base
+        if kind == "erase":
+            image[o:o + n] = b"\xff" * n
+        else:
+            for j in range(n):
+                image[o + j] &= data[j]
+        if cut is not None and i == cut[0]:
+            break
+    return image
 
 
 def bootrom_bytes() -> bytes:
@@ -255,6 +293,8 @@ class EmulatedBoard:
         (plus 10 s); past that the board is taken as stuck.
     node : str or None
         The node executable (default: ``shutil.which("node")``).
+    harness_args : sequence of str
+        Extra ``harness.mjs`` options (``--mcp2515 JSON``: a CAN controller on SPI).
 
     Raises
     ------
@@ -274,8 +314,10 @@ class EmulatedBoard:
         main_us: int = 2_000_000,
         wall_timeout: float = 0.2,
         node: str | None = None,
+        harness_args: Sequence[str] = (),
     ) -> None:
         self.main = main
+        self.harness_args = [str(a) for a in harness_args]
         self.main_us = main_us
         self.wall_timeout = wall_timeout
         self.cycles = 0
@@ -302,24 +344,88 @@ class EmulatedBoard:
             extra = dict(files or {})
             if not main:
                 extra.setdefault("main.py", b"")
-            (tmp / "fs.img").write_bytes(build_image(bundle_dir, extra=extra))
             (tmp / "bootrom.bin").write_bytes(bootrom_bytes())
-            self._stderr = open(tmp / "stderr.txt", "w+b")
-            self._proc = subprocess.Popen(
-                [node, str(HARNESS), "--bootrom", str(tmp / "bootrom.bin"), "--firmware", str(firmware),
-                 "--fs", str(tmp / "fs.img"), "--fs-offset", str(FS_OFFSET)],
-                stdin=subprocess.PIPE,
-                stdout=subprocess.PIPE,
-                stderr=self._stderr,
-                cwd=str(ROOT),
-            )
-            self._lines: queue.Queue[bytes | None] = queue.Queue()
-            threading.Thread(target=self._reader, daemon=True).start()
-            self._answer(10.0)  # the ready line
-            self._boot(boot_us)
+            self._node, self._firmware, self._boot_us = node, firmware, boot_us
+            self._start(build_image(bundle_dir, extra=extra))
         except BaseException:
             self.close()
             raise
+
+    def _start(self, fs_image: bytes) -> None:
+        # a node process on a chip at power-on whose filesystem region holds fs_image; boot it
+        tmp = Path(self._tmp.name)
+        (tmp / "fs.img").write_bytes(fs_image)
+        self._stderr = open(tmp / "stderr.txt", "w+b")
+        self._proc = subprocess.Popen(
+            [self._node, str(HARNESS), "--bootrom", str(tmp / "bootrom.bin"), "--firmware", str(self._firmware),
+             "--fs", str(tmp / "fs.img"), "--fs-offset", str(FS_OFFSET), *self.harness_args],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=self._stderr,
+            cwd=str(ROOT),
+        )
+        self._lines: queue.Queue[bytes | None] = queue.Queue()
+        threading.Thread(target=self._reader, daemon=True).start()
+        self._answer(10.0)  # the ready line
+        self.power_lost = False
+        self._boot(self._boot_us)
+        self._after_boot()
+
+    def _after_boot(self) -> None:
+        # the motor supply divider's input (firmware/board.py VSUP_*): the nominal supply, so that
+        # a board that measures its supply is not in undervoltage unless a test says so
+        from firmware import board as fb
+
+        vsup = getattr(fb, "VSUP_NOMINAL_MV", 0)
+        if vsup and getattr(fb, "VSUP_ADC_PIN", -1) >= 26:
+            self.set_supply_mv(vsup)
+
+    def set_supply_mv(self, mv: float) -> None:
+        """Put the motor supply at ``mv`` millivolts on its ADC pin, through the divider of
+        ``firmware/board.py`` (``VSUP_ADC_PIN``, ``VSUP_DIV_NUM/VSUP_DIV_DEN``, ``ADC_VREF_MV``)."""
+        from firmware import board as fb
+
+        raw = round(mv * fb.VSUP_DIV_DEN / fb.VSUP_DIV_NUM * 4095 / fb.ADC_VREF_MV)
+        self.set_adc(max(0, min(4095, raw)), channel=fb.VSUP_ADC_PIN - 26)
+
+    # ------------------------------------------------------------------ flash and power
+    def flash_image(self, offset: int = FS_OFFSET, length: int | None = None) -> bytes:
+        """Read the board's flash (default: the filesystem region, for ``fsimage.read_image``)."""
+        from host.boards.rp2040.fsimage import BLOCK_COUNT, BLOCK_SIZE
+
+        n = BLOCK_SIZE * BLOCK_COUNT if length is None else int(length)
+        import base64
+
+        return base64.b64decode(self._request({"cmd": "flash", "offset": int(offset), "length": n}, timeout=30.0)["data"])
+
+    def flash_ops(self) -> int:
+        """Flash erase/program operations the board has done since power-on."""
+        return int(self._request({"cmd": "state"})["flash_ops"])
+
+    def power_cut(self, op: int | None, keep: int = 0) -> None:
+        """Arm a power cut: the ``op``-th flash erase/program from now (0: the next) does only its
+        first ``keep`` bytes, then the core stops (:attr:`power_lost`; :meth:`run` no longer
+        raises for it).  ``op=None`` disarms.  Then :meth:`reset` powers the board up again."""
+        self._request({"cmd": "power_cut", "op": None if op is None else int(op), "keep": int(keep)})
+
+    def flash_log(self, on: bool = True) -> list[tuple[str, int, int, bytes]]:
+        """Log the flash operations from now on (``on``); returns the operations logged since the
+        last call: ``(kind, offset, count, data)`` with kind ``"erase"`` or ``"program"`` (data:
+        the bytes programmed).  :func:`apply_flash_ops` replays them on an image."""
+        log = self._request({"cmd": "flash_log", "on": bool(on)})["log"]
+        return [(k, int(a), int(n), bytes.fromhex(d)) for k, a, n, d in log]
+
+    def reset(self) -> None:
+        """Power-cycle the board: a chip at power-on with the flash as it is now (a write cut by
+        :meth:`power_cut` stays cut), booted again.  With ``main=True`` the firmware starts again."""
+        image = self.flash_image()
+        self._stop()
+        self._usb_tail.clear()
+        self._uart_tail.clear()
+        self._usb_buf.clear()
+        self._raw = False
+        self.uart_baud = 0
+        self._start(image)
 
     # ------------------------------------------------------------------ plumbing
     def _reader(self) -> None:
@@ -365,9 +471,13 @@ class EmulatedBoard:
         return self._answer(timeout)
 
     # ------------------------------------------------------------------ inputs
-    def set_adc(self, value: int, channel: int = 0) -> None:
-        """Set an ADC input (12-bit ``value``; channel 0 is GP26, the angle potentiometer)."""
-        self._request({"cmd": "adc", "ch": int(channel), "value": int(value) & 0xFFF})
+    def set_adc(self, value: int, channel: int = 0, *, open: bool = False) -> None:
+        """Set an ADC input (12-bit ``value``; channel 0 is GP26, the angle potentiometer).
+
+        ``open``: the pin is not driven (an open wiper): it floats at ``value`` while its pad pulls
+        are off and follows an enabled pull-up/pull-down to the rail.
+        """
+        self._request({"cmd": "adc", "ch": int(channel), "value": int(value) & 0xFFF, "open": bool(open)})
 
     def set_encoder(self, count: int, within_us: float | None = None) -> None:
         """Quadrature position to reach during the next :meth:`run` (x4 counts, A=GP2, B=GP3).
@@ -428,7 +538,9 @@ class EmulatedBoard:
         if r.uart_tx:
             self._uart_tail += r.uart_tx
             del self._uart_tail[:-8192]
-        if r.halted:
+        if ans.get("power_cut"):
+            self.power_lost = True
+        elif r.halted:
             raise self._fail(f"core halted (breakpoint {ans.get('break_code')}) at pc=0x{r.pc:08x}")
         if self.main and not self._raw and r.usb_tx and _TRACEBACK.search(bytes(self._usb_tail).decode("utf-8", "replace")):
             self.run_quiet(20_000)  # let the traceback finish printing
@@ -568,6 +680,10 @@ class EmulatedBoard:
     # ------------------------------------------------------------------ lifetime
     def close(self) -> None:
         """Stop the node process and remove the temporary files."""
+        self._stop()
+        self._tmp.cleanup()
+
+    def _stop(self) -> None:
         proc, self._proc = self._proc, None
         if proc is not None:
             try:
@@ -583,7 +699,6 @@ class EmulatedBoard:
                     s.close()
         if getattr(self, "_stderr", None) is not None:
             self._stderr.close()
-        self._tmp.cleanup()
 
     def __enter__(self) -> "EmulatedBoard":
         return self

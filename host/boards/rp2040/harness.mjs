@@ -4,7 +4,8 @@
 //   node harness.mjs --bootrom B.bin --firmware firmware.bin [--fs fs.img --fs-offset 0xA0000]
 //
 // Requests (one JSON object a line; every request gets exactly one JSON answer line):
-//   {"cmd":"adc","ch":0,"value":2048}        ADC input channel (12-bit value)
+//   {"cmd":"adc","ch":0,"value":2048,"open":false}  ADC input channel (12-bit value); open: the
+//                                           pin floats there (pad pulls then win, see below)
 //   {"cmd":"encoder","count":N,"within_us":W}  quadrature position target (x4 counts, A=GP2
 //                                           B=GP3): reached by edges spread evenly over the next
 //                                           "run" (or over its first W us when given)
@@ -19,6 +20,11 @@
 //                                           loop_probe: find the firmware's loop iterations from
 //                                           its reads of the TIMER (see "loop probe" below);
 //                                           null switches it off
+//   {"cmd":"power_cut","op":K,"keep":M}     the K-th flash erase/program from now does only its
+//                                           first M bytes, then the core stops (see "flash
+//                                           programming"); "op":null disarms
+//   {"cmd":"flash","offset":O,"length":L}   read the flash array (base64 "data")
+//   {"cmd":"flash_log","on":true}           log flash operations from now; answers the log so far
 //   {"cmd":"quit"}
 // Answers: {"ok":true,...} or {"ok":false,"error":"..."}.  A "run" answer holds the cycle count,
 // the PWM slice of the PWM pin (raw registers and the double-buffered values in force), DIR/EN
@@ -39,6 +45,7 @@
 import { readFileSync } from 'node:fs';
 import { createInterface } from 'node:readline';
 import { BasePeripheral, RP2040, USBCDC } from 'rp2040js';
+import { Mcp2515 } from './mcp2515.mjs';
 
 const args = {};
 for (let i = 2; i < process.argv.length; i += 2) {
@@ -112,6 +119,7 @@ let halted = false;
 let breakCode = null;
 let idleCycles = 0; // cycles spent in WFI/WFE
 mcu.onBreak = (code) => {
+  if (romServe(code)) return; // a bootrom flash routine, served on the flash array (below)
   halted = true;
   breakCode = code;
 };
@@ -575,6 +583,188 @@ function probeRead() {
   };
 }
 
+// ---------------------------------------------------------------- ADC inputs (open wiper)
+// {"cmd":"adc","ch":C,"value":V,"open":true}: the pin of channel C (GP26+C) is left floating, as an
+// open potentiometer wiper: it reads V (where it floats to) with no pad pull, 0 with the pad's
+// pull-down and 4095 with its pull-up enabled (the pad's pull overpowers nothing else).  Without
+// "open" the channel is driven: it reads V whatever the pulls (a low-impedance source).
+const adcOpen = [false, false, false, false];
+{
+  const set = mcu.adc.channelValues.slice();
+  for (let ch = 0; ch < 4; ch++) {
+    Object.defineProperty(mcu.adc.channelValues, ch, {
+      get() {
+        if (!adcOpen[ch]) return set[ch];
+        const pad = mcu.gpio[26 + ch].padValue;
+        return pad & 8 ? 4095 : pad & 4 ? 0 : set[ch];
+      },
+      set(v) { set[ch] = v; },
+    });
+  }
+}
+
+// ---------------------------------------------------------------- flash programming
+// MicroPython writes its filesystem with the SDK's flash_range_erase/flash_range_program, which
+// call bootrom routines found through the ROM function table (connect_internal_flash,
+// flash_exit_xip, flash_range_erase, flash_range_program, flash_flush_cache, flash_enter_cmd_xip)
+// that drive the flash chip through the SSI -- not modelled by rp2040js.  Each routine's first
+// instruction is replaced by BKPT #ROM_BKPT; the break handler does the routine's work on the flash
+// array (erase: 0xff over whole 4 KiB sectors; program: NOR semantics, old & new) and returns to LR.
+// The rest of the SDK sequence (boot2 copied to RAM and re-run to re-enter XIP) runs as on a chip.
+//
+// Power cut ("power_cut" request): armed with a flash-operation index k and a byte count m, the
+// k-th erase/program from then on does only its first m bytes (a torn operation; m >= its length:
+// the operation completes), and the core stops right there as if the supply went away.  The flash
+// array (read with "flash") is then what the chip would power up with.
+const ROM_BKPT = 0xf1;
+const romFuncs = new Map(); // address (thumb bit clear) -> name
+let flashOps = 0; // erase/program operations since power-on
+let flashBytes = 0; // bytes erased or programmed since power-on
+let cut = null; // {op, keep} while a power cut is armed
+let flashLog = null; // [kind, offset, count, hex data (program)] of each operation, while logging
+let powerCut = false;
+{
+  const rom16 = (a) => (mcu.bootrom[a >> 2] >>> ((a & 2) * 8)) & 0xffff;
+  const code = (s) => s.charCodeAt(0) | (s.charCodeAt(1) << 8);
+  const want = new Map([['IF', 'connect_internal_flash'], ['EX', 'flash_exit_xip'], ['RE', 'flash_range_erase'],
+    ['RP', 'flash_range_program'], ['FC', 'flash_flush_cache'], ['CX', 'flash_enter_cmd_xip']]);
+  for (let t = rom16(0x14); rom16(t) !== 0; t += 4) {
+    for (const [k, name] of want) if (rom16(t) === code(k)) romFuncs.set(rom16(t + 2) & ~1, name);
+  }
+  if (romFuncs.size !== want.size) throw new Error(`bootrom flash routines not found (${[...romFuncs.values()]})`);
+  for (const a of romFuncs.keys()) {
+    const w = a >> 2, sh = (a & 2) * 8;
+    mcu.bootrom[w] = ((mcu.bootrom[w] & ~(0xffff << sh)) | ((0xbe00 | ROM_BKPT) << sh)) >>> 0;
+  }
+}
+function flashOp(kind, addr, count, data) {
+  // one erase or program of count bytes at flash offset addr; false: the power went away in it
+  let n = count;
+  let stop = false;
+  if (cut !== null && cut.op-- === 0) {
+    n = Math.max(0, Math.min(count, cut.keep));
+    cut = null;
+    stop = true;
+  }
+  const f = mcu.flash;
+  if (flashLog !== null) {
+    const d = [];
+    if (kind === 'program') for (let i = 0; i < count; i++) d.push(mcu.readUint8(data + i));
+    flashLog.push([kind, addr, count, hex(d)]);
+  }
+  if (kind === 'erase') f.fill(0xff, addr, addr + n);
+  else for (let i = 0; i < n; i++) f[addr + i] &= mcu.readUint8(data + i);
+  flashOps++;
+  flashBytes += n;
+  if (stop) {
+    powerCut = true;
+    halted = true;
+    breakCode = 'power_cut';
+  }
+  return !stop;
+}
+function romServe(code) {
+  if (code !== ROM_BKPT) return false;
+  const pc = (core.PC - 2) >>> 0;
+  const name = romFuncs.get(pc);
+  if (name === undefined) return false;
+  const r = core.registers;
+  if (name === 'flash_range_erase') {
+    const a0 = r[0] & ~0xfff;
+    const a1 = (r[0] + r[1] + 0xfff) & ~0xfff;
+    if (a1 > a0 && !flashOp('erase', a0, a1 - a0, 0)) return true;
+  } else if (name === 'flash_range_program') {
+    if (r[2] > 0 && !flashOp('program', r[0] >>> 0, r[2] >>> 0, r[1] >>> 0)) return true;
+  }
+  core.PC = r[14] & ~1; // return to the caller
+  return true;
+}
+
+// ---------------------------------------------------------------- watchdog reset
+// rp2040js's watchdog counts and sets REASON, but on expiry (or a CTRL.TRIGGER write, i.e.
+// machine.reset()) it only calls onWatchdogTrigger, which logs.  Here the chip is reset as the
+// hardware does (PSM WDSEL as pico-sdk's watchdog_enable sets it: everything but the
+// oscillators): core and NVIC, SRAM cleared, PWM, DMA, timer alarms, GPIO functions/pads and
+// SIO outputs (pins fall back to pulled-down inputs), PIO machines stopped, UART FIFOs, USB
+// (the CDC host model enumerates again) -- while the WATCHDOG block keeps SCRATCH0-7 and
+// REASON and stops counting.  Boot2 then runs again from flash, as at power-on here.  Done
+// between instructions (the trigger only marks it pending).  Each reset is reported in the
+// next run answer: "resets": [[cycle, reason]] (reason: 1 timer, 2 forced).
+const wdog = mcu.peripherals[0x40058];
+let resetPending = 0;
+let resets = [];
+wdog.onWatchdogTrigger = () => {
+  // stop it at once: its periodic alarm would otherwise fire again at the same instant forever
+  resetPending = wdog.reason || 1;
+  wdog.enable = false;
+  wdog.timer.enable = false;
+  wdog.alarm.enable = false;
+};
+function chipReset() {
+  const reason = resetPending;
+  resetPending = 0;
+  resets.push([cyc, reason]);
+  mcu.sram.fill(0);
+  Object.assign(core, {
+    VTOR: 0, IPSR: 0, PM: false, SPSEL: 0, nPRIV: false, currentMode: 0, waiting: false, eventRegistered: false,
+    pendingInterrupts: 0, enabledInterrupts: 0, interruptNMIMask: 0, pendingNMI: false, pendingPendSV: false,
+    pendingSVCall: false, pendingSystick: false, interruptsUpdated: true, SHPR2: 0, SHPR3: 0,
+  });
+  core.interruptPriorities = [0xffffffff, 0x0, 0x0, 0x0];
+  mcu.ppb.reset();
+  for (const ch of mcu.dma.channels) ch.reset();
+  const timer = mcu.peripherals[0x40054];
+  timer.writeUint32(0x20, 0xf); // ARMED: disarm all alarms
+  timer.writeUint32(0x38, 0); // INTE
+  timer.writeUint32(0x34, 0xf); // INTR
+  for (const pio of mcu.pio) {
+    pio.writeUint32(0, 0); // CTRL: state machines off (the wrapped writer re-plans the stepping)
+    pio.pinDirections = 0;
+  }
+  mcu.pwm.reset();
+  mcu.sio.gpioOutputEnable = 0;
+  mcu.sio.gpioValue = 0;
+  for (const pin of mcu.gpio) {
+    pin.ctrl = 0x1f;
+    pin.padValue = 0b0110110;
+    pin.irqEnableMask = 0;
+    pin.irqForceMask = 0;
+    pin.irqStatus = 0;
+  }
+  gpioCache = -1;
+  for (const m of uarts) {
+    m.txFifo = [];
+    m.txBusy = false;
+    m.txAlarm.cancel();
+    m.rtAlarm.cancel();
+    m.baud = 0;
+    m.u.rxFIFO.reset();
+    m.u.interruptMask = 0;
+    m.u.interruptStatus = 0;
+  }
+  usbConnected = false;
+  usbPending = null;
+  Object.assign(cdc, { initialized: false, descriptorsSize: null, descriptors: [], outEndpoint: -1, inEndpoint: -1 });
+  core.registers.fill(0); // boot2 returns to LR unless it is 0 (entered from the bootrom)
+  core.bankedSP = 0;
+  core.reset();
+  core.PC = 0x10000000;
+  for (const pin of mcu.gpio) pin.checkForUpdates();
+  const p = pwmState();
+  pwmEvents.push([cyc, 0, p.top, 0, p.div]);
+}
+
+// ---------------------------------------------------------------- MCP2515 CAN controller on SPI
+// --mcp2515 '{"spi":1,"cs":13,"int":14,"xtal":16000000}' attaches the chip model (mcp2515.mjs);
+// without it nothing answers on SPI (MISO reads 0): a board with no controller fitted.
+//   {"cmd":"can","frames":[[id,"<hex>"],...],"source":"host"}  frames onto the bus from an
+//                                           outside node (each source a FIFO; arbitration by id)
+//   {"cmd":"can_bus","error":true,"xtal":8e6} disturb the bus (every attempt an error frame) or
+//                                           not; the crystal the bit time is computed from
+// A "run" answer then holds can_tx ([cycle, id, hex] of the frames the chip sent) and can (the
+// chip's mode, TEC/REC/EFLG, bit time, bus and SPI counters).
+const can = args.mcp2515 ? new Mcp2515({ mcu, clock, nsPerCycle: NS_PER_CYCLE, ...JSON.parse(args.mcp2515) }) : null;
+
 // ---------------------------------------------------------------- run loop
 function runUntil(target) {
   while (cyc < target && !halted) {
@@ -603,10 +793,12 @@ function runUntil(target) {
         setNanos(cyc * NS_PER_CYCLE);
       }
       idleCycles += cyc - start;
+      if (resetPending) chipReset();
       continue;
     }
     cyc += core.executeInstruction();
     setNanos(cyc * NS_PER_CYCLE);
+    if (resetPending) chipReset();
     if (!pioLazy && pioNext <= cyc) stepPio(cyc);
   }
   pioSync(); // the machines' state is current at the end of each run
@@ -646,7 +838,12 @@ function stateAnswer(extra) {
     pio_active: pioSMs.length,
     pio_lazy: pioLazy,
     pio_skipped: pioSkipped,
+    flash_ops: flashOps,
+    flash_bytes: flashBytes,
+    power_cut: powerCut,
     log: logCount > lastLog ? logTail.slice(-Math.min(logCount - lastLog, LOG_KEEP)) : [],
+    resets,
+    ...(can ? { can_tx: can.drainTx(), can: can.summary() } : {}),
     ...extra,
   };
   if (probe.on) {
@@ -660,6 +857,7 @@ function stateAnswer(extra) {
   lastLog = logCount;
   edges = [];
   pwmEvents = [];
+  resets = [];
   return out;
 }
 
@@ -667,6 +865,7 @@ function handle(req) {
   switch (req.cmd) {
     case 'adc':
       mcu.adc.channelValues[req.ch ?? 0] = req.value & 0xfff;
+      if ((req.ch ?? 0) < 4) adcOpen[req.ch ?? 0] = !!req.open;
       return { ok: true };
     case 'encoder':
       encTarget = Math.trunc(req.count);
@@ -713,6 +912,34 @@ function handle(req) {
       }
       watchPins();
       return { ok: true, config: cfg };
+    case 'power_cut':
+      // arm (or with op null, disarm) a power cut in a flash operation (see "flash programming")
+      cut = req.op === null || req.op === undefined ? null : { op: Math.trunc(req.op), keep: Math.trunc(req.keep ?? 0) };
+      return { ok: true, flash_ops: flashOps };
+    case 'flash_log': {
+      // {"on":true}: log every flash operation from now; answers (and clears) the log so far
+      const log = flashLog ?? [];
+      flashLog = req.on ? [] : null;
+      return { ok: true, log };
+    }
+    case 'flash': {
+      // read the flash array: {"offset":O,"length":L} -> base64 data
+      const o = Number(req.offset ?? 0), l = Number(req.length ?? mcu.flash.length - o);
+      return { ok: true, data: Buffer.from(mcu.flash.buffer, mcu.flash.byteOffset + o, l).toString('base64') };
+    }
+    case 'can':
+      if (!can) return { ok: false, error: 'no MCP2515 attached (--mcp2515)' };
+      for (const [id, data] of req.frames) can.queue(req.source ?? 'host', id & 0x7ff, Buffer.from(data, 'hex'));
+      return { ok: true };
+    case 'gpio_in':
+      // drive a GPIO input from outside ({"pin":19,"value":1}; value null: undriven)
+      mcu.gpio[req.pin].setInputValue(!!req.value);
+      return { ok: true };
+    case 'can_bus':
+      if (!can) return { ok: false, error: 'no MCP2515 attached (--mcp2515)' };
+      if (req.xtal) can.xtal = Number(req.xtal); // the module's crystal (a driver test swaps it)
+      if (req.error !== undefined) can.setDisturbed(!!req.error);
+      return { ok: true, can: can.summary() };
     case 'quit':
       return { ok: true, quit: true };
   }
