@@ -135,11 +135,12 @@ def run(args: argparse.Namespace) -> int:
 def _shutdown(hub: Any, server: Any, plant: Any, pump: Any, link: Any, emu: Any) -> None:
     # disarm what can still be reached, then stop everything, each step on its own
     from host.link.clients import LinkError
+    from host.operate.board import BoardError
 
     if hub is not None:
         try:
             hub.disarm_now()
-        except (LinkError, OSError):
+        except (LinkError, OSError, BoardError):
             pass
         hub.close()
     if server is not None:

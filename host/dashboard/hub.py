@@ -37,6 +37,7 @@ from typing import Any, Callable
 from firmware import msgtable as T
 from host.link import messages as M
 from host.link.clients import Link, LinkClosed, LinkError
+from host.operate.board import Board, BoardError, has_message
 
 __all__ = [
     "KEEPALIVE_S",
@@ -233,6 +234,9 @@ class Hub:
         self.events: collections.deque[dict[str, Any]] = collections.deque(maxlen=200)
         self._listeners: list[PumpedLink] = []
         self.cmd = self.listener()
+        # the commands go through the board library of `upright board` (arming epoch where the
+        # protocol has one, refusals as BoardError), on the thread-safe link
+        self.board = Board(self.cmd, port=str(self.info.get("port", "")), timeout=0.25, retries=3)
         self._cmd_lock = threading.Lock()
         # recording
         self._rec_fh: Any = None
@@ -392,7 +396,7 @@ class Hub:
     def _safe(self, fn: Callable[[], Any]) -> None:
         try:
             fn()
-        except (LinkError, OSError) as exc:
+        except (LinkError, OSError, BoardError) as exc:
             self.note(f"disarm failed: {exc}")
 
     def tick_keepalive(self, now: float | None = None) -> None:
@@ -401,7 +405,12 @@ class Hub:
         if self.keepalive and self.feeding and now - self._last_keepalive >= KEEPALIVE_S:
             self._last_keepalive = now
             try:
-                self.link.send(_REQUEST(msg_id=T.HEARTBEAT))
+                # the protocol's host heartbeat where it has one (as `upright board arm` sends),
+                # else a heartbeat request (any valid frame feeds the watchdog)
+                if has_message("host_heartbeat"):
+                    self.link.send(M.BY_NAME["host_heartbeat"]())
+                else:
+                    self.link.send(_REQUEST(msg_id=T.HEARTBEAT))
                 self.keepalives += 1
             except LinkError as exc:
                 self.note(f"host heartbeat failed: {exc}")
@@ -439,7 +448,7 @@ class Hub:
         self.feeding = True
         self.tick_keepalive()
         try:
-            self._command(lambda L: L.arm(timeout=0.25, retries=3), refresh=True)
+            self._command(lambda L: self.board.arm(), refresh=True)
         except BaseException:
             self.arm_requested = False
             self.feeding = False
@@ -450,14 +459,14 @@ class Hub:
         self.arm_requested = False
         self.feeding = False
         self._stop_square()
-        self._command(lambda L: L.disarm(timeout=0.25, retries=3), refresh=True)
+        self._command(lambda L: self.board.disarm(), refresh=True)
 
     def disarm(self, cid: str = "") -> None:
         self.disarm_now()
         self.note("disarmed" + (f" (page {cid})" if cid else ""))
 
     def clear(self) -> None:
-        self._command(lambda L: L.clear_faults(timeout=0.25, retries=3), refresh=True)
+        self._command(lambda L: self.board.clear_faults(), refresh=True)
         self.note("faults cleared")
 
     def set_reference(self, x: float, *, stop_square: bool = True) -> None:
@@ -465,7 +474,7 @@ class Hub:
             raise ValueError(f"reference must be finite, got {x!r}")
         if stop_square:
             self._stop_square()
-        self._command(lambda L: L.set_reference(float(x), timeout=0.25, retries=3))
+        self._command(lambda L: self.board.set_reference(float(x)))
 
     def square(self, amplitude: float, period: float, low: float = 0.0) -> None:
         """Square wave on the reference: ``low`` and ``low + amplitude``, each for ``period / 2``
@@ -483,7 +492,7 @@ class Hub:
             while not stop.is_set() and not self.stopping.is_set():
                 try:
                     self.set_reference(low + amplitude if high else low, stop_square=False)
-                except (LinkError, OSError) as exc:
+                except (LinkError, OSError, BoardError) as exc:
                     self.note(f"square wave stopped: {exc}")
                     return
                 high = not high

@@ -36,6 +36,7 @@ from urllib.parse import parse_qs, urlsplit
 from host.dashboard.gains import TableError, design_table, table_bytes
 from host.dashboard.hub import Hub
 from host.link.clients import CommandRefused, LinkError, LinkTimeout
+from host.operate.board import BoardError
 
 __all__ = ["DashboardServer", "STATIC", "VENDOR"]
 
@@ -209,7 +210,7 @@ class _Handler(BaseHTTPRequestHandler):
             self._json({"ok": True, "heartbeat": hub._hb_payload()})
         except PermissionError as exc:
             self._error(403, str(exc))
-        except CommandRefused as exc:
+        except (CommandRefused, BoardError) as exc:
             self._error(409, str(exc))
         except LinkTimeout as exc:
             self._error(504, f"the board did not answer: {exc}")
