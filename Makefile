@@ -11,7 +11,7 @@ OUT    ?= out
 PORT   ?= /dev/ttyACM0
 ARCH   ?= armv6m
 
-.PHONY: all setup test demo bench fuzz soak firmware flash generate clean help rp2040 mutate
+.PHONY: all setup test demo bench fuzz soak firmware flash generate clean help rp2040 mutate dashboard-screenshot
 
 all: test
 
@@ -91,6 +91,10 @@ firmware: $(STAMP)
 
 flash: firmware
 	$(BIN)/mpremote connect $(PORT) fs cp -r $(OUT)/firmware/. : + reset
+
+# the README's dashboard picture, taken by the browser test (headless Chromium, virtual board)
+dashboard-screenshot: setup
+	UPRIGHT_DASHBOARD_SCREENSHOT=docs/img/dashboard.png $(PY) -m pytest -q tests/test_dashboard_browser.py
 
 clean:
 	rm -rf $(OUT) .pytest_cache .hypothesis

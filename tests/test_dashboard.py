@@ -110,7 +110,7 @@ def test_host_heartbeat_only_while_a_live_page_asked_for_the_arm(tmp_path: Path)
             hub.tick_keepalive()
             hub.ping(page.id)
             time.sleep(0.02)
-        assert 10 <= board.count("request", t0) <= 20  # every 0.1 s
+        assert 7 <= board.count("request", t0) <= 22  # every 0.1 s (15 on an idle machine)
         # the page goes silent (a frozen or closed tab): feeding stops, the board is disarmed
         t1 = time.monotonic()
         while hub.feeding and time.monotonic() - t1 < 3:
@@ -118,7 +118,7 @@ def test_host_heartbeat_only_while_a_live_page_asked_for_the_arm(tmp_path: Path)
             time.sleep(0.02)
         assert not hub.feeding
         gone = time.monotonic() - t1
-        assert PAGE_TIMEOUT_S - 0.1 <= gone <= PAGE_TIMEOUT_S + 0.5
+        assert PAGE_TIMEOUT_S - 0.1 <= gone <= PAGE_TIMEOUT_S + 1.0
         deadline = time.monotonic() + 2
         while board.state != 0 and time.monotonic() < deadline:
             time.sleep(0.02)

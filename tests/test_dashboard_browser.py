@@ -112,6 +112,7 @@ def test_dashboard_in_chromium(dashboard, tmp_path: Path) -> None:
     with open(res["csv"], newline="") as fh:
         rows = list(csv.reader(fh))
     assert tuple(rows[0]) == COLUMNS
+    assert res["record"]["lost"] == 0 and res["record"]["rows"] == len(rows) - 1  # by the board's sequence numbers
     body = [[float(v) for v in row] for row in rows[1:]]
     assert len(body) > 200  # ~8 s at 50 Hz
     ns = [int(r[0]) for r in body]

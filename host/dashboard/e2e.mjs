@@ -122,7 +122,7 @@ try {
   const [download] = await Promise.all([page.waitForEvent("download"), page.click("#recdl")]);
   const csvPath = path.join(outDir, "recording.csv");
   await download.saveAs(csvPath);
-  step("downloaded", { csv: csvPath, csv_name: download.suggestedFilename() });
+  step("downloaded", { csv: csvPath, csv_name: download.suggestedFilename(), record: (await status()).record });
 
   const rows = await page.evaluate(() => ({ columns: window.dash.columns, rows: Array.from(window.dash.received.values()) }));
   fs.writeFileSync(path.join(outDir, "page_rows.json"), JSON.stringify(rows));

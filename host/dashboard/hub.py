@@ -94,6 +94,9 @@ class SharedLink:
     def __init__(self, link: Link) -> None:
         self._link = link
         self._lock = threading.Lock()
+        # seq -> time of the requests sent: their replies carry the request's seq, not the
+        # board's periodic counter, and must not count in the loss accounting
+        self.requests: dict[int, float] = {}
 
     @property
     def inner(self) -> Link:
@@ -101,7 +104,15 @@ class SharedLink:
 
     def send(self, msg: M.Message) -> int:
         with self._lock:
-            return self._link.send(msg)
+            seq = self._link.send(msg)
+            if msg.NAME == "request":
+                self.requests[seq] = time.monotonic()
+            return seq
+
+    def is_reply(self, seq: int) -> bool:
+        """True if ``seq`` is that of a request sent in the last second (then forgotten)."""
+        t = self.requests.pop(seq, None)
+        return t is not None and time.monotonic() - t < 1.0
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._link, name)
@@ -268,7 +279,7 @@ class Hub:
         t = type(m)
         if t is _ACT:
             return
-        if seq is not None and t in _PERIODIC:
+        if seq is not None and t in _PERIODIC and not (t is _HB and self.link.is_reply(seq)):
             self._account(seq)
         if t is _TS:
             if self._pending is not None:
