@@ -34,6 +34,7 @@ SKIP: dict[str, str] = {
 # command prefix -> arguments added to keep the test short (the reason in the comment)
 SHORTEN: dict[str, list[str]] = {
     "upright design": ["--no-search"],  # the LQR weight search alone is ~20 s
+    "upright dashboard --virtual": ["--seconds", "3", "--http-port", "0"],  # serves until Ctrl-C
     "upright hil --virtual": ["--scenario", "tilt_0p1", "--no-gif"],  # all eight scenarios: a minute
     "upright hil --emulate rp2040": ["--scenario", "tilt_0p1", "--no-gif"],  # one scenario: ~40 s wall
     "upright demo": ["--scenario", "tilt_0p1", "--no-gif"],  # all eight scenarios with GIFs: minutes
