@@ -14,7 +14,32 @@
 #             stall_ms=0 switches it off), emitter ("bytecode",
 #             "native" or "viper": how the controller step is compiled), and any msgtable PARAMS
 #             name (e.g. watchdog_ms) -- config values are not range-checked, so
-#             watchdog_ms=0 switches the watchdog off (bench/tests only).
+#             watchdog_ms=0 switches the watchdog off (bench/tests only);
+#             vsup_nom_mv (the supply the table's motor constants assume) and vsup_min_mv
+#             (undervoltage threshold) when the HAL measures the motor supply.
+#     A HAL may also offer read_supply_mv() (motor supply, mV: the duty is then scaled by
+#     nominal/measured and an undervoltage latches F_UNDERVOLT) and an attribute adc_open
+#     (True: its wiper test found the angle potentiometer open -> F_ADC_OPEN).
+#   app.attach_store(store)  at start-up: load the newest valid saved configuration
+#                (firmware/store.py); copies there but none valid -> defaults, F_CONFIG.
+#   SAVE_CONFIG (cmd_save) is queued and run by service_save() between ticks, motor off.
+#     Optional HAL methods, each used only when present: set_enable(on) (driver enable:
+#     high only while balancing), estop() (True while the e-stop input is asserted or was
+#     since the last call -> F_ESTOP), wdt_start(ms)/wdt_feed()/wdt_stop() (hardware
+#     watchdog: started by run() when config wdt_ms > 0, fed once per completed tick, by
+#     nothing else), mark(cause) (the reset cause to report if the board resets now:
+#     msgtable.RC_*; see firmware/main.py).
+#     Config also: wdt_ms (hardware watchdog timeout, 0/absent = none), reset_cause (what
+#     main.py found at boot; not RC_POWER_ON latches F_RESET), deadline (False: late ticks
+#     only counted, never F_DEADLINE -- the unix-port HIL on a desktop OS; boards keep it).
+#   Timing is a safety input: the period is always the active gain table's RATE
+#   (loop_rate_hz is read-only); run() checks the time between step starts every tick:
+#   a gap > 1.5 periods is a late tick; while armed/balancing F_DEADLINE latches on one gap
+#   > _GAP_PERIODS periods, or when the late-tick budget runs out (each late tick adds
+#   _LATE_W to a score that each on-time tick lowers by 1; over _LATE_MAX: more than 4 late
+#   ticks in a row, or more than 1 in 26 sustained).  Balancing starts only once run() has
+#   seen _WARMUP on-time periods (supervisor.timing_ok).  Readiness (supervisor.ready): the
+#   active table passed validate() and its CRC (the flashed table: gains.CRC, at boot).
 #   app.step()   one control tick (allocation-free): read sensors, supervise, estimate,
 #                control, drive the motor.  Returns the duty.
 #   app.run(n=0, lock=True)  pace step() and the link's poll() at the loop rate with the
@@ -41,18 +66,45 @@ except ImportError:  # CPython, or a port without them
 
 from array import array
 
+try:
+    from gc import mem_alloc as _mem_alloc, mem_free as _mem_free
+except ImportError:  # CPython
+    _mem_alloc = None
+    _mem_free = None
+
+from . import crc16
 from . import fixmath
 from . import msgtable as T
 from .controller import Controller
 from .motor import Motor
 from .sensors import Sensors
-from .supervisor import BALANCING, DISARMED, FAULT, F_GAINS, F_LOOP, Supervisor
+from .supervisor import ARMED, BALANCING, DISARMED, FAULT, F_ADC_OPEN, F_CONFIG, F_GAINS, F_LOOP, F_UNDERVOLT, Supervisor
+from .supervisor import F_DEADLINE, F_ESTOP, F_RESET
 from .timing import Timing
 
 STALL_MS = const(100)  # no-motion check (F_STALL) default: this long without a count
 STALL_DUTY = const(800)  # ... at |duty| at least this
+# deadline rule (F_DEADLINE, see above) and timing readiness
+_LATE_W = const(25)
+_LATE_MAX = const(100)
+_GAP_PERIODS = const(10)
+_WARMUP = const(16)
+# hardware watchdog timeout while a queued configuration save writes the flash (motor off)
+_SAVE_WDT_MS = const(5000)
 _I16 = const(32767)
 _U16 = const(65535)
+
+
+def _epoch0(cfg, boot):
+    # the arming epoch a start begins with: random where the port has os.urandom, so an
+    # arm sent to the board before it reset does not match (config "epoch": tests)
+    if "epoch" in cfg:
+        return cfg["epoch"] & 0xFF
+    try:
+        import os
+        return os.urandom(1)[0]
+    except (ImportError, AttributeError, OSError):
+        return (boot * 151 + 89) & 0xFF
 
 
 class App:
@@ -76,8 +128,15 @@ class App:
         else:
             cstep = Controller.step
         self._cstep = cstep
+        self.emitter = em  # also the host link's frame encoder (framing.Encoder)
         off = self.ctrl.off
         self.off = off
+        # telemetry scaling (fill_telemetry): the TEL offset, and viper's build of it
+        self._tel_o = off["TEL"]
+        self._tel_fast = None
+        if em == "viper":
+            from .fastframe import telem_viper
+            self._tel_fast = telem_viper
         self.table = array("i", flat)
         self.rate = flat[off["RATE"]]
         self.sensors = Sensors(flat, off, cfg.get("adc_sign", 1), cfg.get("enc_sign", 1), cfg.get("pot_offset"))
@@ -93,6 +152,39 @@ class App:
         self._us_frac = 0
         self.step_us = 0
         self.gains_crc = 0
+        self._crc_table = crc16.make_table()
+        # hardware cut-offs: driver enable, e-stop input, hardware watchdog, reset marker
+        self._set_enable = getattr(hal, "set_enable", None)
+        self._estop = getattr(hal, "estop", None)
+        self._en = 1
+        self.wdt_ms = cfg.get("wdt_ms", 0)
+        self._wdt_feed = None
+        self.reset_cause = cfg.get("reset_cause", T.RC_POWER_ON)
+        # deadline check (run()): late-tick score, counts, pending flags for the next step
+        self.deadline_check = cfg.get("deadline", True)
+        self.late_score = 0
+        self.n_late = 0
+        self._on_time = 0
+        self._ext = 0
+        # arming epoch (HEARTBEAT.epoch; ARM must carry it): changes on every disarm,
+        # clear_faults and entry into FAULT (step() watches the state)
+        self.epoch = _epoch0(cfg, self.boot)
+        self._st = -1
+        self._gc_count = 0
+        self._alloc_last = 0
+        # persistent configuration (attach_store) and a queued save (cmd_save)
+        self.store = None
+        self.config_bad = False
+        self.save_seq = -1
+        self._save_disp = None
+        self.n_saves = 0
+        # motor supply (HAL read_supply_mv) and the angle wiper test (HAL adc_open)
+        self._read_vsup = hal.read_supply_mv if hasattr(hal, "read_supply_mv") else None
+        self._has_open = hasattr(hal, "adc_open")
+        self.vsup_nom = cfg.get("vsup_nom_mv", 12000)
+        self.vsup_min = cfg.get("vsup_min_mv", 0)
+        self.vsup_mv = self.vsup_nom
+        self._vsup_acc = -1
         self._frames = -1
         self._has_frames = hasattr(hal, "n_sensor")
         # parameters: defaults from msgtable, then config overrides by name
@@ -102,23 +194,38 @@ class App:
         for p in T.PARAMS:
             if p[1] in cfg:
                 self.params[p[0]] = cfg[p[1]]
-        self.params[T.P_LOOP_RATE] = cfg.get("loop_rate_hz", self.rate)
+        self.params[T.P_LOOP_RATE] = self.rate
         self._apply_params()
         # no-motion check (F_STALL): |duty| >= stall_duty for stall_ms without one encoder
         # count (stall_ms=0: off).  800 duty (~2 N at rest, 3/4 of the default design's
         # force clamp) for 100 ms moves the cart by centimetres
         self.sup.stall_ticks = (cfg.get("stall_ms", STALL_MS) * self.rate) // 1000
         self.sup.stall_duty = cfg.get("stall_duty", STALL_DUTY)
-        # a table the firmware's own check rejects is latched as a fault
-        if self.ctrl.validate(self.table, len(self.table), self.version) != T.OK:
+        # readiness of the flashed table: the firmware's own check and its CRC (gains.CRC);
+        # a table that fails either is never run (F_GAINS on every tick, arm refused)
+        n = len(self.table)
+        self.gains_crc = self._table_crc(self.table, n)
+        ok = self.ctrl.validate(self.table, n, self.version) == T.OK
+        self.sup.ready = ok and self.gains_crc == getattr(gains, "CRC", -1)
+        if not self.sup.ready:
             self.sup.faults |= F_GAINS
+            self.sup.state = FAULT
+        if self.reset_cause != T.RC_POWER_ON:
+            # restarted by the hardware watchdog or a loop exception: the host must see it
+            self.sup.faults |= F_RESET
             self.sup.state = FAULT
         # bound methods cached for the loop
         self._step = self.step
+        self._period_m = self._period
         self._read_adc = hal.read_angle_raw
         self._read_enc = hal.read_encoder
-        self._set_motor = hal.set_motor
+        self._hal_motor = hal.set_motor
+        self._motor_neg = self._set_motor_neg
+        self._set_motor = hal.set_motor if self._msign > 0 else self._motor_neg
         self._ticks = hal.ticks_us
+        self._drive(0)
+        if not hasattr(self, "reset_cause"):
+            self.reset_cause = 0
 
     # ---- parameters -> derived integers (outside the loop) ----
     def _counts_from_mrad(self, mrad):
@@ -131,9 +238,9 @@ class App:
         sup = self.sup
         sup.tilt_counts = self._counts_from_mrad(p[T.P_TILT_LIMIT])
         sup.arm_counts = self._counts_from_mrad(p[T.P_ARM_TILT])
-        rate = p[T.P_LOOP_RATE]
-        if rate <= 0:
-            rate = self.rate
+        # the period comes only from the active table (loop_rate_hz reports it)
+        rate = self.rate
+        p[T.P_LOOP_RATE] = rate
         sup.wd_ticks = (p[T.P_WATCHDOG_MS] * rate) // 1000
         t = self.table
         # track fault at 1.25 x the reference limit (encoder counts)
@@ -143,6 +250,15 @@ class App:
         self.motor.max_duty = p[T.P_MAX_DUTY]
         self.period_us = 1000000 // rate
         self.timing.period_us = self.period_us
+        # calibration (upright board calibrate): pot offset (-1: the table's) and signs
+        sn = self.sensors
+        po = p[T.P_POT_OFFSET]
+        sn.pot_offset = po if po >= 0 else t[self.off["CAL"]]
+        sn.adc_sign = -1 if p[T.P_ADC_SIGN] < 0 else 1
+        sn.enc_sign = -1 if p[T.P_ENC_SIGN] < 0 else 1
+        self._msign = -1 if p[T.P_MOTOR_SIGN] < 0 else 1
+        if hasattr(self, "_hal_motor"):
+            self._set_motor = self._hal_motor if self._msign > 0 else self._motor_neg
 
     # ---- the loop ----
     def step(self):
@@ -157,7 +273,20 @@ class App:
             if n != self._frames:
                 self._frames = n
                 sup.wd_count = 0
-        start = sup.update(s.counts, s.pos, s.rail, s.jump, s.delta, self.duty)
+        ext = self._ext
+        self._ext = 0
+        if self._estop is not None and self._estop():
+            ext |= F_ESTOP
+        if self._has_open and self.hal.adc_open:
+            ext |= F_ADC_OPEN
+        if self._read_vsup is not None:
+            ext |= self._supply(sup.state)
+        start = sup.update(s.counts, s.pos, s.rail, s.jump, s.delta, self.duty, ext)
+        st = sup.state
+        if st != self._st:
+            if st == FAULT:
+                self.epoch = (self.epoch + 1) & 0xFF
+            self._st = st
         duty = 0
         if sup.state == BALANCING:
             c = self.ctrl
@@ -166,7 +295,14 @@ class App:
                 c.reset(s.yx, s.yp)
             u = self._cstep(c, s.yx, s.yp, self.ref)
             duty = self.motor.duty(u, c.vh)
-        self._set_motor(duty)
+            # the driver is enabled only while balancing, before the first duty
+            if not self._en:
+                self._drive(1)
+            self._set_motor(duty)
+        else:
+            self._set_motor(0)
+            if self._en:
+                self._drive(0)
         self.duty = duty
         # counters wrap at 2**30 without computing it (not a small int on 32 bits)
         self.tick = fixmath.ticks_next(self.tick)
@@ -177,6 +313,24 @@ class App:
         self._us_frac = f
         self.step_us = tm.end(t0, self._ticks())
         return duty
+
+    def _supply(self, st):
+        # the motor supply: filtered (8 ticks), scales the duty; returns F_UNDERVOLT when it
+        # is below vsup_min_mv while armed or balancing
+        v = self._read_vsup()
+        a = self._vsup_acc
+        if a < 0:
+            a = v << 3
+        else:
+            a += v - (a >> 3)
+        self._vsup_acc = a
+        v = a >> 3
+        if v != self.vsup_mv:
+            self.vsup_mv = v
+            self.motor.set_supply(v, self.vsup_nom)
+        if v < self.vsup_min and (st == ARMED or st == BALANCING):
+            return F_UNDERVOLT
+        return 0
 
     def set_link(self, link):
         # attach the host link (an object with poll()); its bound method is cached here
@@ -194,19 +348,45 @@ class App:
         poll = self._poll
         locked = lock and _heap_lock is not None
         k = 0
+        # self-paced: the period must be measured before balancing; the hardware watchdog
+        # (config wdt_ms) runs from here on, fed once per completed tick and by nothing else
+        self.sup.timing_ok = False
+        self._on_time = 0
+        self.late_score = 0
+        self._wdt_start(self.wdt_ms)
+        feed = self._wdt_feed
+        period = self._period_m
         deadline = ticks()
+        last = deadline
+        first = True
         if locked:
             _heap_lock()
         try:
             while n == 0 or k < n:
                 while diff(deadline, ticks()) > 0:
                     pass
+                now = ticks()
+                if first:
+                    first = False
+                else:
+                    period(diff(now, last))
+                last = now
                 try:
                     step()
                     if poll is not None:
                         poll()
                 except MemoryError:
                     self._loop_fault()
+                if feed is not None:
+                    feed()
+                if self.save_seq >= 0:
+                    # a queued save (motor off): between ticks, heap unlocked; pacing restarts
+                    # (the watchdog window is widened for the flash writes, the gap not timed)
+                    self._wdt_window(_SAVE_WDT_MS, locked)
+                    self.service_save(locked)
+                    self._wdt_window(self.wdt_ms, locked)
+                    deadline = ticks()
+                    first = True
                 deadline = add(deadline, self.period_us)
                 if diff(ticks(), deadline) > self.period_us:
                     deadline = ticks()
@@ -216,6 +396,73 @@ class App:
         finally:
             if locked:
                 _heap_unlock()
+        # a bounded run (tests, bench) ends cleanly: the watchdog stops with it.  An
+        # exception leaves it running (main.py resets the board; a hang is reset by it)
+        if self._wdt_feed is not None:
+            self.hal.wdt_stop()
+            self._wdt_feed = None
+            self._mark(T.RC_POWER_ON)
+
+    def _period(self, per):
+        # run(), every tick: per = us between this step start and the previous one
+        p = self.period_us
+        sup = self.sup
+        if per <= p + (p >> 1):
+            if self.late_score > 0:
+                self.late_score -= 1
+            if not sup.timing_ok:
+                self._on_time += 1
+                if self._on_time >= _WARMUP:
+                    sup.timing_ok = True
+            return
+        if self.n_late < _U16:
+            self.n_late += 1
+        self._on_time = 0
+        st = sup.state
+        if st != ARMED and st != BALANCING:
+            # motor off: nothing to cut, but the period is measured again before balancing
+            sup.timing_ok = False
+            self.late_score = 0
+            return
+        s = self.late_score + _LATE_W
+        if per > p * _GAP_PERIODS:
+            s = _LATE_MAX + 1
+        if s > _LATE_MAX:
+            s = 0
+            if self.deadline_check:
+                sup.timing_ok = False
+                self._ext |= F_DEADLINE
+        self.late_score = s
+
+    def _drive(self, on):
+        # driver enable (HAL set_enable, when it has one); on: 0 or 1
+        self._en = on
+        if self._set_enable is not None:
+            self._set_enable(on)
+
+    def _mark(self, cause):
+        m = getattr(self.hal, "mark", None)
+        if m is not None:
+            m(cause)
+
+    def _wdt_start(self, ms):
+        # start the hardware watchdog (and mark: a reset from now on is the watchdog's)
+        if ms > 0 and hasattr(self.hal, "wdt_start"):
+            self.hal.wdt_start(ms)
+            self._wdt_feed = self.hal.wdt_feed
+            self._mark(T.RC_WATCHDOG)
+
+    def _wdt_window(self, ms, locked):
+        # change a running watchdog's timeout (outside the tick; machine.WDT may allocate)
+        if self._wdt_feed is None or ms <= 0:
+            return
+        if locked:
+            _heap_unlock()
+        try:
+            self.hal.wdt_start(ms)
+        finally:
+            if locked:
+                _heap_lock()
 
     def _loop_fault(self):
         # the loop could not complete a tick (see run()): latch, motor off
@@ -223,6 +470,7 @@ class App:
         sup.faults |= F_LOOP
         sup.state = FAULT
         self._set_motor(0)
+        self._drive(0)
         self.duty = 0
 
     # ---- target of firmware/commands.py ----
@@ -230,21 +478,100 @@ class App:
         self.sup.feed()
 
     def cmd_arm(self):
-        self.sup.feed()
+        # the dispatcher checked the epoch; arming (re)starts the watchdog count
         return self.sup.arm()
 
     def cmd_disarm(self):
-        self.sup.feed()
+        # every disarm changes the epoch: no arm sent before it can act after it
+        self.epoch = (self.epoch + 1) & 0xFF
         r = self.sup.disarm()
         self._set_motor(0)
+        self._drive(0)
         self.duty = 0
         return r
 
     def cmd_clear_faults(self):
-        self.sup.feed()
-        return self.sup.clear()
+        r = self.sup.clear()
+        if r == T.OK:
+            self.epoch = (self.epoch + 1) & 0xFF
+        if r == T.OK and self.config_bad:
+            # no valid saved configuration: stays latched until a table is uploaded
+            self.sup.faults |= F_CONFIG
+            self.sup.state = FAULT
+        return r
+
+    # ---- persistent configuration (firmware/store.py; never in the control tick) ----
+    def attach_store(self, store):
+        # start-up: the newest valid saved copy replaces the defaults; copies there but none
+        # valid -> defaults, F_CONFIG (arming refused until a table is uploaded).  -> status
+        from .store import CORRUPT, LOADED
+        self.store = store
+        store.n_params = T.N_PARAMS
+        store.n_table = self.ctrl.length
+        st, params, table = store.load(self._config_check)
+        if st == LOADED:
+            self._install_table(table, len(table))
+            p = self.params
+            for i in range(T.N_PARAMS):
+                p[i] = params[i]
+            self._apply_params()
+        elif st == CORRUPT:
+            self.config_bad = True
+            self.sup.faults |= F_CONFIG
+            self.sup.state = FAULT
+        return st
+
+    def _config_check(self, params, table):
+        # a saved copy's content: every parameter in range, the table passes the check
+        for q in T.PARAMS:
+            v = params[q[0]]
+            if v < q[3] or v > q[4]:
+                return False
+        return self.ctrl.validate(table, len(table), self.version) == T.OK
+
+    def cmd_save(self, disp, seq):
+        # SAVE_CONFIG: queue a save of the parameters and the active table; disp.reply()
+        # answers it once service_save() has run (App.run: after this tick)
+        if self.store is None:
+            return T.R_NOT_SUPPORTED
+        st = self.sup.state
+        if st != DISARMED and st != FAULT:
+            return T.R_ARMED
+        if self.save_seq >= 0:
+            return T.R_BAD_STATE
+        self._save_disp = disp
+        self.save_seq = seq
+        return T.OK
+
+    def service_save(self, locked=False):
+        # run a queued save now (outside the control tick: it allocates and may wait for
+        # flash erases); locked: the caller holds the heap lock (released meanwhile)
+        seq = self.save_seq
+        if seq < 0:
+            return
+        self.save_seq = -1
+        st = self.sup.state
+        if st != DISARMED and st != FAULT:
+            r = T.R_ARMED
+        else:
+            if locked:
+                _heap_unlock()
+            try:
+                try:
+                    self.store.save(self.params, self.table)
+                    self.n_saves += 1
+                    r = T.OK
+                except OSError:
+                    r = T.R_STORAGE
+            finally:
+                if locked:
+                    _heap_lock()
+        d = self._save_disp
+        if d is not None:
+            d.reply(T.SAVE_CONFIG, seq, r)
 
     def cmd_set_reference(self, x_um):
+        # a set-point is the controlling host's stream: it feeds the link watchdog
         self.sup.feed()
         lim = self.params[T.P_REF_LIMIT]
         if x_um > lim or x_um < -lim:
@@ -263,14 +590,14 @@ class App:
         return self.params[index]
 
     def param_set(self, index, value):
-        self.sup.feed()
         if index < 0 or index >= T.N_PARAMS:
             return T.R_BAD_INDEX
         p = T.PARAMS[index]
         if value < p[3] or value > p[4]:
             return T.R_OUT_OF_RANGE
-        if index == T.P_LOOP_RATE and self.sup.state != DISARMED and self.sup.state != FAULT:
-            return T.R_ARMED
+        if index == T.P_LOOP_RATE:
+            # the period is the active table's RATE, nothing else
+            return T.R_READ_ONLY
         self.params[index] = value
         self._apply_params()
         return T.OK
@@ -278,7 +605,6 @@ class App:
     def gains_apply(self, buf, nbytes):
         # a complete, CRC-checked table from the dispatcher: int32 little-endian in
         # the layout of firmware/gains.py; re-checked here before it replaces the live one
-        self.sup.feed()
         if self.sup.state != DISARMED and self.sup.state != FAULT:
             return T.R_ARMED
         n = nbytes >> 2
@@ -293,27 +619,84 @@ class App:
         r = self.ctrl.validate(sc, n, self.version)
         if r != T.OK:
             return r
+        self._install_table(sc, n)
+        self._apply_params()
+        self.sup.faults &= ~(F_GAINS | F_CONFIG)
+        self.config_bad = False
+        return T.OK
+
+    def _install_table(self, src, n):
+        # a checked table becomes the live one (upload or saved configuration)
         t = self.table
         for i in range(n):
-            t[i] = sc[i]
+            t[i] = src[i]
+        self.gains_crc = self._table_crc(t, n)
+        self.sup.ready = True
         off = self.off
         self.ctrl.load(t)
         self.sensors.load(t, off)
         self.motor.load(t, off)
         self.rate = t[off["RATE"]]
-        self._apply_params()
-        self.sup.faults &= ~F_GAINS
-        return T.OK
+
+    def _table_crc(self, t, n):
+        # CRC-16/CCITT-FALSE of the table as int32 little-endian (gains.CRC, the upload CRC)
+        tb = self._crc_table
+        c = crc16.INIT
+        for i in range(n):
+            v = t[i]
+            c = crc16.update(tb, c, v & 0xFF)
+            c = crc16.update(tb, c, (v >> 8) & 0xFF)
+            c = crc16.update(tb, c, (v >> 16) & 0xFF)
+            c = crc16.update(tb, c, (v >> 24) & 0xFF)
+        return c
 
     def fill_heartbeat(self, arr):
         arr[0] = self.sup.state
         arr[1] = self.sup.faults
         arr[2] = self.boot
-        arr[3] = self.uptime_ms
+        arr[3] = self.epoch
+        arr[4] = self.gains_crc & 0xFF
+        arr[5] = self.uptime_ms & 0xFFFF
+
+    def _set_motor_neg(self, duty):
+        # motor_sign -1: the HAL gets the opposite duty (set_motor is this method then)
+        self._hal_motor(-duty)
+
+    def fill_sensors_raw(self, arr):
+        # SENSORS_RAW: the ADC as read (from the calibrated counts; clamped at the rails),
+        # the encoder counter as read, the unwrapped position
+        s = self.sensors
+        arr[0] = s.pot_offset + (s.counts if s.adc_sign > 0 else -s.counts)
+        arr[1] = s.last
+        arr[2] = s.pos
+
+    def fill_version(self, arr):
+        # VERSION fields the app knows (the dispatcher adds version and table hashes)
+        arr[3] = self.gains_crc
+        arr[4] = self.reset_cause
+
+    def fill_stats(self, arr):
+        # STATS_LOOP: worst step and deadline misses since boot, free heap (64 B units),
+        # collections seen (the heap in use fell between two samples); allocation-free
+        tm = self.timing
+        w = tm.worst if tm.worst > tm.step_max else tm.step_max
+        arr[0] = w if w < _U16 else _U16
+        m = tm.misses + tm.overruns
+        arr[1] = m if m < _U16 else _U16
+        if _mem_free is not None:
+            f = _mem_free() >> 6
+            arr[2] = f if f < _U16 else _U16
+            a = _mem_alloc()
+            if a < self._alloc_last:
+                self._gc_count += 1
+            self._alloc_last = a
+        else:
+            arr[2] = 0
+        arr[3] = self._gc_count & 0xFFFF
 
     def _tel(self, v, j):
         t = self.table
-        o = self.off["TEL"]
+        o = self._tel_o
         s = t[o + 5]
         v = (v * t[o + j] + (1 << (s - 1))) >> s
         if v > _I16:
@@ -324,14 +707,18 @@ class App:
 
     def fill_telemetry(self, arr):
         # TELEM_STATE (x, xdot, phi, phidot: filtered estimate) then TELEM_CTRL
-        # (ref, force, duty, step_us), in the message units
-        xf = self.ctrl.xf
-        arr[0] = self._tel(xf[0], 0)
-        arr[1] = self._tel(self.ctrl.vh, 1)
-        arr[2] = self._tel(xf[2], 2)
-        arr[3] = self._tel(xf[3], 3)
-        arr[4] = self._tel(self.ref, 0)
-        arr[5] = self._tel(self.ctrl.u, 4)
+        # (ref, force, duty, step_us), in the message units (viper: one call, same values)
+        c = self.ctrl
+        if self._tel_fast is not None:
+            self._tel_fast(arr, self.table, c.xf, self._tel_o, c.vh, self.ref, c.u)
+        else:
+            xf = c.xf
+            arr[0] = self._tel(xf[0], 0)
+            arr[1] = self._tel(c.vh, 1)
+            arr[2] = self._tel(xf[2], 2)
+            arr[3] = self._tel(xf[3], 3)
+            arr[4] = self._tel(self.ref, 0)
+            arr[5] = self._tel(c.u, 4)
         arr[6] = self.duty
         arr[7] = self.step_us if self.step_us < _U16 else _U16
 

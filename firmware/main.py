@@ -30,18 +30,134 @@ def boot_count(path=_BOOT_FILE):
     return n
 
 
-def main():
+def main(link=None, repl_ms=None):
+    # One bundle, every use: the robot (the paced control loop, _robot) at boot, and lockstep
+    # hardware-in-the-loop (main_hil.HilMain) on the same link, switched by the MODE command
+    # while the motor is off -- no reflash.  MODE hil hands the link to HilMain; MODE robot
+    # (or a reset) comes back; MODE repl closes the link and returns to the REPL.
+    # link: board.LINK when None -- "uart" (UART0, "uart0" too), "usb" (the Pico's USB
+    # serial, link_usb.py) or "can" (MCP2515, robot mode only).  repl_ms (USB link only,
+    # board.USB_REPL_MS when None): Ctrl-C reaches the REPL for this long after boot, before
+    # the link takes the USB serial (the link turns Ctrl-C off: link_usb.py).
     from . import board
-    from .app import App
+    from . import msgtable as T
     from .hal_pico import HalPico
-    from .link_serial import SerialLink
 
     hal = HalPico(board)
+    cause = hal.reset_cause()
+    link = link or getattr(board, "LINK", "uart")
+    boot = boot_count()
+    port = _port(board, hal, link, repl_ms)
+    try:
+        while True:
+            mode = _robot(board, hal, link, port, boot, cause)
+            cause = T.RC_POWER_ON
+            while mode == T.MODE_HIL:
+                mode = _hil(port, boot)
+            if mode == T.MODE_REPL:
+                return
+    finally:
+        close = getattr(port, "close", None)
+        if close is not None:
+            close()
+
+
+def _port(board, hal, link, repl_ms=None):
+    # the link's byte stream, made once and kept across mode switches (None: CAN)
+    if link == "can":
+        return None
+    if link == "usb":
+        ms = getattr(board, "USB_REPL_MS", 0) if repl_ms is None else repl_ms
+        if ms > 0:
+            import time
+            time.sleep_ms(ms)  # Ctrl-C now: KeyboardInterrupt, the REPL (motor off since HalPico())
+        from .link_usb import UsbStream
+        return UsbStream()
+    return hal.uart()
+
+
+def _hil(port, boot):
+    # MODE hil: lockstep HIL on the robot's link until MODE robot/repl; returns that mode.
+    # The motor stays off (the robot loop switched it off; HilHal drives no pin)
+    import gc
+    from .main_hil import BoardUART, HilMain
+    gc.collect()
+    m = HilMain(port if hasattr(port, "wait") else BoardUART(port), config={"boot": boot})
+    m.switch = True
+    m.run()
+    return m.next_mode
+
+
+def _robot(board, hal, link, port, boot, cause):
+    # The robot: the paced loop until a MODE switch (returns the mode asked for).
+    # Safety net around the loop (see docs/firmware.md, "Hardware cut-offs"):
+    #  - a hung loop stops feeding the hardware watchdog (board.WDT_MS): the board resets,
+    #    its pins fall back to inputs (driver enable pulled low), and the reset-cause marker
+    #    App.run left in a WATCHDOG scratch register says RC_WATCHDOG at the next boot;
+    #  - an exception escaping the loop: motor and enable off, F_LOOP latched and reported
+    #    in one last heartbeat, marker RC_EXCEPTION, board reset;
+    #  - Ctrl-C on the REPL (KeyboardInterrupt): motor off, watchdog stopped, no marker,
+    #    so the REPL (and mpremote) stays usable.
+    # After a watchdog/exception reset the app boots with F_RESET latched (App.reset_cause).
+    from . import msgtable as T
+    from .app import App
+    from .link_serial import ModeSwitch
+
     try:
         cfg = board.config()
-        cfg["boot"] = boot_count()
+        cfg["boot"] = boot
+        cfg["reset_cause"] = cause
         app = App(hal, config=cfg)
-        app.set_link(SerialLink(hal.uart(), app))
+        # saved parameters and gain table (two copies on the flash filesystem), before the link
+        from .store import ConfigStore
+        app.attach_store(ConfigStore(getattr(board, "CONFIG_DIR", "")))
+        app.set_link(_link(board, hal, app, link, port))
+    except BaseException:
+        hal.off()
+        raise
+    try:
         app.run()
+    except ModeSwitch:
+        # MODE hil/repl, ACKed with the motor off: the watchdog stops with the loop
+        hal.off()
+        hal.wdt_stop()
+        hal.mark(T.RC_POWER_ON)
+        return app.link.mode
+    except KeyboardInterrupt:
+        hal.off()
+        hal.wdt_stop()
+        hal.mark(T.RC_POWER_ON)
+        raise
+    except Exception as e:
+        hal.off()
+        hal.mark(T.RC_EXCEPTION)
+        _report(app, e)
+        hal.reset()
     finally:
         hal.off()
+
+
+def _report(app, e):
+    # best effort: latch F_LOOP, send one heartbeat, print the traceback, let the UART drain
+    import sys
+    import time
+    try:
+        app._loop_fault()
+        ln = app.link
+        ln.disp.send_heartbeat((ln.pacer.seq + 1) & 0xFF)
+    except Exception:
+        pass
+    sys.print_exception(e)
+    time.sleep_ms(5)
+
+
+def _link(board, hal, app, link=None, port=None):
+    # the host link of the board config (board.LINK; `link` overrides it): "uart" -> COBS
+    # frames on UART0 (link_serial), "usb" -> the same on the USB serial (port: link_usb),
+    # "can" -> an MCP2515 on SPI (link_can, docs/can.md)
+    link = link or getattr(board, "LINK", "uart")
+    if link == "can":
+        from .link_can import CanLink
+        return CanLink(hal.can(), app, board.CAN_BITRATE, board.CAN_XTAL_HZ)
+    from .link_serial import SerialLink
+    return SerialLink(port if port is not None else hal.uart(), app)

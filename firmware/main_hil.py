@@ -1,7 +1,8 @@
 # HIL entry point: the unchanged firmware app, its sensors and motor replaced by the link.
 #
 # Runs under the MicroPython unix port on a pty (host/boards/vport.py starts it) or on a real
-# board in HIL mode (hand it the board's machine.UART):
+# board in HIL mode: the board's main.py runs it in lockstep over its own link after a MODE
+# hil command (no reflash; MODE robot or a reset goes back), or by hand with a machine.UART:
 #   from firmware import main_hil; main_hil.main("/dev/pts/3", link="serial", mode="lockstep")
 #   main_hil.main(uart=machine.UART(0, 1000000), mode="realtime")
 # (a machine.UART is wrapped in BoardUART; a board's main.py can also pass heap_lock=True)
@@ -112,9 +113,9 @@ class HilMain:
         self.layout = layout
         if self.can:
             from . import canframe
-            self.dec = canframe.SerialCanDecoder(layout, node)
-            w = canframe.SerialCanWriter(layout, node)
-            self.tx = canframe.SerialCanTx(w, uart.write, self._ticks_ms)
+            self.dec = canframe.SerialCanDecoder(layout, node, table)
+            w = canframe.SerialCanWriter(layout, node, table)
+            self.tx = canframe.SerialCanTx(w, uart.write)
             self.pbuf = self.dec.data
             self.poff = 0
         else:
@@ -132,6 +133,12 @@ class HilMain:
             self.app = app_factory(self.hal, rt_link)
         self.hal.set_status(self.app.fill_heartbeat)
         self.disp = commands.Dispatcher(self.app, layout, self.tx, table)
+        self.disp.dec = self.dec
+        # MODE: hil is this mode; robot/repl end a lockstep run that a board's main.py
+        # started (switch=True: it then runs next_mode), else NOT_SUPPORTED
+        self.switch = False
+        self.next_mode = T.MODE_ROBOT
+        self.disp.on_mode = self._on_mode
         self.pacer = Pacer(self.app, self.disp)
         self.rx = bytearray(_RX)
         self.sv = array("i", [0] * 4)
@@ -148,12 +155,24 @@ class HilMain:
         # the deadline arithmetic is mod 2**30 (fixmath), whatever the port's ticks period
         self._diff = ticks_diff
         self._timing = self.app.timing
-        # every valid frame from the host feeds the command watchdog (sensor frames via
-        # the HAL's n_sensor; command frames here, as link_serial does on a board)
-        self._wd_feed = getattr(self.app, "feed_watchdog", None)
+        # the link watchdog is fed by sensor frames (the HAL's n_sensor), HOST_HEARTBEAT
+        # and SET_REFERENCE (commands.py), not by every frame
+        # a queued SAVE_CONFIG runs between frames in lockstep (app.run does it in real
+        # time); locked: main() holds the heap lock around run()
+        self._save = getattr(self.app, "service_save", None)
+        self.locked = False
 
     def _ticks_ms(self):
         return self.hal.ticks_ms()
+
+    def _on_mode(self, m):
+        if m == T.MODE_HIL:
+            return T.OK
+        if not self.switch or self.mode != "lockstep":
+            return T.R_NOT_SUPPORTED
+        self.next_mode = m
+        self.running = False
+        return T.OK
 
     # ---- input ----
     def _on_frame(self, mid, step_now):
@@ -167,8 +186,6 @@ class HilMain:
             if step_now:
                 self._tick()
             return True
-        if self._wd_feed is not None:
-            self._wd_feed()
         self.disp.handle(mid, seq, self.pbuf, self.poff)
         return False
 
@@ -200,6 +217,8 @@ class HilMain:
                 continue
             if self._drain(True) == 0 and self._hung_up():
                 return 0
+            if self._save is not None and self.app.save_seq >= 0:
+                self._save(self.locked)
         return 0
 
     def poll(self):
@@ -238,11 +257,13 @@ class HilMain:
         return self.run_realtime()
 
 
-def main(port=None, link="serial", mode="lockstep", node=1, uart=None, heap_lock=False, boot_file=None):
+def main(port=None, link="serial", mode="lockstep", node=1, uart=None, heap_lock=False, boot_file=None,
+         config_dir=None):
     # port: tty path for the unix port; uart: a ready UART object (a board).
     # heap_lock: lockstep runs under micropython.heap_lock() -- any allocation in it then
     # raises MemoryError and ends the run (tests use it as the allocation proof).  Real
     # time is always locked by app.run(), where an allocation latches F_LOOP (motor off).
+    desktop = uart is None
     if uart is None:
         from .uart_unix import UnixUART
         uart = UnixUART(port)
@@ -254,8 +275,19 @@ def main(port=None, link="serial", mode="lockstep", node=1, uart=None, heap_lock
     if boot_file is not None:
         from .main import boot_count
         config = {"boot": boot_count(boot_file)}
+    if desktop:
+        # the unix port on a desktop OS has no real-time guarantee (the hypervisor steals
+        # tens of ms): late ticks are counted, F_DEADLINE is a board's (App "deadline")
+        config = config or {}
+        config["deadline"] = False
     m = HilMain(uart, link, mode, node, None, config)
+    # config_dir: where the saved configuration lives (two copies, firmware/store.py);
+    # loaded now, written by SAVE_CONFIG
+    if config_dir is not None:
+        from .store import ConfigStore
+        m.app.attach_store(ConfigStore(config_dir))
     lock = heap_lock and mode == "lockstep"
+    m.locked = lock
     if lock:
         import gc
         import micropython

@@ -14,7 +14,17 @@
 #   (poly 0x1021, init 0xFFFF, no reflection, xorout 0) over id, seq and payload,
 #   so the CRC over the whole unstuffed frame including its CRC is 0;
 # - CAN: 11-bit id = node_id << 5 | msg_id (ODrive CAN Simple layout), DLC = the
-#   payload length, no seq and no extra CRC (CAN has its own);
+#   payload length, no seq and no extra CRC on a CAN bus (CAN has its own);
+# - CAN frames carried as bytes on a stream (python-can's `serial` interface format
+#   0xAA, timestamp u32 LE, dlc, arbitration id u32 LE, data, 0xBB) carry a CRC of their
+#   own in the timestamp field: CRC-16/CCITT-FALSE over dlc, the 4 id bytes and the data,
+#   in its low 16 bits, the high 16 bits 0 (firmware/canframe.py; host/link/messages.py
+#   serial_can_crc); a frame whose CRC does not check out is dropped and counted;
+# - ids are chosen so that no single-bit error turns any board-bound command into ARM
+#   and ARM and DISARM are at least 3 bits apart (tests/test_proto_integrity.py); ARM
+#   carries the board's arming epoch (HEARTBEAT.epoch), so a stale or repeated arm is
+#   refused (R_STALE_EPOCH); REQUEST and VERSION keep their ids in every version (a host
+#   reads VERSION first and refuses a board whose table hash differs from its own);
 # - field formats are struct codes: B u8, b i8, H u16, h i16, I u32, i i32, Ns N raw
 #   bytes.  The firmware keeps ints small (|v| < 2**30): a received u32 keeps its low
 #   30 bits (ticks wrap at 2**30 like time.ticks_us), a received i32 saturates at
@@ -35,8 +45,8 @@ TELEM_STATE = const(4)
 TELEM_CTRL = const(5)
 TIMING = const(6)
 SET_REFERENCE = const(7)
-ARM = const(8)
-DISARM = const(9)
+DISARM = const(8)
+ARM = const(29)
 CLEAR_FAULTS = const(10)
 PARAM_GET = const(11)
 PARAM_SET = const(12)
@@ -47,6 +57,19 @@ GAINS_COMMIT = const(16)
 REQUEST = const(17)
 ACK = const(18)
 NACK = const(19)
+HOST_HEARTBEAT = const(20)
+VERSION = const(21)
+STATS_DECODE = const(22)
+STATS_FRAMES = const(23)
+STATS_LOOP = const(24)
+SAVE_CONFIG = const(26)
+SENSORS_RAW = const(27)
+STATS_CAN = const(25)
+# MODE (30: ids 28 and 31 are one bit from ARM) and its values
+MODE = const(30)
+MODE_ROBOT = const(0)
+MODE_HIL = const(1)
+MODE_REPL = const(2)
 
 MAX_ID = const(31)
 MAX_PAYLOAD = const(8)
@@ -69,11 +92,14 @@ TO_HOST = const(2)
 # field: (name, format, scale, unit, doc)
 MESSAGES = (
     (HEARTBEAT, "heartbeat", TO_HOST,
-     "Periodic board status (every heartbeat_ms, and on REQUEST); a changed boot counter means the board reset.",
+     "Periodic board status (every heartbeat_ms, and on REQUEST); a changed boot counter means the board reset, "
+     "a changed gains_crc that it runs another gain table (VERSION has the full CRC).",
      (("state", "B", 1, "", "supervisor state (see STATES)"),
-      ("faults", "H", 1, "", "latched fault flags (bits named by the firmware supervisor)"),
+      ("faults", "H", 1, "", "latched fault flags (see FAULTS)"),
       ("boot", "B", 1, "", "boot counter mod 256, incremented on every start"),
-      ("uptime_ms", "I", 1, "ms", "time since boot, wraps at 2**30 ms"))),
+      ("epoch", "B", 1, "", "arming epoch mod 256: ARM must carry it; changes on every disarm, clear_faults and fault"),
+      ("gains_crc", "B", 1, "", "low 8 bits of the active gain table's CRC-16 (VERSION.gains_crc)"),
+      ("uptime_ms", "H", 1, "ms", "time since boot, low 16 bits (wraps every 65.536 s; STATS_FRAMES has 30 bits)"))),
     (HIL_SENSOR, "hil_sensor", TO_BOARD,
      "HIL: the simulated sensors for one control tick; in lockstep the board runs one step per frame.",
      (("tick", "I", 1, "", "tick number of this sample, wraps at 2**30"),
@@ -107,10 +133,12 @@ MESSAGES = (
      "Set the cart position reference; refused (OUT_OF_RANGE) beyond +-ref_limit_um. ACK or NACK.",
      (("x_um", "i", 1e-6, "m", "cart position reference"),)),
     (ARM, "arm", TO_BOARD,
-     "Arm the motor (disarmed -> armed); refused (FAULTED) while a fault is latched. ACK or NACK.",
-     ()),
+     "Arm the motor (disarmed -> armed) if epoch is the board's current arming epoch (HEARTBEAT.epoch); "
+     "refused (STALE_EPOCH) otherwise, and (FAULTED) while a fault is latched; a repeat while armed "
+     "with the same epoch changes nothing and is ACKed. ACK or NACK.",
+     (("epoch", "B", 1, "", "the board's arming epoch, read from its HEARTBEAT"),)),
     (DISARM, "disarm", TO_BOARD,
-     "Disarm: motor off, always accepted. ACK.",
+     "Disarm: motor off, always accepted; the arming epoch changes, so no arm sent before it can act. ACK.",
      ()),
     (CLEAR_FAULTS, "clear_faults", TO_BOARD,
      "Clear latched faults (only while disarmed; a still-present cause latches again). ACK or NACK.",
@@ -138,7 +166,8 @@ MESSAGES = (
      "Check length and CRC and apply the table atomically; only while the motor is off (disarmed or fault). ACK or NACK (old table kept).",
      ()),
     (REQUEST, "request", TO_BOARD,
-     "Ask the board to send one message now (heartbeat, telem_state, timing). Answered by that message or NACK.",
+     "Ask the board to send one message now (heartbeat, telem_state, timing, version, stats_decode: all three "
+     "stats messages). Answered by that message or NACK.",
      (("msg_id", "B", 1, "", "id of the message wanted"),)),
     (ACK, "ack", TO_HOST,
      "A command was accepted.",
@@ -149,6 +178,60 @@ MESSAGES = (
      (("msg_id", "B", 1, "", "id of the refused command"),
       ("reason", "B", 1, "", "reason code (see REASONS)"),
       ("seq", "B", 1, "", "seq of the refused serial frame (0 on CAN)"))),
+    (HOST_HEARTBEAT, "host_heartbeat", TO_BOARD,
+     "The controlling host is alive: with SET_REFERENCE (and HIL_SENSOR) the only frames that feed the "
+     "board's link watchdog (watchdog_ms); a host sends it while connected (host.link.clients.Link). No reply.",
+     ()),
+    (VERSION, "version", TO_HOST,
+     "Identity (on REQUEST): the host refuses a board whose table_hash differs from its own.",
+     (("fw_version", "B", 1, "", "firmware version major << 4 | minor (pyproject.toml)"),
+      ("table_hash", "H", 1, "", "CRC-16 of the message table (ids, fields, reasons, states; firmware/identity.py)"),
+      ("param_hash", "H", 1, "", "CRC-16 of the parameter table (PARAMS)"),
+      ("gains_crc", "H", 1, "", "CRC-16/CCITT-FALSE of the active gain table"),
+      ("reset_cause", "B", 1, "", "why the board last started (0 power-on/unknown; see the firmware's reset markers)"))),
+    (STATS_DECODE, "stats_decode", TO_HOST,
+     "Stats 1/3 (on REQUEST(STATS_DECODE), with STATS_FRAMES and STATS_LOOP): frames the board's decoder dropped "
+     "since boot, by cause (low 16 bits, wrap).",
+     (("crc", "H", 1, "", "CRC mismatch"),
+      ("length", "H", 1, "", "truncated, malformed or wrong payload length"),
+      ("unknown", "H", 1, "", "unknown message id"),
+      ("framing", "H", 1, "", "overrun (serial), bad end marker/flags or bytes outside a frame (CAN on a stream)"))),
+    (STATS_FRAMES, "stats_frames", TO_HOST,
+     "Stats 2/3: frames in and out since boot (wrap at 2**30).",
+     (("frames_in", "I", 1, "", "valid frames decoded"),
+      ("frames_out", "I", 1, "", "frames sent before this one"))),
+    (STATS_LOOP, "stats_loop", TO_HOST,
+     "Stats 3/3: loop and heap since boot.",
+     (("step_max_us", "H", 1, "us", "longest control step since boot"),
+      ("overruns", "H", 1, "", "deadline misses since boot (saturates at 65535)"),
+      ("mem_free", "H", 64, "B", "free heap in units of 64 B (saturates), sampled when the stats are sent"),
+      ("gc_count", "H", 1, "", "garbage collections seen since boot (heap in use fell between two samples)"))),
+    (STATS_CAN, "stats_can", TO_HOST,
+     "CAN controller state (CAN link only): sent on REQUEST(STATS_CAN) and whenever the controller's error "
+     "state changes (warning, passive, bus-off and back).",
+     (("tec", "B", 1, "", "transmit error counter (MCP2515 TEC)"),
+      ("rec", "B", 1, "", "receive error counter (MCP2515 REC)"),
+      ("eflg", "B", 1, "", "error flags: 1 EWARN, 2 RXWAR, 4 TXWAR, 8 RXEP, 16 TXEP, 32 TXBO (bus-off)"),
+      ("bus_off", "H", 1, "", "bus-off events since boot (wrap)"),
+      ("rx_overflow", "H", 1, "", "receive buffer overflows since boot (frames lost; wrap)"),
+      ("tx_dropped", "B", 1, "", "frames not sent since boot: queue full or bus-off (saturates at 255)"))),
+    (SAVE_CONFIG, "save_config", TO_BOARD,
+     "Save the parameters and the active gain table to flash (two copies with CRC and sequence number, "
+     "loaded at boot); only while the motor is off, run between control ticks. ACK once saved, or NACK "
+     "(ARMED, STORAGE; BAD_STATE while a save is queued; NOT_SUPPORTED without storage).",
+     ()),
+    (SENSORS_RAW, "sensors_raw", TO_HOST,
+     "The sensors as the last control tick read them, before any calibration but the 16-bit counter (on "
+     "REQUEST; upright board calibrate).",
+     (("adc", "H", 1, "count", "angle ADC counts (after oversampling), clamped to 0..full scale"),
+      ("enc", "H", 1, "count", "quadrature encoder counter (16-bit, wraps), as read"),
+      ("pos", "i", 1, "count", "cart position in encoder counts since balancing started (enc_sign applied)"))),
+    (MODE, "mode", TO_BOARD,
+     "Switch what the board runs on its link, without a reflash: 0 robot (the paced control loop, the "
+     "default at boot), 1 hil (lockstep hardware-in-the-loop: HIL_SENSOR in, HIL_ACTUATOR out, motor off), "
+     "2 repl (link closed, MicroPython REPL back, e.g. for mpremote on a USB link). Only while the motor is "
+     "off (disarmed or fault); ACK (then the switch) or NACK (ARMED, OUT_OF_RANGE).",
+     (("mode", "B", 1, "", "0 robot, 1 hil, 2 repl"),)),
 )
 
 # ---- refusal reasons (NACK.reason; also the return codes of the target methods) ----
@@ -167,6 +250,9 @@ R_INCOMPLETE = const(11)
 R_BAD_SHAPE = const(12)
 R_UNSTABLE = const(13)
 R_NOT_SUPPORTED = const(14)
+R_NOT_READY = const(15)
+R_STALE_EPOCH = const(16)
+R_STORAGE = const(17)
 
 REASONS = (
     (OK, "ok", "accepted"),
@@ -184,6 +270,11 @@ REASONS = (
     (R_BAD_SHAPE, "bad_shape", "gain table header/shape does not match the firmware"),
     (R_UNSTABLE, "unstable", "gain table rejected by the firmware's stability/finiteness check"),
     (R_NOT_SUPPORTED, "not_supported", "the board does not implement this request"),
+    (R_NOT_READY, "not_ready", "arm refused: the active gain table failed its check or its CRC at boot/upload; "
+     "clear_faults does not change that, only uploading a good table does"),
+    (R_STALE_EPOCH, "stale_epoch", "arm with an epoch that is not the board's current one: sent before a disarm, "
+     "clear_faults or fault, or a repeat; read HEARTBEAT.epoch and arm again"),
+    (R_STORAGE, "storage", "save_config failed: the flash filesystem refused the write (old configuration kept)"),
 )
 
 # ---- supervisor states (HEARTBEAT.state); the supervisor (firmware app) owns the logic ----
@@ -204,16 +295,21 @@ P_TELEM_DIV = const(5)
 P_HEARTBEAT_MS = const(6)
 P_NODE_ID = const(7)
 P_ARM_TILT = const(8)
-N_PARAMS = const(9)
+P_POT_OFFSET = const(9)
+P_ADC_SIGN = const(10)
+P_ENC_SIGN = const(11)
+P_MOTOR_SIGN = const(12)
+N_PARAMS = const(13)
 
 # (index, name, unit, min, max, default, doc); every value an int with |v| < 2**30
 PARAMS = (
     (P_TILT_LIMIT, "tilt_limit_mrad", "mrad", 50, 1500, 500,
      "tilt beyond which the supervisor cuts the motor and latches a fault"),
     (P_WATCHDOG_MS, "watchdog_ms", "ms", 10, 10000, 250,
-     "command watchdog: no valid frame from the host for this long -> motor off, fault"),
+     "link watchdog: no host_heartbeat, set_reference or HIL sensor frame for this long while armed -> motor off, fault"),
     (P_LOOP_RATE, "loop_rate_hz", "Hz", 50, 2000, 500,
-     "control loop rate (the gain table must match; change only while disarmed)"),
+     "read-only: the control loop rate, always the active gain table's RATE (param_set is refused "
+     "with read_only; the period is a safety input, see deadline faults)"),
     (P_REF_LIMIT, "ref_limit_um", "um", 0, 1000000, 800000,
      "largest |cart reference| accepted by set_reference (track half-length minus margin)"),
     (P_MAX_DUTY, "max_duty", "", 0, 32767, 32767,
@@ -226,4 +322,57 @@ PARAMS = (
      "CAN node id (CAN id = node_id << 5 | msg_id)"),
     (P_ARM_TILT, "arm_tilt_mrad", "mrad", 10, 500, 50,
      "armed -> balancing only once |tilt| is below this"),
+    (P_POT_OFFSET, "pot_offset", "count", -1, 65535, -1,
+     "angle ADC counts with the pendulum upright (upright board calibrate); -1: the gain table's "
+     "(robot.toml sensors.pot_offset)"),
+    (P_ADC_SIGN, "adc_sign", "", -1, 1, 1,
+     "angle ADC direction: -1 flips it (0 counts as +1); start-up value firmware/board.py ADC_SIGN"),
+    (P_ENC_SIGN, "enc_sign", "", -1, 1, 1,
+     "encoder direction: -1 flips it (0 counts as +1); start-up value firmware/board.py ENC_SIGN"),
+    (P_MOTOR_SIGN, "motor_sign", "", -1, 1, 1,
+     "motor direction on top of firmware/board.py MOTOR_SIGN: -1 flips it (0 counts as +1)"),
+)
+
+# ---- fault flags (HEARTBEAT.faults; HIL_ACTUATOR.faults carries the low 8 bits) ----
+# The supervisor (firmware/supervisor.py) owns the logic and the F_* constants; this table
+# documents every flag (tests/test_firmware_supervisor.py: the two agree).  Sticky until
+# clear_faults, which a still-present cause latches again on the next tick.
+# (bit, name, doc)
+FAULTS = (
+    (1, "tilt", "|tilt| beyond tilt_limit_mrad while balancing (the pendulum fell)"),
+    (2, "watchdog", "no host_heartbeat, set_reference or HIL sensor frame for watchdog_ms while armed/balancing"),
+    (4, "adc_rail", "angle ADC at 0 or full scale: potentiometer open, shorted or unpowered"),
+    (8, "enc_jump", "encoder step larger than the cart can move in one tick: noise/lost counts"),
+    (16, "track", "cart beyond the track (1.25 x the reference limit) while balancing"),
+    (32, "gains", "the active gain table failed its check or its CRC (boot or upload): the board "
+     "is not ready and arm is refused (not_ready) until a good table is uploaded"),
+    (64, "stall", "|duty| >= stall_duty for stall_ms with no encoder count while balancing"),
+    (128, "loop", "the paced loop failed (an allocation with the heap locked); motor off"),
+    (256, "deadline", "control deadline missed (ODrive's ERROR_CONTROL_DEADLINE_MISSED): one gap "
+     "between step starts longer than 10 periods, or late ticks (gap > 1.5 periods) faster than "
+     "the miss budget allows (more than 4 in a row, or more than ~1 in 25 sustained); motor off"),
+    (512, "estop", "the e-stop input (board.ESTOP_PIN, active low) was asserted; motor and driver "
+     "enable off in the same tick"),
+    (1024, "reset", "the board restarted after its hardware watchdog fired (hung loop) or after an "
+     "exception in the loop (reset_cause says which); latched at boot so the host notices"),
+    (2048, "config", "saved configuration copies exist but none is valid (CRC, shape or content): "
+     "defaults in force, arming refused until a gain table is uploaded (firmware/store.py)"),
+    (4096, "undervolt", "motor supply (ADC1 through the divider, filtered) below vsup_min_mv while armed "
+     "or balancing"),
+    (8192, "adc_open", "angle potentiometer wiper open: the periodic pad-pull test moved the reading "
+     "most of the way to the rail (docs/firmware.md, wiring)"),
+    (16384, "can", "CAN link (firmware/link_can.py): the MCP2515 did not answer at start-up (wiring), or the "
+     "controller went bus-off; latched again on every tick while the bus is off, so it clears only once the "
+     "bus has recovered and the host sends clear_faults"),
+)
+
+# ---- reset causes (the firmware's own marker in a WATCHDOG scratch register; App.reset_cause) ----
+RC_POWER_ON = const(0)
+RC_WATCHDOG = const(1)
+RC_EXCEPTION = const(2)
+# (value, name, doc)
+RESET_CAUSES = (
+    (RC_POWER_ON, "power_on", "power-on, reset pin, or a clean restart (no marker left by the loop)"),
+    (RC_WATCHDOG, "watchdog", "the hardware watchdog reset the board: the control loop stopped feeding it (hung)"),
+    (RC_EXCEPTION, "exception", "an exception escaped the control loop: motor off, fault reported, board reset"),
 )

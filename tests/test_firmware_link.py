@@ -3,15 +3,15 @@
 A scripted UART (MicroPython unix port) delivers COBS frames at given ticks -- set the
 telemetry divider, arm, set a reference, then keep-alive requests -- and decodes what
 the board writes back.  The whole run (pacing, control, byte parsing, dispatch,
-telemetry, heartbeats) executes under micropython.heap_lock(); the keep-alives stop at
-tick 1000 and the command watchdog must cut the motor 250 ms later.
+telemetry, heartbeats) executes under micropython.heap_lock(); the host heartbeats stop at
+tick 1000 and the link watchdog must cut the motor 250 ms later.
 """
 
 from __future__ import annotations
 
 import pytest
 
-from firmware.supervisor import BALANCING, F_WATCHDOG
+from firmware.supervisor import ARMED, BALANCING, F_WATCHDOG
 from host.boards import fwharness as H
 from host.boards.mpyrun import run_unix
 
@@ -47,6 +47,7 @@ add(3, T.ARM)
 add(5, T.SET_REFERENCE, 100000)
 for k in range(1, 11):
     add(100 * k, T.REQUEST, T.TIMING)
+    add(100 * k, T.HOST_HEARTBEAT)  # only host heartbeats (and set-points) feed the watchdog
 
 class FakeUart:
     def __init__(s, app):
@@ -83,7 +84,8 @@ class FakeUart:
                 s.count[mid] += 1
 
 hal = Hal()
-app = App(hal, config={'stall_ms': 0})  # the fake encoder never moves: no-motion check off
+# the fake encoder never moves: no-motion check off; arming epoch 0 (the scripted ARM's)
+app = App(hal, config={'stall_ms': 0, 'epoch': 0})
 uart = FakeUart(app)
 app.set_link(SerialLink(uart, app))
 STATE = array('i', [0] * 1300)
@@ -145,7 +147,8 @@ def test_run_with_link_allocates_nothing(obs) -> None:
 
 
 def test_commands_arrive_in_pieces_and_are_obeyed(obs) -> None:
-    assert obs["state_10"] == BALANCING and obs["state_999"] == BALANCING  # armed at tick 3, balancing at once
+    # armed at tick 3; balancing once App.run has measured its period (16 on-time ticks)
+    assert obs["state_10"] == ARMED and obs["state_999"] == BALANCING
     assert obs["ref"] == 100000
     assert obs["ack"] == 2 and obs["param_value"] == 1 and obs["nack"] == 0
     assert obs["timing"] == 10 and obs["crc_drops"] == 0

@@ -23,7 +23,7 @@ FD_KI = export(P, ki=40.0, deadband=500)
 
 def _gains_src(name, fd) -> str:
     return (
-        f"class {name}:\n    pass\n{name}.VERSION = {fd.tables['HDR'][0]}\n"
+        f"class {name}:\n    pass\n{name}.VERSION = {fd.tables['HDR'][0]}\n{name}.CRC = {fd.crc()}\n"
         f"{name}.LAYOUT = {tuple(H.layout_of(fd))!r}\n{name}.FLAT = tuple(ints({' '.join(map(str, fd.flat()))!r}))\n"
     )
 

@@ -53,7 +53,7 @@ def test_adc_reads_back_what_the_harness_set(board: EmulatedBoard, value: int) -
 
 @pytest.mark.parametrize("duty,direction", [(16384, 0), (-8192, 1), (32767, 0), (-40000, 1), (0, 0)])
 def test_set_motor_drives_pwm_dir_enable(board: EmulatedBoard, duty: int, direction: int) -> None:
-    board.exec(f"hal.set_motor({duty})")
+    board.exec(f"hal.set_enable(1)\nhal.set_motor({duty})")  # enable: the supervisor's, while balancing
     r = board.run(200)  # > one 50 us PWM period: the double-buffered compare is in force
     mag = min(abs(duty), 32767)
     assert r.pwm_enabled and r.pwm_top == PWM_TOP

@@ -504,6 +504,11 @@ class EmulatedBoard:
         lp = {"gap_us": float(gap_us), "min_reads": int(min_reads), "raw": bool(raw)} if on else None
         self._request({"cmd": "config", "loop_probe": lp})
 
+    def set_pin(self, pin: int, value: int | None) -> None:
+        """Drive GPIO ``pin``'s input level from outside (an external switch: e.g. the e-stop,
+        active low); ``None`` lets go (the pin then follows its pad pull, as undriven pins do)."""
+        self._request({"cmd": "gpio_in", "pin": int(pin), "value": None if value is None else (1 if value else 0)})
+
     def uart_write(self, data: bytes) -> None:
         """Send bytes to UART0 RX (GP1), one character time apart at the configured baud."""
         if data:

@@ -297,10 +297,26 @@ for (const pin of mcu.gpio) {
   const orig = pin.setInputValue.bind(pin);
   pin.setInputValue = (value) => { pioSync(); gpioCache = -1; orig(value); };
 }
+// A digital input nothing outside drives follows its pad pull (rp2040js reads it as 0 whatever
+// the pull): e.g. the e-stop input, pulled up, reads 1 until the harness drives it ("pin").
+// Pins the harness drives (the encoder, "pin") are left alone.
+const drivenPins = new Set([2, 3]);
+function followPulls() {
+  for (const pin of mcu.gpio) {
+    if (drivenPins.has(pin.index)) continue;
+    const v = pin.pullupEnabled && !pin.pulldownEnabled;
+    if (pin.rawInputValue !== v) pin.setInputValue(v);
+  }
+}
 for (const base of [0x40014, 0x4001c]) {
   const per = mcu.peripherals[base];
   const orig = per.writeUint32.bind(per);
-  per.writeUint32 = (offset, value) => { pioSync(); gpioCache = -1; orig(offset, value); };
+  per.writeUint32 = (offset, value) => {
+    pioSync();
+    gpioCache = -1;
+    orig(offset, value);
+    if (base === 0x4001c) followPulls();
+  };
 }
 
 // ---------------------------------------------------------------- 2. UART (PL011 model)
@@ -933,7 +949,13 @@ function handle(req) {
       return { ok: true };
     case 'gpio_in':
       // drive a GPIO input from outside ({"pin":19,"value":1}; value null: undriven)
-      mcu.gpio[req.pin].setInputValue(!!req.value);
+      if (req.value === null || req.value === undefined) {
+        drivenPins.delete(req.pin); // let go: the pin follows its pad pull again
+        followPulls();
+      } else {
+        drivenPins.add(req.pin);
+        mcu.gpio[req.pin].setInputValue(!!req.value);
+      }
       return { ok: true };
     case 'can_bus':
       if (!can) return { ok: false, error: 'no MCP2515 attached (--mcp2515)' };
