@@ -8,11 +8,18 @@
 # target methods (each returns msgtable.OK or a reason code unless noted):
 #   cmd_arm(), cmd_disarm(), cmd_clear_faults(), cmd_set_reference(x_um),
 #   param_get(index) -> value, param_set(index, value), gains_apply(buf, nbytes),
-#   fill_heartbeat(arr) (state, faults, boot, uptime_ms),
+#   fill_heartbeat(arr) (HEARTBEAT fields: state, faults, boot, epoch, gains_crc low
+#   byte, uptime_ms low 16 bits),
+#   optional: feed_watchdog() (HOST_HEARTBEAT: the only command that feeds the link
+#   watchdog besides set_reference, whose target method feeds it), fill_version(arr)
+#   (arr[3] = gains CRC-16, arr[4] = reset cause), fill_stats(arr) (STATS_LOOP fields),
 #   fill_telemetry(arr) (TELEM_STATE fields then TELEM_CTRL fields: 8 ints),
 #   fill_timing(arr) (TIMING fields: 4 ints).
+# ARM is refused (R_STALE_EPOCH) unless its epoch is the one the heartbeat reports.
 # sender: any object with send(mid, seq, vals, voff) (framing.SerialTx,
-# canframe-based senders, or a test double).
+# canframe-based senders, or a test double); its n_sent (if it has one) is STATS_FRAMES'
+# frames_out.  dec: the link's decoder (framing.Decoder, canframe.SerialCanDecoder), set
+# by the link's owner, for STATS_DECODE and frames_in (zeros without one).
 
 try:
     from micropython import const
@@ -23,6 +30,7 @@ except ImportError:
 from array import array
 
 from . import crc16
+from . import identity
 from . import msgtable as T
 
 _FAULT_STATE = const(3)
@@ -51,6 +59,11 @@ class Dispatcher:
         self.g_active = False
         self.n_refused = 0
         self.n_handled = 0
+        self.dec = None
+        self._feed = target.feed_watchdog if hasattr(target, "feed_watchdog") else None
+        self._fill_version = target.fill_version if hasattr(target, "fill_version") else None
+        self._fill_stats = target.fill_stats if hasattr(target, "fill_stats") else None
+        self._counted = hasattr(sender, "n_sent")
 
     # ---- replies ----
     def _ack(self, mid, seq):
@@ -95,6 +108,34 @@ class Dispatcher:
         self.target.fill_timing(self.tx)
         self.sender.send(T.TIMING, seq, self.tx, 0)
 
+    def send_version(self, seq):
+        tx = self.tx
+        tx[3] = 0
+        tx[4] = 0
+        if self._fill_version is not None:
+            self._fill_version(tx)
+        tx[0] = identity.FW_VERSION
+        tx[1] = identity.TABLE_HASH
+        tx[2] = identity.PARAM_HASH
+        self.sender.send(T.VERSION, seq, tx, 0)
+
+    def send_stats(self, seq):
+        # STATS_DECODE, STATS_FRAMES, STATS_LOOP
+        tx = self.tx
+        for i in range(8):
+            tx[i] = 0
+        if self.dec is not None:
+            self.dec.fill_counts(tx, 0)
+        self.sender.send(T.STATS_DECODE, seq, tx, 0)
+        if self._counted:
+            tx[5] = self.sender.n_sent
+        self.sender.send(T.STATS_FRAMES, seq, tx, 4)
+        for i in range(4):
+            tx[i] = 0
+        if self._fill_stats is not None:
+            self._fill_stats(tx)
+        self.sender.send(T.STATS_LOOP, seq, tx, 0)
+
     def _motor_off(self):
         # disarmed or fault (state from the heartbeat fields): a gain table may be
         # applied (a latched gains fault is fixed by uploading a good table)
@@ -121,10 +162,16 @@ class Dispatcher:
             if x > lim or x < -lim:
                 return self._nack(mid, seq, T.R_OUT_OF_RANGE)
             return self._reply(mid, seq, tg.cmd_set_reference(x))
+        if mid == T.HOST_HEARTBEAT:
+            if self._feed is not None:
+                self._feed()
+            return T.OK
         if mid == T.ARM:
             tg.fill_heartbeat(self.tx)
             if self.tx[1] != 0 or self.tx[0] == _FAULT_STATE:
                 return self._nack(mid, seq, T.R_FAULTED)
+            if rx[0] != self.tx[3]:
+                return self._nack(mid, seq, T.R_STALE_EPOCH)
             return self._reply(mid, seq, tg.cmd_arm())
         if mid == T.DISARM:
             return self._reply(mid, seq, tg.cmd_disarm())
@@ -159,6 +206,10 @@ class Dispatcher:
                 self.send_telemetry(seq)
             elif w == T.TIMING:
                 self.send_timing(seq)
+            elif w == T.VERSION:
+                self.send_version(seq)
+            elif w == T.STATS_DECODE or w == T.STATS_FRAMES or w == T.STATS_LOOP:
+                self.send_stats(seq)
             else:
                 return self._nack(mid, seq, T.R_NOT_SUPPORTED)
             return T.OK

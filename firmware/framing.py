@@ -237,13 +237,23 @@ class Decoder:
     def drops(self):
         return self.n_crc + self.n_length + self.n_unknown + self.n_overrun
 
+    def fill_counts(self, arr, off):
+        # STATS_DECODE fields (crc, length, unknown, framing = overrun) then frames in
+        arr[off] = self.n_crc & 0xFFFF
+        arr[off + 1] = self.n_length & 0xFFFF
+        arr[off + 2] = self.n_unknown & 0xFFFF
+        arr[off + 3] = self.n_overrun & 0xFFFF
+        arr[off + 4] = self.n_ok
+
 
 class SerialTx:
     # sender for commands.Dispatcher: encode and write(buf, n) one frame
     def __init__(self, encoder, write):
         self.enc = encoder
         self.write = write
+        self.n_sent = 0
 
     def send(self, mid, seq, vals, voff):
         n = self.enc.encode(mid, seq, vals, voff)
         self.write(self.enc.out, n)
+        self.n_sent = self.n_sent + 1 if self.n_sent < _CMAX else 0

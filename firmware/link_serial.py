@@ -1,8 +1,9 @@
 # Host link of a board in normal (not HIL) operation: COBS serial frames on a UART
 # (framing.py), commands dispatched to the app (commands.py), telemetry and heartbeats
 # paced by pacer.Pacer (as in the HIL main).  poll() is called by App.run() once per
-# tick after the control step; it allocates nothing.  Every valid frame feeds the
-# app's command watchdog.
+# tick after the control step; it allocates nothing.  Only HOST_HEARTBEAT and
+# SET_REFERENCE frames feed the app's link watchdog (commands.py): a monitor polling the
+# board does not keep a dead controlling host alive.
 #
 # uart: machine.UART-like with any() (bytes waiting; a port may say 1 when there are
 # more) and readinto(buf, n).  Only bytes any() reported are read: rp2's readinto waits
@@ -38,6 +39,7 @@ class SerialLink:
         self._views = [mv[:k] for k in range(len(enc.out) + 1)]
         self.tx = framing.SerialTx(enc, self._write)
         self.disp = commands.Dispatcher(app, layout, self.tx, table)
+        self.disp.dec = self.dec
         self.pacer = Pacer(app, self.disp)
         self.rx = bytearray(_RX)
         self._scan = self.dec.scan
@@ -66,7 +68,6 @@ class SerialLink:
 
     def _frames(self, n):
         # decode rx[0:n]; every complete valid frame is dispatched
-        app = self.app
         dec = self.dec
         scan = self._scan
         rx = self.rx
@@ -75,5 +76,4 @@ class SerialLink:
             mid = scan(rx, i, n)
             i = dec.next
             if mid >= 0:
-                app.feed_watchdog()
                 self.disp.handle(mid, dec.seq, dec.buf, 2)

@@ -20,10 +20,19 @@ class Timing:
     def __init__(self, period_us):
         self.period_us = period_us
         self.mean_us = 0
+        self.worst = 0  # longest step of the intervals before this one (since boot)
+        self.misses = 0  # overruns of the intervals before this one
+        self.step_max = 0
+        self.overruns = 0
         self.reset()
 
     def reset(self):
-        # start a new statistics interval (after each TIMING report)
+        # start a new statistics interval (after each TIMING report); the since-boot
+        # figures (STATS_LOOP) keep what the interval saw
+        if self.step_max > self.worst:
+            self.worst = self.step_max
+        m = self.misses + self.overruns
+        self.misses = m if m < _U16 else _U16
         self.step_min = _U16
         self.step_max = 0
         self.period_max = 0

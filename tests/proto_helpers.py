@@ -92,6 +92,7 @@ class RecordingTarget:
         self.gains: bytes | None = None
         self.gains_reason = 0
         self.telemetry = [1, -2, 3, -4, 5, -6, 7, 8]
+        self.epoch = 0
         self.timing = [10, 20, 30, 0]
 
     def snapshot(self) -> tuple:
@@ -105,6 +106,7 @@ class RecordingTarget:
     def cmd_disarm(self) -> int:
         self.calls.append(("disarm",))
         self.state = DISARMED
+        self.epoch = (self.epoch + 1) & 0xFF
         return T.OK
 
     def cmd_clear_faults(self) -> int:
@@ -135,7 +137,7 @@ class RecordingTarget:
         return T.OK
 
     def fill_heartbeat(self, arr) -> None:
-        arr[0], arr[1], arr[2], arr[3] = self.state, self.faults, 7, 1234
+        arr[0], arr[1], arr[2], arr[3], arr[4], arr[5] = self.state, self.faults, 7, self.epoch, 0x5A, 1234
 
     def fill_telemetry(self, arr) -> None:
         for i, v in enumerate(self.telemetry):

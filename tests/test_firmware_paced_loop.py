@@ -92,10 +92,11 @@ def add(tick, mid, a=0, b=0):
 
 
 add(60, T.PARAM_SET, T.P_TELEM_DIV, 1)
-add(61, T.ARM)
+add(61, T.ARM, 0)  # the arming epoch: 0 at start (config), +1 by the watchdog fault, +1 by clear
 add(63, T.SET_REFERENCE, 50000)
 for k in range(100, 1500, 40):
-    add(k, T.REQUEST, T.HEARTBEAT)  # keep-alives: the watchdog is fed
+    add(k, T.REQUEST, T.HEARTBEAT)
+    add(k, T.HOST_HEARTBEAT)  # keep-alives: the watchdog is fed (requests alone do not)
 for i in range(12):
     add(700, T.PARAM_GET, i % T.N_PARAMS)  # one burst: more than a tick's read
 add(900, T.REQUEST, T.TIMING)
@@ -116,9 +117,10 @@ for off in range(0, NB, T.CHUNK_BYTES):
     NCHUNK += 1
 add(1700, T.GAINS_COMMIT)
 add(1800, T.CLEAR_FAULTS)
-add(1801, T.ARM)
+add(1801, T.ARM, 2)
 for k in range(1810, 2050, 40):
     add(k, T.REQUEST, T.HEARTBEAT)
+    add(k, T.HOST_HEARTBEAT)
 
 
 class FakeUart:
@@ -164,7 +166,7 @@ class FakeUart:
 
 
 hal = Hal()
-app = App(hal, config={'stall_ms': 0})
+app = App(hal, config={'stall_ms': 0, 'epoch': 0})
 uart = FakeUart(hal)
 app.set_link(SerialLink(uart, app))
 app.run(50, LOCK)  # warm-up, before any frame

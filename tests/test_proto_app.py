@@ -68,7 +68,7 @@ def test_arming_while_faulted_refused():
     app, tx, disp = _setup()
     app.sup.faults |= F_ADC_RAIL
     before = _state(app)
-    assert _send(disp, M.Arm()) == T.R_FAULTED and _state(app) == before
+    assert _send(disp, M.Arm(epoch=app.epoch)) == T.R_FAULTED and _state(app) == before
 
 
 @pytest.mark.parametrize("param, value", [("watchdog_ms", 5), ("tilt_limit_mrad", 2**31 - 1), ("max_duty", -1)])
@@ -95,7 +95,7 @@ def test_gain_table_upload_to_the_app():
     assert _upload(disp, bytes(shape)) == T.R_BAD_SHAPE
     assert _state(app) == before
     # armed: refused
-    assert _send(disp, M.Arm()) == T.OK
+    assert _send(disp, M.Arm(epoch=app.epoch)) == T.OK
     assert _upload(disp, blob) == T.R_ARMED and _state(app)[4] == before[4]
     _send(disp, M.Disarm())
     # the exported table itself is accepted

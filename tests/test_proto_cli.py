@@ -54,16 +54,16 @@ def test_bad_input_is_a_one_line_error(capsys, argv, needle):
 
 
 def test_decode_reports_drops(capsys):
-    good = M.encode_serial(M.Arm(), 1)
+    good = M.encode_serial(M.Arm(epoch=0), 1)
     bad = bytearray(good)
     bad[2] ^= 1
     rc, out, err = _out(capsys, ["proto", "decode", (bytes(bad) + good).hex()])
-    assert rc == 1 and "arm()" in out and ("crc=1" in err or "length=1" in err)
+    assert rc == 1 and "arm(epoch=0)" in out and ("crc=1" in err or "length=1" in err)
 
 
 def test_dump_a_live_pty(capsys):
     br = PtyBridge()
-    msgs = [M.Heartbeat(state=2, faults=1, boot=3, uptime_ms=4), M.TelemState(x=1, xdot=2, phi=3, phidot=4)]
+    msgs = [M.Heartbeat(state=2, faults=1, boot=3, epoch=5, gains_crc=6, uptime_ms=4), M.TelemState(x=1, xdot=2, phi=3, phidot=4)]
     stop = threading.Event()
 
     def board():
@@ -84,7 +84,7 @@ def test_dump_a_live_pty(capsys):
         br.close()
     lines = out.splitlines()
     assert rc == 0 and len(lines) == 4
-    assert any("seq   0  heartbeat(state=2, faults=1, boot=3, uptime_ms=4ms)" in ln for ln in lines)
+    assert any("seq   0  heartbeat(state=2, faults=1, boot=3, epoch=5, gains_crc=6, uptime_ms=4ms)" in ln for ln in lines)
     assert any("seq   1  telem_state(x=0.0001m, xdot=0.002m/s" in ln for ln in lines)
 
 

@@ -150,8 +150,10 @@ def test_serial_can_writer_is_python_can_format():
     data = bytes(w.out[:n])
     msg = M.HilSensor(tick=77, adc=4000, enc=123)
     assert data[0] == 0xAA and data[-1] == 0xBB
-    assert struct.unpack("<IBI", data[1:10]) == (1234, 8, (3 << 5) | T.HIL_SENSOR)
-    assert data[10:-1] == msg.payload()
+    cid = (3 << 5) | T.HIL_SENSOR
+    # the timestamp field carries the frame's CRC (the host's independent implementation)
+    assert struct.unpack("<IBI", data[1:10]) == (M.serial_can_crc(cid, msg.payload()), 8, cid)
+    assert data[10:-1] == msg.payload() and data == M.encode_serial_can(msg, 3)
     # the firmware's parser of the same format
     dec = canframe.SerialCanDecoder(layout, node=3)
     got = [dec.feed(b) for b in b"\x55\x01" + data]
@@ -167,7 +169,7 @@ def test_serial_can_decoder_never_raises(data):
         assert m == -1 or 0 <= m <= T.MAX_ID
 
 
-@pytest.mark.parametrize("mod", ["msgtable", "crc16", "codec", "framing", "canframe", "commands"])
+@pytest.mark.parametrize("mod", ["msgtable", "crc16", "codec", "framing", "canframe", "commands", "identity"])
 def test_firmware_module_compiles_for_rp2040(mod, tmp_path):
     import subprocess
     import sys

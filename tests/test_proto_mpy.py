@@ -77,7 +77,7 @@ def _stream(seed: int, n_bytes: int) -> bytes:
             kw = {f.name: (bytes(f.size) if f.is_raw else f.bounds[pick]) for f in cls.FIELDS}
             msgs.append(cls(**kw))
     msgs += [M.GainsBegin(nbytes=12, crc=M.crc16(bytes(12))), M.GainsChunk(offset=0, data=bytes(6)),
-             M.GainsChunk(offset=6, data=bytes(6)), M.GainsCommit(), M.Arm(), M.Disarm()]
+             M.GainsChunk(offset=6, data=bytes(6)), M.GainsCommit(), M.Arm(epoch=3), M.Disarm()]
     out = bytearray()
     while len(out) < n_bytes:
         r = rng.random()
@@ -223,7 +223,7 @@ def test_micropython_board_on_a_pty(mode):
         kw = {"timeout": 1.0, "retries": 2}
         with link:
             hb = link.query("heartbeat", **kw)
-            assert (hb.state, hb.boot, hb.uptime_ms) == (0, 9, 0x3FFFFFFF)
+            assert (hb.state, hb.boot, hb.epoch, hb.uptime_ms) == (0, 9, 3, 0xFFFF)
             assert link.query("timing", **kw).values() == (1, 2, 3, 65535)
             assert link.param_set("max_duty", 20000, **kw) == 20000
             with pytest.raises(L.CommandRefused):

@@ -177,7 +177,7 @@ def test_commands_out_of_range_or_wrong_state_refused_mid_run_change_nothing(boa
         (M.BY_NAME["gains_commit"](), T.R_BAD_SEQUENCE),
         (M.BY_NAME["gains_chunk"](offset=0, data=b"\x01" * 6), T.R_BAD_SEQUENCE),
         (M.BY_NAME["request"](msg_id=T.ARM), T.R_NOT_SUPPORTED),
-        (M.BY_NAME["heartbeat"](state=0, faults=0, boot=0, uptime_ms=0), T.R_UNKNOWN),  # wrong direction
+        (M.BY_NAME["heartbeat"](**{f.name: 0 for f in M.BY_NAME["heartbeat"].FIELDS}), T.R_UNKNOWN),  # wrong direction
         (M.BY_NAME["hil_actuator"](tick=0, duty=32767, state=BALANCING, faults=0), T.R_UNKNOWN),
     ]
 

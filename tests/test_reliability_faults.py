@@ -127,7 +127,7 @@ def test_seq_account_sees_gaps_duplicates_and_reorders() -> None:
     a = SeqAccount()
     st = ts(x=0, xdot=0, phi=0, phidot=0)
     ct = tc(ref=0, force=0, duty=0, step_us=0)
-    h = hb(state=0, faults=0, boot=0, uptime_ms=0)
+    h = hb(**{f.name: 0 for f in hb.FIELDS})
     seq = 250
     for i in range(20):  # wraps past 255
         s = (seq + i) & 0xFF

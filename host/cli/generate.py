@@ -21,6 +21,7 @@ GENERATED: dict[str, str] = {
     "firmware/fastpath.py": "host.design.export:render_fastpath",
     "docs/upright.dbc": "host.link.dbc:render_default",
     "docs/protocol.md": "host.link.protodoc:render_protocol_md",
+    "firmware/identity.py": "host.link.identity:render_identity",
 }
 
 

@@ -363,6 +363,8 @@ class EmulatedHil:
             self._ensure_gains(scenario, params)
             self.request(M.BY_NAME["param_set"](index=T.P_ARM_TILT, value=_ARM_TILT_MAX))
             self.request(M.BY_NAME["set_reference"](x_um=int(round(sim.x_ref() * 1e6))))
+            # ARM carries the board's arming epoch (changed by the disarm above)
+            epoch = self.request(M.BY_NAME["request"](msg_id=T.HEARTBEAT)).epoch
         except CommandRefused as exc:
             raise HilError(f"the board refused the set-up of {scenario.name}: {exc}\n{self._tail()}") from exc
         # align: plant tick 0 starts margin_us before a loop iteration; arm one tick earlier
@@ -372,7 +374,7 @@ class EmulatedHil:
         k = max(0, -(-(now + pc + margin - s) // pc))
         start = s + k * pc - margin  # >= now + pc
         self._idle((start - pc - now) / CYCLES_PER_US)
-        self.host.send(M.BY_NAME["arm"]())  # type: ignore[union-attr]
+        self.host.send(M.BY_NAME["arm"](epoch=epoch))  # type: ignore[union-attr]
         self._iters.clear()
         r, _ = self._run((start - b.cycles) / CYCLES_PER_US, sink)
         # the scenario, one plant tick at a time

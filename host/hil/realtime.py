@@ -109,6 +109,8 @@ class _Stream:
         self.late = np.zeros(n, dtype=np.int64)
         self.send_t: dict[int, float] = {}
         self.pll = _PhaseLock(self.T_s, lead)
+        # ARM (sent in the stream) carries the board's arming epoch, read after prepare()
+        self.epoch = session._request(self.link.query, "heartbeat").epoch
 
     def pump(self, until: float, want: int | None) -> Any:
         # receive until `until` (or the answer for tick `want`); returns that answer
@@ -156,7 +158,7 @@ class _Stream:
         # start the firmware's timing statistics afresh (its TIMING reply resets them)
         # and arm, both in the stream: the scenario's first frame follows
         link.send(M.BY_NAME["request"](msg_id=T.TIMING))
-        link.send(M.BY_NAME["arm"]())
+        link.send(M.BY_NAME["arm"](epoch=self.epoch))
         t0 = clock()
         steal0 = steal_seconds()
         ref_prev = sim.x_ref()

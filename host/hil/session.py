@@ -392,6 +392,9 @@ class HilSession:
         link = self._link()
         sink = sink or Sink()
         self._request(link.disarm)
+        if not link.heartbeat_running:
+            # the controlling host's heartbeat feeds the board's link watchdog while connected
+            link.start_heartbeat()
         adc, enc = sim.read()
         if self.mode == "lockstep":
             # the initial reading, before the faults are cleared: the jump from the last

@@ -47,6 +47,7 @@ from host.hil.accounting import Sink
 from host.hil.errors import HilError
 from host.hil.lockstep import Lockstep
 from host.hil.session import HilSession
+from host.link import messages as M
 from sim.params import RobotParams, load_params
 from sim.plantsim import PlantSim
 from sim.scenario import load_scenario, scenario_from_dict
@@ -250,9 +251,11 @@ def _check(res: SoakResult, probe: dict[str, int], tol: float) -> None:
     # the board's clock: exactly one period per tick between the two heartbeats
     ticks = s["ticks"]
     want = ticks * s["period_ms"]
-    got = (s["uptime1_ms"] - s["uptime0_ms"]) % (1 << 30)
+    # heartbeat.uptime_ms wraps at its field width (msgtable): compare modulo that
+    wrap = 1 << (8 * next(f.size for f in M.BY_NAME["heartbeat"].FIELDS if f.name == "uptime_ms"))
+    got = (s["uptime1_ms"] - s["uptime0_ms"]) % wrap
     s["uptime_advance_ms"] = got
-    if abs(got - want) > s["period_ms"]:
+    if abs((got - want + wrap // 2) % wrap - wrap // 2) > s["period_ms"]:
         f.append(f"timing drift: the board's uptime advanced {got} ms over {ticks} ticks (expected {want:g})")
     if s["faults_seen"] or s["state_end"] != _BALANCING:
         f.append(f"board left balancing: faults 0x{s['faults_seen']:x}, final state {s['state_end']}")

@@ -2,7 +2,18 @@
 
 The base class owns the template method :meth:`Link.recv` and request/response with
 timeouts and retries; transports implement ``_send(msg, seq)`` and
-``_recv_internal(timeout)``.  Backends are chosen by name from :data:`BACKENDS` and
+``_recv_internal(timeout)``.
+
+Safety rules the base class keeps (``firmware/msgtable.py``, docs/protocol.md):
+
+* identity: before the first command a link reads the board's VERSION and refuses
+  (:class:`IncompatibleBoard`) a board whose message-table hash differs from its own;
+* arming: :meth:`Link.arm` reads the board's arming epoch from its heartbeat and sends
+  ARM with it; every retry carries the same epoch, so an arm that arrives after a later
+  disarm (or fault) is refused by the board instead of re-arming it;
+* liveness: only HOST_HEARTBEAT (and set-points) feed the board's link watchdog; a link
+  that arms starts sending it (:meth:`Link.start_heartbeat`) and flags a board whose own
+  heartbeat is missing for 3 periods (:attr:`Link.board_silent`).  Backends are chosen by name from :data:`BACKENDS` and
 imported lazily.  Every pyserial / python-can error is re-raised as a
 :class:`LinkError` ``from`` the original.
 
@@ -18,10 +29,13 @@ from __future__ import annotations
 import collections
 import importlib
 import select
+import threading
 import time
-from typing import Any
+from typing import Any, Callable
 
 from firmware import msgtable as T
+from firmware.board import UART_BAUD as _UART_BAUD
+from host.link import identity as ID
 from host.link import messages as M
 
 __all__ = [
@@ -29,12 +43,17 @@ __all__ = [
     "LinkTimeout",
     "LinkClosed",
     "CommandRefused",
+    "IncompatibleBoard",
     "Link",
     "SerialLink",
     "CanLink",
     "BACKENDS",
     "open_link",
+    "BOARD_BAUD",
 ]
+
+# the board's UART rate (firmware/board.py UART_BAUD): the default of every serial link
+BOARD_BAUD = int(_UART_BAUD)
 
 
 class LinkError(OSError):
@@ -72,8 +91,30 @@ class CommandRefused(LinkError):
         super().__init__(f"{name} refused: {self.reason_name} ({doc})")
 
 
+class IncompatibleBoard(LinkError):
+    """The board speaks another protocol: its message-table hash differs from the host's.
+
+    Attributes
+    ----------
+    version : Message or None
+        The board's VERSION message (``None`` if it does not report one).
+    """
+
+    def __init__(self, text: str, version: M.Message | None = None) -> None:
+        self.version = version
+        super().__init__(text)
+
+
 # reply class wanted by a request, by request message name (default: ACK)
 _REPLY: dict[str, str] = {"param_get": "param_value", "param_set": "param_value"}
+_HEARTBEAT = M.BY_NAME["heartbeat"]
+_HOST_HEARTBEAT = M.BY_NAME["host_heartbeat"]
+_VERSION = M.BY_NAME["version"]
+#: host heartbeat period (s) of :meth:`Link.start_heartbeat`: well inside the smallest
+#: watchdog_ms the board accepts (msgtable PARAMS) times 3
+HOST_HEARTBEAT_S = 0.05
+#: board heartbeats that may be missing before :attr:`Link.board_silent` is set
+SILENT_PERIODS = 3
 
 
 class Link:
@@ -85,13 +126,32 @@ class Link:
         Messages kept for :meth:`recv` while :meth:`request` waits for its reply.
     """
 
-    def __init__(self, *, backlog: int = 10000) -> None:
+    def __init__(self, *, backlog: int = 10000, check_identity: bool = True) -> None:
         self._queue: collections.deque[tuple[M.Message, int | None]] = collections.deque(maxlen=backlog)
         self._seq = 0
         self._closed = False
         self.last_seq: int | None = None
         self.sent = 0
         self.received = 0
+        # one writer at a time (the heartbeat thread writes too), one reader at a time
+        self._tx_lock = threading.Lock()
+        self._rx_lock = threading.Lock()
+        #: read the board's VERSION before the first command and refuse another table
+        self.check_identity = check_identity
+        #: the board's VERSION once read (:meth:`identify`)
+        self.version: M.Message | None = None
+        #: monotonic time of the last board HEARTBEAT received, and the last one
+        self.last_heartbeat_at: float | None = None
+        self.last_heartbeat: M.Message | None = None
+        #: True while the board's heartbeat has been missing for SILENT_PERIODS periods
+        #: (checked while the host heartbeat runs); silences counts such events
+        self.board_silent = False
+        self.silences = 0
+        #: called with the silence in seconds when :attr:`board_silent` becomes True
+        self.on_silent: Callable[[float], None] | None = None
+        self._hb_thread: threading.Thread | None = None
+        self._hb_stop = threading.Event()
+        self._board_period: float | None = None
 
     # ---- transport hooks ----
     def _send(self, msg: M.Message, seq: int) -> None:  # pragma: no cover - abstract
@@ -124,11 +184,27 @@ class Link:
             raise LinkClosed("link is closed")
         if not isinstance(msg, M.Message):
             raise TypeError(f"expected a protocol message, got {type(msg).__name__}")
-        seq = self._seq
-        self._seq = (seq + 1) & 0xFF
-        self._send(msg, seq)
-        self.sent += 1
+        with self._tx_lock:
+            seq = self._seq
+            self._seq = (seq + 1) & 0xFF
+            self._send(msg, seq)
+            self.sent += 1
         return seq
+
+    def _pull(self, timeout: float | None) -> None:
+        # read what arrives within timeout into the queue; note board heartbeats
+        with self._rx_lock:
+            got = self._recv_internal(timeout)
+        self._ingest(got)
+
+    def _ingest(self, got: list[tuple[M.Message, int | None]]) -> None:
+        for m, _ in got:
+            if isinstance(m, _HEARTBEAT):
+                self.last_heartbeat = m
+                self.last_heartbeat_at = time.monotonic()
+                self.board_silent = False
+        self.received += len(got)
+        self._queue.extend(got)
 
     def recv(self, timeout: float | None = None) -> M.Message | None:
         """Next received message, or ``None`` when ``timeout`` s pass without one.
@@ -141,9 +217,7 @@ class Link:
         deadline = None if timeout is None else time.monotonic() + timeout
         while not self._queue:
             left = None if deadline is None else max(0.0, deadline - time.monotonic())
-            got = self._recv_internal(left)
-            self.received += len(got)
-            self._queue.extend(got)
+            self._pull(left)
             if not self._queue and deadline is not None and time.monotonic() >= deadline:
                 return None
         msg, self.last_seq = self._queue.popleft()
@@ -173,9 +247,7 @@ class Link:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise LinkTimeout(what)
-                got = self._recv_internal(left)
-                self.received += len(got)
-                self._queue.extend(got)
+                self._pull(left)
         finally:
             self._queue.extendleft(reversed(held))
 
@@ -206,7 +278,12 @@ class Link:
             The board answered NACK for this message.
         LinkTimeout
             No answer after ``1 + retries`` attempts.
+        IncompatibleBoard
+            The board's message table is not the host's (checked once, before the first
+            request; see :meth:`identify`).
         """
+        if self.check_identity and self.version is None and not _is_version_request(msg):
+            self.identify(timeout=timeout, retries=retries)
         if reply is None:
             if msg.NAME == "request":
                 reply = M.MESSAGES[getattr(msg, "msg_id")]
@@ -215,11 +292,16 @@ class Link:
         cls = M.message_class(reply) if isinstance(reply, str) else reply
 
         sent: set[int] = set()
+        # what was already received when the request went out cannot answer it (a periodic
+        # heartbeat whose seq happens to be the request's, or any one on CAN, is stale)
+        before: set[int] = set()
 
         def match(m: M.Message, seq: int | None) -> bool:
             # replies carry the seq of the request they answer (serial); a late reply
             # to an earlier request stays queued for recv()
             if seq is not None and seq not in sent:
+                return False
+            if id(m) in before:
                 return False
             if isinstance(m, M.BY_NAME["nack"]) and m.msg_id == msg.ID:
                 return True
@@ -230,6 +312,7 @@ class Link:
             return isinstance(m, cls)
 
         for attempt in range(retries + 1):
+            before.update(id(m) for m, _ in list(self._queue))
             sent.add(self.send(msg))
             try:
                 m = self._wait(match, timeout, "")
@@ -240,10 +323,113 @@ class Link:
             return m
         raise LinkTimeout(f"no answer to {msg.NAME} after {retries + 1} attempts of {timeout} s")
 
+    # ---- identity and liveness ----
+    def identify(self, **kw: Any) -> M.Message:
+        """Read the board's VERSION and check its message-table hash against the host's.
+
+        Returns
+        -------
+        Message
+            The board's VERSION (also kept in :attr:`version`).
+
+        Raises
+        ------
+        IncompatibleBoard
+            The board's table hash differs from the host's, or it does not report one.
+        """
+        try:
+            v = self.request(M.BY_NAME["request"](msg_id=T.VERSION), reply=_VERSION, **kw)
+        except CommandRefused as exc:
+            raise IncompatibleBoard(f"the board does not report its protocol identity ({exc.reason_name}): "
+                                    "its firmware is older than this host's protocol; flash matching firmware") from exc
+        mine = ID.table_hash()
+        if v.table_hash != mine:
+            raise IncompatibleBoard(f"the board's message table (hash {v.table_hash:#06x}, firmware version "
+                                    f"{v.fw_version >> 4}.{v.fw_version & 15}) differs from this host's "
+                                    f"({mine:#06x}): refusing to operate it; flash matching firmware or use a "
+                                    "matching host", v)
+        self.version = v
+        return v
+
+    def start_heartbeat(self, period: float = HOST_HEARTBEAT_S, board_period: float | None = None) -> None:
+        """Send HOST_HEARTBEAT every ``period`` s from a thread until :meth:`close` / :meth:`stop_heartbeat`.
+
+        While it runs, a board heartbeat missing for :data:`SILENT_PERIODS` periods sets
+        :attr:`board_silent` (and calls :attr:`on_silent`).  ``board_period``: the board's
+        heartbeat period in s (default: its ``heartbeat_ms`` parameter, read now; 0 = no
+        silence check).  Idempotent.
+        """
+        if self._hb_thread is not None:
+            return
+        if period <= 0:
+            raise ValueError(f"period must be > 0, got {period!r}")
+        if board_period is None:
+            try:
+                board_period = self.param_get("heartbeat_ms") / 1000.0
+            except LinkError:
+                board_period = 0.0
+        self._board_period = board_period or None
+        self.last_heartbeat_at = time.monotonic()
+        self._hb_stop.clear()
+        self.send(_HOST_HEARTBEAT())
+        self._hb_thread = threading.Thread(target=self._heartbeat_loop, args=(period,), daemon=True,
+                                           name="upright-host-heartbeat")
+        self._hb_thread.start()
+
+    def stop_heartbeat(self) -> None:
+        """Stop sending HOST_HEARTBEAT (the board's watchdog then faults an armed board)."""
+        t = self._hb_thread
+        if t is not None:
+            self._hb_stop.set()
+            if t is not threading.current_thread():
+                t.join(timeout=2)
+            self._hb_thread = None
+
+    @property
+    def heartbeat_running(self) -> bool:
+        """True while :meth:`start_heartbeat`'s thread sends."""
+        return self._hb_thread is not None
+
+    def _heartbeat_loop(self, period: float) -> None:
+        while not self._hb_stop.wait(period):
+            try:
+                self.send(_HOST_HEARTBEAT())
+                # nobody reading: take what arrived (board heartbeats) into the queue
+                if self._rx_lock.acquire(blocking=False):
+                    try:
+                        got = self._recv_internal(0)
+                    finally:
+                        self._rx_lock.release()
+                    self._ingest(got)
+            except (LinkError, OSError, ValueError):
+                return
+            self._check_silence()
+
+    def _check_silence(self) -> None:
+        bp = self._board_period
+        at = self.last_heartbeat_at
+        if bp is None or at is None or self.board_silent:
+            return
+        age = time.monotonic() - at
+        if age > SILENT_PERIODS * bp:
+            self.board_silent = True
+            self.silences += 1
+            if self.on_silent is not None:
+                self.on_silent(age)
+
     # ---- commands ----
     def arm(self, **kw: Any) -> None:
-        """Arm the motor (refused while a fault is latched)."""
-        self.request(M.BY_NAME["arm"](), **kw)
+        """Arm the motor with the board's current arming epoch (refused while a fault is latched).
+
+        Reads the epoch from a fresh heartbeat, then sends ARM(epoch); retries resend the
+        same epoch, so a late retry after a disarm (which changes the epoch) is refused
+        (``stale_epoch``) instead of re-arming.  Starts the host heartbeat
+        (:meth:`start_heartbeat`) if it is not running: the board's watchdog needs it.
+        """
+        hb = self.query("heartbeat", **kw)
+        if not self.heartbeat_running:
+            self.start_heartbeat()
+        self.request(M.BY_NAME["arm"](epoch=hb.epoch), **kw)
 
     def disarm(self, **kw: Any) -> None:
         """Disarm the motor."""
@@ -292,14 +478,20 @@ class Link:
     def close(self) -> None:
         """Release the port or bus (idempotent)."""
         if not self._closed:
+            self.stop_heartbeat()
             self._closed = True
-            self._close()
+            with self._tx_lock:
+                self._close()
 
     def __enter__(self) -> "Link":
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _is_version_request(msg: M.Message) -> bool:
+    return msg.NAME == "request" and getattr(msg, "msg_id") == T.VERSION
 
 
 def _param_index(param: int | str) -> int:
@@ -324,8 +516,9 @@ class SerialLink(Link):
         See :class:`Link`.
     """
 
-    def __init__(self, url: str, baudrate: int = 115200, *, backlog: int = 10000) -> None:
-        super().__init__(backlog=backlog)
+    def __init__(self, url: str, baudrate: int = BOARD_BAUD, *, backlog: int = 10000,
+                 check_identity: bool = True) -> None:
+        super().__init__(backlog=backlog, check_identity=check_identity)
         import serial
 
         self._serial_mod = serial
@@ -397,12 +590,18 @@ class CanLink(Link):
         The board's node id (0..63).
     backlog : int
         See :class:`Link`.
+    stream_crc : bool, optional
+        Frames travel as bytes on a stream (python-can's ``serial`` interface): send and
+        check the CRC each frame carries in its timestamp field
+        (:func:`host.link.messages.serial_can_crc`).  Default: True exactly for a
+        ``serial``-interface bus.
     **bus_kwargs
         Passed to ``can.Bus`` when ``bus`` is not given.
     """
 
-    def __init__(self, bus: Any = None, *, node_id: int = 1, backlog: int = 10000, **bus_kwargs: Any) -> None:
-        super().__init__(backlog=backlog)
+    def __init__(self, bus: Any = None, *, node_id: int = 1, backlog: int = 10000, check_identity: bool = True,
+                 stream_crc: bool | None = None, **bus_kwargs: Any) -> None:
+        super().__init__(backlog=backlog, check_identity=check_identity)
         import can
 
         self._can = can
@@ -418,7 +617,10 @@ class CanLink(Link):
         elif bus_kwargs:
             raise TypeError(f"unexpected keyword arguments with an open bus: {sorted(bus_kwargs)}")
         self.bus = bus
-        self._drops = {"unknown": 0, "length": 0, "other": 0}
+        if stream_crc is None:
+            stream_crc = type(bus).__module__.startswith("can.interfaces.serial")
+        self.stream_crc = bool(stream_crc)
+        self._drops = {"unknown": 0, "length": 0, "other": 0, "crc": 0, "framing": 0}
 
     @property
     def drops(self) -> dict[str, int]:
@@ -426,7 +628,12 @@ class CanLink(Link):
 
     def _send(self, msg: M.Message, seq: int) -> None:
         cid, data = M.encode_can(msg, self.node_id)
-        frame = self._can.Message(arbitration_id=cid, data=data, is_extended_id=False)
+        if self.stream_crc:
+            # python-can's serial interface writes int(timestamp * 1000) as the u32 field
+            ts = (M.serial_can_crc(cid, data) + 0.5) / 1000.0
+            frame = self._can.Message(arbitration_id=cid, data=data, is_extended_id=False, timestamp=ts)
+        else:
+            frame = self._can.Message(arbitration_id=cid, data=data, is_extended_id=False)
         try:
             self.bus.send(frame)
         except (self._can.CanError, OSError, ValueError) as exc:
@@ -441,6 +648,12 @@ class CanLink(Link):
             # interface resynchronises on the next frame
             self._drops["length"] += 1
             return []
+        except self._can.CanOperationError as exc:
+            if self.stream_crc and "delimiter" in str(exc):
+                # python-can's serial interface: a frame without its 0xBB end marker
+                self._drops["framing"] += 1
+                return []
+            raise LinkError(f"CAN receive failed: {exc}") from exc
         except (self._can.CanError, OSError) as exc:
             raise LinkError(f"CAN receive failed: {exc}") from exc
         if frame is None:
@@ -451,6 +664,9 @@ class CanLink(Link):
         node, mid = frame.arbitration_id >> T.MSG_BITS, frame.arbitration_id & T.MAX_ID
         if node != self.node_id:
             self._drops["other"] += 1
+            return []
+        if self.stream_crc and round(frame.timestamp * 1000) != M.serial_can_crc(frame.arbitration_id, bytes(frame.data)):
+            self._drops["crc"] += 1
             return []
         try:
             _, msg = M.decode_can(frame.arbitration_id, bytes(frame.data))
@@ -471,7 +687,7 @@ BACKENDS: dict[str, tuple[str, str]] = {
 }
 
 
-def open_link(spec: str, *, node_id: int = 1, baudrate: int = 115200) -> Link:
+def open_link(spec: str, *, node_id: int = 1, baudrate: int = BOARD_BAUD) -> Link:
     """Open a link from a one-line spec.
 
     ``"loop://"``, ``"/dev/ttyACM0"``, ``"serial:/dev/ttyUSB0"`` -> :class:`SerialLink`;

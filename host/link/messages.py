@@ -9,7 +9,9 @@ Framings (an implementation independent of the firmware's, used to cross-check i
 
 * serial: ``0x00 COBS([id][seq][payload][crc16 big-endian]) 0x00`` with
   CRC-16/CCITT-FALSE (``binascii.crc_hqx(data, 0xFFFF)``);
-* CAN: 11-bit id ``node_id << 5 | msg_id``, DLC = payload length, little-endian.
+* CAN: 11-bit id ``node_id << 5 | msg_id``, DLC = payload length, little-endian; on a
+  byte stream (python-can's ``serial`` interface) each frame carries a CRC-16 of its own
+  in the timestamp field (:func:`serial_can_crc`, :func:`encode_serial_can`).
 """
 
 from __future__ import annotations
@@ -47,6 +49,8 @@ __all__ = [
     "split_can_id",
     "encode_can",
     "decode_can",
+    "serial_can_crc",
+    "encode_serial_can",
     "message_class",
     "make",
 ]
@@ -464,3 +468,26 @@ def decode_can(arbitration_id: int, data: bytes) -> tuple[int, Message]:
     if cls is None:
         raise UnknownMessageError(f"unknown message id {mid} (CAN id {arbitration_id:#x})")
     return node, cls.from_payload(bytes(data))
+
+
+# ---------------------------------------------------------------- CAN frames on a byte stream
+def serial_can_crc(arbitration_id: int, data: bytes) -> int:
+    """CRC of a CAN frame carried as python-can ``serial``-interface bytes.
+
+    CRC-16/CCITT-FALSE over the DLC byte, the 4 little-endian arbitration-id bytes and the
+    data; the frame carries it in its timestamp field (low 16 bits, high 16 bits 0), as
+    ``firmware/canframe.py`` writes and checks it.
+    """
+    data = bytes(data)
+    return crc16(bytes([len(data)]) + int(arbitration_id).to_bytes(4, "little") + data)
+
+
+def encode_serial_can(msg: Message, node_id: int) -> bytes:
+    """python-can ``serial``-interface bytes of ``msg`` for node ``node_id``, with the CRC.
+
+    ``0xAA, crc u16 LE, 0, 0, dlc, arbitration id u32 LE, data, 0xBB``.
+    """
+    cid, data = encode_can(msg, node_id)
+    crc = serial_can_crc(cid, data)
+    return (b"\xaa" + crc.to_bytes(2, "little") + b"\x00\x00" + bytes([len(data)])
+            + cid.to_bytes(4, "little") + data + b"\xbb")

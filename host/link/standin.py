@@ -28,6 +28,7 @@ class StandIn:
         self.gains_n = 0
         self.gsum = -1
         self.quit = False
+        self.epoch = 3  # arming epoch: every disarm changes it (as the app's)
 
     def cmd_arm(self):
         self.state = 1
@@ -35,6 +36,7 @@ class StandIn:
 
     def cmd_disarm(self):
         self.state = 0
+        self.epoch = (self.epoch + 1) & 0xFF
         if self.ref == QUIT_REF:
             self.quit = True
         return 0
@@ -67,7 +69,9 @@ class StandIn:
         a[0] = self.state
         a[1] = self.faults
         a[2] = 9  # boot counter
-        a[3] = 0x3FFFFFFF  # uptime (ms), the field's largest value
+        a[3] = self.epoch
+        a[4] = 0xA5  # gains CRC, low byte
+        a[5] = 0xFFFF  # uptime (ms), the field's largest value
 
     def fill_telemetry(self, a):
         # constants: arithmetic on a stored field value could make a big int (an
