@@ -99,16 +99,17 @@ def hil_emulated(args: argparse.Namespace, out: Path, scenarios: Sequence[Any], 
     summary file and partial-run helpers; passed in, so the two modules import no circle).
     """
     from host.boards.rp2040.board import BoardError
-    from host.cli.args import UsageError
     from host.cli.main import interrupted
     from host.hil.emulated import run_emulated
     from host.hil.errors import HilError
     from host.hil.records import write_records
 
-    if args.link != "serial":
-        raise UsageError("--link: the emulated board's host link is its UART (serial); --link can is not emulated")
+    if args.link == "can":
+        # the board's CAN link: its MCP2515 on SPI1 bridged to python-can (host/hil/emulated_can.py)
+        from host.hil.emulated_can import run_emulated_can as run_emulated  # noqa: F811
     if not args.quiet:
-        print(f"upright hil: {len(scenarios)} scenario(s), emulated RP2040 (main.py, UART0 link, plant on the pins; "
+        link = "CAN link: MCP2515 on SPI1, python-can virtual bus" if args.link == "can" else "UART0 link"
+        print(f"upright hil: {len(scenarios)} scenario(s), emulated RP2040 (main.py, {link}, plant on the pins; "
               "about 0.1-0.2 board seconds per wall second)", file=sys.stderr)
     done: list[Any] = []
     try:
