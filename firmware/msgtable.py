@@ -99,7 +99,7 @@ MESSAGES = (
       ("boot", "B", 1, "", "boot counter mod 256, incremented on every start"),
       ("epoch", "B", 1, "", "arming epoch mod 256: ARM must carry it; changes on every disarm, clear_faults and fault"),
       ("gains_crc", "B", 1, "", "low 8 bits of the active gain table's CRC-16 (VERSION.gains_crc)"),
-      ("uptime_ms", "H", 1, "ms", "time since boot, low 16 bits (wraps every 65.536 s; STATS_FRAMES has 30 bits)"))),
+      ("uptime_ms", "H", 1, "ms", "time since boot, low 16 bits (wraps every 65.536 s)"))),
     (HIL_SENSOR, "hil_sensor", TO_BOARD,
      "HIL: the simulated sensors for one control tick; in lockstep the board runs one step per frame.",
      (("tick", "I", 1, "", "tick number of this sample, wraps at 2**30"),
