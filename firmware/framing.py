@@ -12,6 +12,8 @@ except ImportError:
     def const(x):
         return x
 
+from array import array
+
 from . import crc16
 from . import msgtable
 
@@ -22,15 +24,37 @@ _CMAX = const(0x3FFFFFFF)
 
 
 class Encoder:
-    # raw: unstuffed frame being built (payload at raw[2:]); out: wire bytes
-    def __init__(self, layout, table=None):
+    # raw: unstuffed frame being built (payload at raw[2:]); out: wire bytes.
+    # emitter "viper" / "native": encode() packs, CRCs and stuffs a frame in one call of
+    # firmware/fastframe.py (same bytes; the module is imported only then: the wasm port
+    # has no native emitter) whenever vals is an array (as int32: array('i')); anything
+    # else, and "bytecode", takes the plain path below.
+    def __init__(self, layout, table=None, emitter="bytecode"):
         self.layout = layout
         self.table = table if table is not None else crc16.make_table()
         self.raw = bytearray(_MAX_FRAME)
         self.out = bytearray(_MAX_WIRE)
+        self._fast = None
+        self._lut = None
+        self._vals = self  # the vals array fastframe may read (self: none yet)
+        if emitter == "viper" or emitter == "native":
+            from . import fastframe
+            self._lut = fastframe.make_lut(layout, self.table)
+            self._fast = fastframe.encode_viper if emitter == "viper" else fastframe.encode_native
+            self._set_len = fastframe.set_vals_len
 
     def encode(self, mid, seq, vals, voff):
         # pack vals[voff:] as message mid, frame it; returns the wire length in self.out
+        if vals is self._vals:
+            n = self._fast(self._lut, self.raw, self.out, vals, voff, mid, seq)
+            if n > 0:
+                return n
+        elif self._fast is not None and type(vals) is array:
+            # a new array (once per array: the dispatcher keeps one): its length bounds
+            # what fastframe reads
+            self._vals = vals
+            self._set_len(self._lut, len(vals))
+            return self.encode(mid, seq, vals, voff)
         n = self.layout.pack(mid, vals, voff, self.raw, 2)
         return self.frame(mid, seq, n)
 

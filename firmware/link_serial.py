@@ -34,13 +34,15 @@ class SerialLink:
         layout = codec.Layout()
         table = crc16.make_table()
         self.dec = framing.Decoder(layout, table)
-        enc = framing.Encoder(layout, table)
+        # frames packed/CRC'd/stuffed by the app's emitter (viper on the board: fastframe.py)
+        enc = framing.Encoder(layout, table, getattr(app, "emitter", "bytecode"))
         mv = memoryview(enc.out)
         self._views = [mv[:k] for k in range(len(enc.out) + 1)]
         self.tx = framing.SerialTx(enc, self._write)
         self.disp = commands.Dispatcher(app, layout, self.tx, table)
         self.disp.dec = self.dec
         self.pacer = Pacer(app, self.disp)
+        self._tick = self.pacer.tick
         self.rx = bytearray(_RX)
         self._scan = self.dec.scan
         self._uart_write = uart.write
@@ -51,12 +53,17 @@ class SerialLink:
         self._uart_write(self._views[n])
 
     def poll(self):
+        # idle (nothing received): one any() and the pacer
+        n = self._any()
+        if n:
+            self._receive(n)
+        self._tick()
+
+    def _receive(self, n):
+        # at most _RX bytes this tick, n of them waiting now
         rx = self.rx
         left = _RX
-        while left > 0:
-            n = self._any()
-            if not n:
-                break
+        while True:
             if n > left:
                 n = left
             n = self._readinto(rx, n)
@@ -64,7 +71,11 @@ class SerialLink:
                 break
             left -= n
             self._frames(n)
-        self.pacer.tick()
+            if left <= 0:
+                break
+            n = self._any()
+            if not n:
+                break
 
     def _frames(self, n):
         # decode rx[0:n]; every complete valid frame is dispatched
