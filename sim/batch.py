@@ -21,8 +21,14 @@ Randomness is per run, never per batch: run ``i`` draws its noise from
 ``numpy.random.default_rng(noise_seed[i])`` exactly as a single-run
 :class:`sim.sensors.NoiseSource` would, so a run's result does not depend on which
 batch, chunk or machine simulated it (the Dask scale-out relies on this).  For the same
-reason the controller's linear algebra is an ``einsum`` and not a BLAS product: BLAS
-kernels round a column differently depending on where it sits in the matrix.
+reason the controller's linear algebra is a sum over the columns in a fixed order and not a
+BLAS product: BLAS kernels round a column differently depending on where it sits in the
+matrix.
+
+Two engines compute the same thing (``engine=``): ``"numpy"``, the reference above,
+vectorised over the batch tick by tick; ``"numba"`` (the default when numba is installed),
+the compiled kernel of :mod:`sim.batch_kernel`, run by run on all cores, **bit-identical** to
+the reference per run (metrics and traces; see that module for what makes it so).
 
 The firmware side (count conversion, motor inversion, controller) always uses the
 *nominal* parameters; only the plant and the motor that turns duty into force are the
@@ -63,6 +69,8 @@ __all__ = [
     "BatchResult",
     "estimator_rows",
     "simulate_batch",
+    "ENGINES",
+    "default_engine",
     "closed_loop_iosys",
     "closed_loop_x0",
     "simulate_run",
@@ -306,6 +314,46 @@ class _NoiseStream:
         self.pos += ticks
         return out
 
+    def take_runs(self, ticks: int) -> np.ndarray:
+        """Like :meth:`take` (the same values), run-major: shape ``(N, ticks, 2)``."""
+        if self.model.kind == "none" or ticks == 0:
+            self.pos += ticks
+            return np.zeros((self.n, ticks, 2))
+        if self.pos % self.hold:
+            raise BatchError("noise blocks must start on a hold boundary")
+        draws = -(-ticks // self.hold)
+        raw = np.empty((self.n, draws, 2))
+        m = self.model
+        if m.kind == "white":
+            for i, g in enumerate(self.rngs):
+                g.standard_normal(out=raw[i])
+            raw *= self.std
+        else:
+            for i, g in enumerate(self.rngs):
+                g.random(out=raw[i])
+            lo, hi = -m.amplitude, m.amplitude
+            raw = lo + (hi - lo) * raw
+        out = raw * self.mask[:, 0]
+        if self.hold > 1:
+            out = np.repeat(out, self.hold, axis=1)[:, :ticks]
+        self.pos += ticks
+        return np.ascontiguousarray(out)
+
+
+ENGINES = ("numpy", "numba")
+"""Implementations of :func:`simulate_batch`: the numpy reference and the compiled kernel."""
+
+
+def default_engine() -> str:
+    """``"numba"`` when numba is importable, else ``"numpy"``."""
+    from . import batch_kernel
+
+    return "numba" if batch_kernel.AVAILABLE else "numpy"
+
+
+KERNEL_CHUNK = 2048
+"""Runs per compiled-kernel call (the noise of a chunk is drawn before the call: ~2048 x T x 16 bytes)."""
+
 
 def simulate_batch(
     params: RobotParams,
@@ -322,6 +370,8 @@ def simulate_batch(
     record: bool = False,
     progress: Callable[[int, int], None] | None = None,
     ctrl_index: np.ndarray | None = None,
+    plant: RobotParams | None = None,
+    engine: str | None = None,
 ) -> BatchResult:
     """Simulate every run of ``runs`` in closed loop with the discrete controller.
 
@@ -329,7 +379,7 @@ def simulate_batch(
     ----------
     params : RobotParams
         Nominal parameters: the firmware's (sensor conversion, motor inversion, loop
-        rate) and the defaults of every run's true plant.
+        rate) and, without ``plant``, the defaults of every run's true plant.
     ctrl : DiscreteController or sequence of them
         The controller (``Ac, Bc, Cc, Dc, Bu, Ts, u_max``), see :mod:`host.design.discrete`; or
         several (same period and state size) with ``ctrl_index`` choosing one per run,
@@ -357,9 +407,20 @@ def simulate_batch(
     record : bool
         Keep per-tick traces (memory ``~ 10 * T * N`` floats).
     progress : callable, optional
-        ``progress(ticks_done, ticks_total)`` called now and then.
+        ``progress(ticks_done, ticks_total)`` called now and then (the numba engine: after
+        each chunk of runs, in ticks of the whole batch).
     ctrl_index : ndarray of int, shape (N,), optional
         With a sequence of controllers: the controller of each run.
+    plant : RobotParams, optional
+        The simulated robot when it differs from the design (``--plant``): the defaults of
+        every run's true plant and motor (``runs.values`` still override per run), and the
+        sensors that produce the counts (``pot_offset``, ``pot_range``, ``adc_bits``,
+        ``enc_cpr``, ``r_wheel``); the firmware still decodes the counts and inverts the
+        motor with ``params``.  Default: ``params``.
+    engine : {"numba", "numpy"}, optional
+        ``"numpy"``: the reference, vectorised over the batch.  ``"numba"``: the compiled
+        kernel (:mod:`sim.batch_kernel`), bit-identical per run, run by run on all of
+        numba's threads.  Default: numba when importable.
 
     Returns
     -------
@@ -374,6 +435,14 @@ def simulate_batch(
         raise BatchError(f"drive must be 'motor' or 'force', got {drive!r}")
     if not (duration > 0 and plant_rate > 0 and settle_band > 0 and window > 0):
         raise BatchError("duration, plant_rate, settle_band and window must be > 0")
+    engine = default_engine() if engine is None else engine
+    if engine not in ENGINES:
+        raise BatchError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
+    if engine == "numba":
+        from . import batch_kernel
+
+        if not batch_kernel.AVAILABLE:
+            raise BatchError("engine='numba' needs numba (pip install numba), or use engine='numpy'")
     noise = NoiseModel() if noise is None else noise
     stacked = isinstance(ctrl, (list, tuple))
     ctrls = list(ctrl) if stacked else [ctrl]
@@ -389,33 +458,119 @@ def simulate_batch(
     Ts = float(ctrls[0].Ts)
     if any(float(c.Ts) != Ts for c in ctrls):
         raise BatchError("stacked controllers must share the sample period")
-    nz = Bus[0].shape[0]
     u_maxes = np.array([float(c.u_max) for c in ctrls])
     if stacked:
         idx = np.asarray(ctrl_index) if ctrl_index is not None else None
         if idx is None or idx.shape != (len(runs),) or not np.issubdtype(idx.dtype, np.integer) \
                 or np.any(idx < 0) or np.any(idx >= len(ctrls)):
             raise BatchError(f"ctrl_index must give each of the {len(runs)} runs a controller index < {len(ctrls)}")
-        # per-run matrices, batch axis last: the same arithmetic for a run whatever the batch
-        Gt = np.ascontiguousarray(np.stack(Gs)[idx].transpose(1, 2, 0))
-        Bu_col = np.ascontiguousarray(np.stack(Bus)[idx].T)
-        u_max: float | np.ndarray = u_maxes[idx]
+        idx = idx.astype(np.int64)
     else:
         if ctrl_index is not None:
             raise BatchError("ctrl_index needs a sequence of controllers")
-        G = Gs[0]
-        Bu_col = Bus[0][:, None]
-        u_max = float(u_maxes[0])
+        idx = np.zeros(len(runs), dtype=np.int64)
     N = len(runs)
     n_ticks = int(round(duration / Ts))
     sub = max(1, math.ceil(Ts * plant_rate - 1e-9))
     h = Ts / sub
-    true = runs.true_params(params)
-    phys = {k: true[k] for k in PLANT_KEYS}
-    motor_true = {k: true[k] for k in MOTOR_KEYS}
-    motor_nom = {k: getattr(params, k) for k in MOTOR_KEYS}
-    sens = {k: getattr(params, k) for k in ("adc_bits", "pot_range", "pot_offset", "enc_cpr", "r_wheel")}
-    cpm = enc_counts_per_m(sens)
+    base = params if plant is None else plant
+    true = runs.true_params(base)
+    setup = _Setup(
+        N=N, n_ticks=n_ticks, sub=sub, h=h, Ts=Ts, stacked=stacked, idx=idx,
+        Gs=np.stack(Gs), Bus=np.stack(Bus), u_maxes=u_maxes,
+        phys={k: true[k] for k in PLANT_KEYS},
+        motor_true={k: true[k] for k in MOTOR_KEYS},
+        motor_nom={k: getattr(params, k) for k in MOTOR_KEYS},
+        sens_plant={k: getattr(base, k) for k in _SENSOR_KEYS},
+        sens_fw={k: getattr(params, k) for k in _SENSOR_KEYS},
+        drive=drive, noise=noise, accel_limit=accel_limit, settle_band=settle_band,
+        w0=n_ticks * sub - int(round(window / h)), record=record, progress=progress,
+    )
+    acc, tr = (_loop_numba if engine == "numba" else _loop_numpy)(setup, runs)
+    n_samples = n_ticks * sub
+    last_out = acc["last_out"]
+    settle = np.where(last_out < 0, 0.0, (last_out + 1) * h)
+    settle[last_out >= n_samples] = np.inf
+    nrm = max(n_samples - max(setup.w0, 0), 1)
+    metrics = {
+        "phi_max": acc["phi_max"],
+        "x_max": acc["x_max"],
+        "xddot_max": acc["xddot_max"],
+        "force_max": acc["force_max"],
+        "settle": settle,
+        "phi_rms": np.sqrt(acc["phi_sq"] / nrm),
+        "force_rms": np.sqrt(acc["f_sq"] / nrm),
+        "fallen": acc["phi_max"] > _FALLEN,
+    }
+    if progress is not None:
+        progress(n_ticks, n_ticks)
+    return BatchResult(metrics=metrics, traces=tr)
+
+
+_SENSOR_KEYS = ("adc_bits", "pot_range", "pot_offset", "enc_cpr", "r_wheel")
+_TRACES = ("x", "xdot", "phi", "phidot", "u_sat", "force", "duty", "x_meas", "phi_meas")
+
+
+@dataclass
+class _Setup:
+    """What both engines of :func:`simulate_batch` start from."""
+
+    N: int
+    n_ticks: int
+    sub: int
+    h: float
+    Ts: float
+    stacked: bool
+    idx: np.ndarray  # (N,) controller of each run
+    Gs: np.ndarray  # (NG, nz+2, nz+3)
+    Bus: np.ndarray  # (NG, nz)
+    u_maxes: np.ndarray  # (NG,)
+    phys: dict[str, Any]
+    motor_true: dict[str, Any]
+    motor_nom: dict[str, Any]
+    sens_plant: dict[str, Any]
+    sens_fw: dict[str, Any]
+    drive: str
+    noise: NoiseModel
+    accel_limit: float | None
+    settle_band: float
+    w0: int
+    record: bool
+    progress: Callable[[int, int], None] | None
+
+
+def _matmul_cols(G: np.ndarray, W: np.ndarray) -> np.ndarray:
+    # out[i, n] = sum_j G[i, j(, n)] W[j, n], summed column by column in order j = 0, 1, ...:
+    # a fixed operation order (no BLAS, no einsum kernel that may fuse or reorder), the same
+    # for a run whatever the batch, and the order the compiled kernel uses
+    if G.ndim == 2:
+        out = G[:, 0, None] * W[0]
+        for j in range(1, G.shape[1]):
+            out = out + G[:, j, None] * W[j]
+    else:
+        out = G[:, 0, :] * W[0]
+        for j in range(1, G.shape[1]):
+            out = out + G[:, j, :] * W[j]
+    return out
+
+
+def _loop_numpy(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray] | None]:
+    """The reference: numpy over the batch axis, tick by tick."""
+    N, n_ticks, sub, h, Ts = s.N, s.n_ticks, s.sub, s.h, s.Ts
+    nz = s.Bus.shape[1]
+    if s.stacked:
+        # per-run matrices, batch axis last: the same arithmetic for a run whatever the batch
+        G = np.ascontiguousarray(s.Gs[s.idx].transpose(1, 2, 0))
+        Bu_col = np.ascontiguousarray(s.Bus[s.idx].T)
+        u_max: float | np.ndarray = s.u_maxes[s.idx]
+    else:
+        G = s.Gs[0]
+        Bu_col = s.Bus[0][:, None]
+        u_max = float(s.u_maxes[0])
+    phys, motor_true, motor_nom = s.phys, s.motor_true, s.motor_nom
+    sens, sens_fw = s.sens_plant, s.sens_fw
+    cpm = enc_counts_per_m(sens_fw)
+    accel_limit, settle_band, drive = s.accel_limit, s.settle_band, s.drive
 
     X = runs.x0.T.copy()  # (4, N) plant states
     W = np.zeros((nz + 3, N))  # [z; v] controller state and inputs
@@ -430,7 +585,7 @@ def simulate_batch(
     flat_enc, flat_adc = ring_enc.reshape(-1), ring_adc.reshape(-1)
     enc_last = enc0.copy()
     enc_total = encoder_delta(enc0, 0)
-    stream = _NoiseStream(noise, Ts, runs.noise_seed)
+    stream = _NoiseStream(s.noise, Ts, runs.noise_seed)
     blk = stream.hold * max(1, _NOISE_BLOCK // stream.hold)
     nblock = np.zeros((0, 2, N))
 
@@ -439,14 +594,12 @@ def simulate_batch(
     xdd_max = np.zeros(N)
     f_max = np.zeros(N)
     last_out = np.where(phi_max > settle_band, 0, -1).astype(np.int64)  # sample index
-    w0 = n_ticks * sub - int(round(window / h))  # first sample of the RMS window
+    w0 = s.w0  # first sample of the RMS window
     phi_sq = np.zeros(N)
     f_sq = np.zeros(N)
-    n_sq = 0
     tr: dict[str, np.ndarray] | None = None
-    if record:
-        names = ("x", "xdot", "phi", "phidot", "u_sat", "force", "duty", "x_meas", "phi_meas")
-        tr = {k: np.zeros((n_ticks + 1, N)) for k in names}
+    if s.record:
+        tr = {k: np.zeros((n_ticks + 1, N)) for k in _TRACES}
         tr["t"] = np.arange(n_ticks + 1) * Ts
     if accel_limit is not None:
         zeros, ones = np.zeros(N), np.ones(N)
@@ -473,9 +626,9 @@ def simulate_batch(
         enc_total = enc_total + encoder_delta(seen_enc, enc_last)
         enc_last = seen_enc
         W[nz] = enc_total / cpm
-        W[nz + 1] = adc_to_phi(flat_adc[idx], sens)
-        # --- controller (einsum: the same arithmetic for a run whatever the batch)
-        out = np.einsum("ijn,jn->in", Gt, W) if stacked else np.einsum("ij,jn->in", G, W)
+        W[nz + 1] = adc_to_phi(flat_adc[idx], sens_fw)
+        # --- controller (column by column: the same arithmetic for a run whatever the batch)
+        out = _matmul_cols(G, W)
         us = np.clip(out[0], -u_max, u_max)
         duty = duty_from_force(us, out[1], motor_nom) if drive == "motor" else None
         if tr is not None:
@@ -494,7 +647,6 @@ def simulate_batch(
             if sample >= w0:
                 phi_sq += X[2] * X[2]
                 f_sq += F * F
-                n_sq += 1
             k2 = rhs(X + (0.5 * h) * k1, duty, us)[0]
             k3 = rhs(X + (0.5 * h) * k2, duty, us)[0]
             k4 = rhs(X + h * k3, duty, us)[0]
@@ -504,25 +656,84 @@ def simulate_batch(
             np.maximum(phi_max, aphi, out=phi_max)
             np.maximum(x_max, np.abs(X[0]), out=x_max)
             np.copyto(last_out, sample, where=aphi > settle_band)
-        if progress is not None and k % 100 == 0:
-            progress(k, n_ticks)
-    n_samples = n_ticks * sub
-    settle = np.where(last_out < 0, 0.0, (last_out + 1) * h)
-    settle[last_out >= n_samples] = np.inf
-    nrm = max(n_sq, 1)
-    metrics = {
-        "phi_max": phi_max,
-        "x_max": x_max,
-        "xddot_max": xdd_max,
-        "force_max": f_max,
-        "settle": settle,
-        "phi_rms": np.sqrt(phi_sq / nrm),
-        "force_rms": np.sqrt(f_sq / nrm),
-        "fallen": phi_max > _FALLEN,
-    }
-    if progress is not None:
-        progress(n_ticks, n_ticks)
-    return BatchResult(metrics=metrics, traces=tr)
+        if s.progress is not None and k % 100 == 0:
+            s.progress(k, n_ticks)
+    acc = {"phi_max": phi_max, "x_max": x_max, "xddot_max": xdd_max, "force_max": f_max, "last_out": last_out,
+           "phi_sq": phi_sq, "f_sq": f_sq}
+    return acc, tr
+
+
+def _per_run(v: Any, n: int) -> np.ndarray:
+    return np.ascontiguousarray(np.broadcast_to(np.asarray(v, dtype=float), (n,)))
+
+
+def _loop_numba(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray] | None]:
+    """The compiled kernel (:mod:`sim.batch_kernel`), chunk of runs by chunk of runs."""
+    from . import batch_kernel as bk
+    from .motor import _force_per_amp
+
+    N, n_ticks = s.N, s.n_ticks
+    T = n_ticks + 1
+    ph, mt, mn = s.phys, s.motor_true, s.motor_nom
+    # per-run constants with the reference's expressions (sim.plant.dynamics, sim.motor)
+    M, m, L, I = (_per_run(ph[k], N) for k in ("M", "m", "L", "I"))
+    Mm = M + m
+    J = I + m * L * L
+    mL = m * L
+    b, g = _per_run(ph["b"], N), _per_run(ph["g"], N)
+    fpa = _per_run(_force_per_amp(mt), N)
+    Vs, R, kt, gear, rw = (_per_run(mt[k], N) for k in ("V_supply", "R", "kt", "gear", "r_wheel"))
+    fpa_n = float(_force_per_amp(mn))
+    sp, sf = s.sens_plant, s.sens_fw
+    cpm_p, cpr_p = float(enc_counts_per_m(sp)), float(2.0 ** sp["adc_bits"] / sp["pot_range"])
+    full_p = float(2 ** int(sp["adc_bits"]) - 1)
+    cpm_f, cpr_f = float(enc_counts_per_m(sf)), float(2.0 ** sf["adc_bits"] / sf["pot_range"])
+    G = np.ascontiguousarray(s.Gs.transpose(1, 2, 0))  # (nz+2, nz+3, NG)
+    Bu = np.ascontiguousarray(s.Bus.T)  # (nz, NG)
+    u_max = np.ascontiguousarray(s.u_maxes, dtype=float)
+    accel = s.accel_limit is not None
+    al = float(s.accel_limit) if accel else 0.0
+    noisy = s.noise.kind != "none"
+    acc = {k: np.zeros(N) for k in ("phi_max", "x_max", "xddot_max", "force_max", "phi_sq", "f_sq")}
+    acc["last_out"] = np.zeros(N, dtype=np.int64)
+    tr: dict[str, np.ndarray] | None = None
+    trace = np.zeros((9, T, N)) if s.record else np.zeros((9, 1, 1))
+    chunk = max(1, min(KERNEL_CHUNK, N))
+    for a in range(0, N, chunk):
+        z = slice(a, min(a + chunk, N))
+        n = z.stop - z.start
+        if noisy:
+            nz_ = _NoiseStream(s.noise, s.Ts, runs.noise_seed[z]).take_runs(T)  # (n, T, 2)
+        else:
+            nz_ = np.zeros((n, 1, 2))
+        out = {k: np.zeros(n) for k in ("phi_max", "x_max", "xddot_max", "force_max", "phi_sq", "f_sq")}
+        lo = np.zeros(n, dtype=np.int64)
+        tr_c = np.zeros((9, T, n)) if s.record else trace
+        bk.run_chunk(
+            n_ticks, s.sub, s.h, s.w0, s.settle_band,
+            np.ascontiguousarray(runs.x0[z]), np.ascontiguousarray(runs.x_ref[z]),
+            np.ascontiguousarray(runs.delay_ticks[z]), nz_, noisy,
+            Mm[z], J[z], mL[z], b[z], g[z],
+            fpa[z], Vs[z], R[z], kt[z], gear[z], rw[z],
+            s.drive == "motor", fpa_n, float(mn["V_supply"]), float(mn["R"]), float(mn["kt"]), float(mn["gear"]),
+            float(mn["r_wheel"]),
+            cpm_p, cpr_p, float(sp["pot_offset"]), full_p, cpm_f, cpr_f, float(sf["pot_offset"]),
+            G, Bu, u_max, np.ascontiguousarray(s.idx[z]),
+            accel, al,
+            out["phi_max"], out["x_max"], out["xddot_max"], out["force_max"], lo, out["phi_sq"], out["f_sq"],
+            s.record, tr_c,
+        )
+        for k, v in out.items():
+            acc[k][z] = v
+        acc["last_out"][z] = lo
+        if s.record:
+            trace[:, :, z] = tr_c
+        if s.progress is not None:
+            s.progress(int(n_ticks * z.stop / N), n_ticks)
+    if s.record:
+        tr = {k: np.ascontiguousarray(trace[i]) for i, k in enumerate(_TRACES)}
+        tr["t"] = np.arange(T) * s.Ts
+    return acc, tr
 
 
 def closed_loop_iosys(

@@ -18,7 +18,7 @@ from typing import Any, Mapping
 
 DEFAULT_PATH = Path(__file__).with_name("robot.toml")
 
-__all__ = ["ParamError", "Spec", "SCHEMA", "RobotParams", "load_params", "params_from_dict", "DEFAULT_PATH"]
+__all__ = ["ParamError", "Spec", "SCHEMA", "RobotParams", "load_params", "params_from_dict", "plant_params", "DEFAULT_PATH"]
 
 
 class ParamError(ValueError):
@@ -232,3 +232,40 @@ def load_params(path: str | Path | None = None) -> RobotParams:
     except tomllib.TOMLDecodeError as exc:
         raise ParamError("", f"{p}: not valid TOML: {exc}") from exc
     return params_from_dict(data, source=str(p))
+
+
+_DESIGN_ONLY = ("loop.track", "loop.a_max", "loop.phi_max", "loop.t_settle")
+"""Keys of a plant file that are requirements, not physics: the design's values are used."""
+
+
+def plant_params(design: RobotParams, plant: RobotParams) -> tuple[RobotParams, list[str]]:
+    """The simulated robot of a ``--plant`` file, checked against the design it runs under.
+
+    The plant file is a complete robot TOML.  Its physics (cart, pendulum, motor, sensors,
+    ``sensors.delay``) is what gets simulated; ``loop.rate`` is the firmware's and must equal
+    the design's; the constraints and the track (``loop.track``, ``loop.a_max``,
+    ``loop.phi_max``, ``loop.t_settle``) are requirements, taken from the design.
+
+    Returns
+    -------
+    (RobotParams, list of str)
+        The plant, and one note per constraint key whose plant-file value was replaced by
+        the design's (for the caller to print).
+
+    Raises
+    ------
+    ParamError
+        ``loop.rate`` differs from the design's.
+    """
+    if plant.values["loop.rate"] != design.values["loop.rate"]:
+        raise ParamError("loop.rate", f"the plant file ({plant.source}) runs at {plant.values['loop.rate']:g} Hz but "
+                                      f"the design ({design.source}) at {design.values['loop.rate']:g} Hz: the loop "
+                                      f"rate is the firmware's, the plant file must give the same")
+    notes, changes = [], {}
+    for k in _DESIGN_ONLY:
+        if plant.values[k] != design.values[k]:
+            notes.append(f"{k}: the plant file's {plant.values[k]:g} ignored, the design's {design.values[k]:g} "
+                         f"applies (a constraint, not physics)")
+            changes[k] = design.values[k]
+    out = plant.replace(**changes) if changes else plant
+    return out, notes

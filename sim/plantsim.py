@@ -312,6 +312,7 @@ def run_scenario_float(
     init: str = "zero",
     seed: int | None = None,
     progress: Callable[[int, int], None] | None = None,
+    plant: RobotParams | None = None,
 ) -> dict[str, np.ndarray]:
     """Close the loop in pure simulation with the float discrete controller.
 
@@ -327,7 +328,10 @@ def run_scenario_float(
     scenario : Scenario
         What happens during the run.
     params : RobotParams
-        Robot parameters (the scenario's overrides are applied on top).
+        The design's robot parameters: the firmware side (count decoding, inverse motor
+        model) uses them as they are -- the firmware knows neither the plant file nor the
+        scenario's overrides -- and, without ``plant``, the plant with the scenario's
+        overrides applied on top.
     controller : DiscreteController
         ``Cc, Dc, Ac, Bc, Bu, u_max`` and ``estimate(z, v)``.
     speed : {"estimate", "none"}
@@ -343,6 +347,9 @@ def run_scenario_float(
         Noise seed overriding the scenario's.
     progress : callable, optional
         ``progress(tick, n_ticks)`` called every 100 ticks.
+    plant : RobotParams, optional
+        The simulated robot when it differs from the design (``--plant``); the scenario's
+        ``[params]`` and delay are applied on top of it (:data:`sim.scenario.PRECEDENCE`).
 
     Returns
     -------
@@ -353,8 +360,8 @@ def run_scenario_float(
         raise ValueError(f"speed must be 'estimate' or 'none', got {speed!r}")
     if init not in ("zero", "measured"):
         raise ValueError(f"init must be 'zero' or 'measured', got {init!r}")
-    sim = PlantSim(params, scenario, seed=seed)
-    p = sim.params
+    sim = PlantSim(params if plant is None else plant, scenario, seed=seed)
+    p = params  # the firmware's side: decoding and motor inversion with the design's values
     Ac, Bc, Cc, Dc = (np.asarray(m, dtype=float) for m in (controller.Ac, controller.Bc, controller.Cc, controller.Dc))
     Bu = np.asarray(controller.Bu, dtype=float)[:, 0]
     umax = float(controller.u_max)

@@ -85,6 +85,8 @@ __all__ = [
     "scenario_from_dict",
     "list_scenarios",
     "dump_scenario",
+    "PRECEDENCE",
+    "precedence_note",
 ]
 
 SCENARIO_DIR = Path(__file__).with_name("scenarios")
@@ -536,6 +538,34 @@ def load_scenario(path_or_name: str | Path) -> Scenario:
         return scenario_from_dict(data, source=str(p))
     except ScenarioError as exc:
         raise ScenarioError(exc.key, f"{exc.message} (in {p})") from None
+
+
+PRECEDENCE = ("precedence: --params (the design) < --plant FILE (the simulated robot) < the scenario's "
+              "[params] and [sensors] delay (the scenario's own perturbation wins)")
+"""The rule when a scenario and a plant file both set a value (printed by the CLI)."""
+
+
+def precedence_note(scenario: Scenario, plant: RobotParams) -> str | None:
+    """The :data:`PRECEDENCE` rule and the keys the scenario overrides in the plant file.
+
+    ``None`` when the scenario sets nothing of the robot (no ``[params]``, no ``[sensors]``
+    delay).  Every key it sets is listed with the plant file's value and the scenario's,
+    e.g. ``pendulum.I 0.0123 -> 0.0160 (scenario)``; keys whose values agree are marked
+    ``(same)``.
+    """
+    changes = dict(scenario.param_overrides)
+    if scenario.delay is not None:
+        changes["sensors.delay"] = scenario.delay
+    if not changes:
+        return None
+    items = []
+    for k, v in changes.items():
+        old = plant.values.get(k)
+        if old is not None and math.isnan(old):  # derived from the geometry (pendulum.I, L_cm)
+            old = getattr(plant, k.split(".", 1)[1])
+        same = old is not None and float(old) == float(v)
+        items.append(f"{k} {old:g} -> {float(v):g}" + (" (same)" if same else ""))
+    return f"{PRECEDENCE}; scenario {scenario.name} overrides the plant file ({plant.source}): " + ", ".join(items)
 
 
 def list_scenarios() -> list[str]:

@@ -174,11 +174,30 @@ class EncoderUnwrapper:
         return self.total
 
 
+DELAY_TICK_TOL = 1e-6
+"""How far from a whole number of ticks a delay may be (float noise of ``delay * rate``)."""
+
+
 def delay_steps(delay: float, rate: float) -> int:
-    """Measurement delay in whole control ticks, ``round(delay * rate)``."""
-    if delay < 0 or rate <= 0:
+    """Measurement delay in whole control ticks, ``delay * rate``.
+
+    The sensors are sampled once per control tick, so the simulated delay line holds whole
+    ticks: a delay that is not a whole number of ticks (beyond :data:`DELAY_TICK_TOL`) is
+    refused, never rounded.
+
+    Raises
+    ------
+    ValueError
+        A negative delay, a rate <= 0, or a delay that is not a whole number of ticks.
+    """
+    if not (delay >= 0 and rate > 0):
         raise ValueError(f"delay must be >= 0 and rate > 0, got delay={delay!r}, rate={rate!r}")
-    return int(round(delay * rate))
+    ticks = delay * rate
+    n = round(ticks)
+    if abs(ticks - n) > DELAY_TICK_TOL:
+        raise ValueError(f"delay {delay!r} s is {ticks:.6g} ticks at {rate:g} Hz: not a whole number of sensor "
+                         f"samples ({1e3 / rate:g} ms each); the simulator does not round it")
+    return int(n)
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-design", action="store_true", help="skip the design summary")
     parser.add_argument("--no-gif", action="store_true", help="skip the animated GIFs (faster)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
+    from host.cli.plant import add_plant_argument
+
+    add_plant_argument(parser)
 
 
 def design_summary() -> str | None:
@@ -84,7 +87,12 @@ def run(args: argparse.Namespace) -> int:
 
     out = check_out_dir(Path(args.out) / "demo", "--out")
     scenarios = hil_runs.resolve_scenarios(args.scenario)
-    check_scenarios(scenarios)
+    from host.cli.plant import load_plant, print_precedence
+    from sim.params import load_params
+
+    plant = load_plant(getattr(args, "plant", None), load_params())
+    check_scenarios(scenarios, plant)
+    print_precedence(scenarios, plant)
     if not args.no_design:
         summ = design_summary()
         if summ:
@@ -96,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         runs = hil_runs.run_scenarios(scenarios, link=args.link, mode="lockstep", out=out, compare=True,
                                       gif=not args.no_gif, progress=Progress(enabled=not args.quiet),
-                                      on_result=done.append)
+                                      on_result=done.append, plant=plant)
     except (PortError, HilError, KeyboardInterrupt) as exc:
         if not isinstance(exc, KeyboardInterrupt) and not interrupted():
             print(f"upright demo: {exc}", file=sys.stderr)

@@ -10,16 +10,11 @@ One scenario in real time over CAN frames (python-can ``serial`` interface on th
 
     upright hil --virtual --link can --mode realtime --scenario tilt_0p1
 
-A board running the firmware's HIL main on USB -- on the board (``main.py``)::
+A board flashed with ``make flash`` (the one bundle runs the robot and serves HIL): the command
+sends ``mode hil`` over the board's link (its lockstep HIL main takes the same UART, no reflash),
+runs the scenarios and sends ``mode robot`` at the end::
 
-    from firmware import main_hil
-    import machine
-    from firmware import board
-    main_hil.main(uart=machine.UART(0, board.UART_BAUD), link="serial", mode="lockstep")
-
-then on the host::
-
-    upright hil --port /dev/ttyACM0 --scenario tilt_0p3
+    upright hil --port /dev/ttyUSB0 --scenario tilt_0p3
 
 Writes ``<out>/<scenario>.csv``, ``.png`` and ``.gif`` per scenario and prints a summary
 table with PASS/FAIL per constraint; the exit status is 1 if a check came out differently
@@ -47,7 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     where.add_argument("--virtual", action="store_true",
                        help="run the firmware under the MicroPython unix port on a pty (default)")
     where.add_argument("--port", metavar="DEV",
-                       help="a board running firmware.main_hil: serial device, or CAN channel with --link can")
+                       help="a board flashed with `make flash` (switched to HIL mode and back) or running "
+                            "firmware.main_hil: serial device, or CAN channel with --link can")
     where.add_argument("--emulate", choices=("rp2040",), metavar="BOARD",
                        help="rp2040: the board firmware (main.py) on an emulated Pico, the plant on its pins")
     parser.add_argument("--link", choices=("serial", "can"), default="serial",
@@ -70,6 +66,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress output")
     parser.add_argument("--json", metavar="FILE",
                         help="also write one JSON object per scenario (verdict, metrics, loop tick time)")
+    from host.cli.plant import add_plant_argument
+
+    add_plant_argument(parser)
 
 
 class Progress:
@@ -210,7 +209,14 @@ def run(args: argparse.Namespace) -> int:
     out = A.check_out_dir(args.out, "--out")
     json_path = A.check_out_file(args.json, "--json")
     scenarios = hil_runs.resolve_scenarios(args.scenario)
-    check_scenarios(scenarios)
+    from host.cli.plant import load_plant, print_precedence
+    from sim.params import load_params
+
+    plant = load_plant(getattr(args, "plant", None), load_params())
+    if plant is not None and args.emulate:
+        raise A.UsageError("--plant: not available with --emulate yet (the emulated board's plant is its own)")
+    check_scenarios(scenarios, plant)
+    print_precedence(scenarios, plant)
     prog = Progress(enabled=not args.quiet)
     if args.emulate:
         from host.cli.emulate import hil_emulated
@@ -225,7 +231,7 @@ def run(args: argparse.Namespace) -> int:
             scenarios, port=args.port, link=args.link, mode=args.mode, out=out,
             compare=not args.no_compare, gif=not (args.no_gif or args.no_plots), plot=not args.no_plots,
             progress=prog, node=args.node, baudrate=args.baudrate, can_interface=args.can_interface,
-            on_result=done.append,
+            on_result=done.append, plant=plant,
         )
     except (PortError, HilError) as exc:
         if not interrupted():

@@ -69,6 +69,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="run a scenario (name in sim/scenarios or a TOML path) with the firmware's discrete controller in float",
     )
     parser.add_argument("--params", metavar="TOML", help="parameter file (default: the report's robot)")
+    from host.cli.plant import add_plant_argument
+
+    add_plant_argument(parser)
     parser.add_argument("--x0", type=A.finite, default=0.0, help="initial cart position (m, within the track)")
     parser.add_argument("--phi0", type=A.tilt, default=0.0, help="initial tilt from upright (rad, |phi0| < pi/2)")
     parser.add_argument("--reference", type=A.finite, default=0.0,
@@ -122,16 +125,20 @@ def run_scenario(args: argparse.Namespace) -> int:
     from sim.scenario import load_scenario
 
     _check_outputs(args)
+    from host.cli.plant import load_plant, print_precedence
+
     params = load_params(args.params)
+    plant = load_plant(getattr(args, "plant", None), params)
     scenario = load_scenario(args.scenario)
-    scenario.check(params)
+    scenario.check(params if plant is None else plant)
+    print_precedence([scenario], plant)
     with np.errstate(all="ignore"):
-        log = run_scenario_float(scenario, params, controller_for(scenario, params), init="measured")
+        log = run_scenario_float(scenario, params, controller_for(scenario, params), init="measured", plant=plant)
     write_csv(args.csv, {"force": log["force"], **{k: log[k] for k in ("t", "x", "xdot", "phi", "phidot")}})
     states = [log[k] for k in ("x", "xdot", "phi", "phidot")]
     if not all(np.all(np.isfinite(v)) for v in states):
         check_run(log["t"], log["phi"], states, fall_expected=True)
-    summary = evaluate(log, scenario, params, name=scenario.name)
+    summary = evaluate(log, scenario, params if plant is None else plant, name=scenario.name)
     print(summary_table([summary], title="Float simulation of the firmware's discrete controller"), file=sys.stderr)
     if args.plot:
         from sim.plots import plot_run
@@ -148,6 +155,9 @@ def run(args: argparse.Namespace) -> int:
         return run_scenario(args)
     _check_outputs(args)
     params = load_params(args.params)
+    from host.cli.plant import load_plant
+
+    plant = load_plant(getattr(args, "plant", None), params)
     if args.duration / args.dt > MAX_SAMPLES:
         raise UsageError(f"--duration {args.duration:g} s at --dt {args.dt:g} s is {args.duration / args.dt:.3g} samples "
                          f"(at most {MAX_SAMPLES:.0e}): raise --dt or shorten the run")
@@ -161,7 +171,8 @@ def run(args: argparse.Namespace) -> int:
         controller = make_controller(params, args.design, reference=args.reference, dt=args.dt)
     force = push_profile(args.push, args.push_start, args.push_duration) if args.push else None
     with np.errstate(all="ignore"):
-        res = simulate(params, [args.x0, 0.0, args.phi0, 0.0], args.duration, force=force, controller=controller,
+        res = simulate(params if plant is None else plant, [args.x0, 0.0, args.phi0, 0.0], args.duration, force=force,
+                       controller=controller,
                        dt=args.dt, substeps=args.substeps, u_limit=args.u_limit)
     write_csv(args.csv, res)
     states = [res[k] for k in ("x", "xdot", "phi", "phidot")]

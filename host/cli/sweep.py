@@ -84,6 +84,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="Dask scheduler, e.g. tcp://host:8786")
     parser.add_argument("--out", default="out/sweep", help="output directory (CSV, Parquet, PNG, scenarios)")
     parser.add_argument("--params", default=None, metavar="TOML", help="robot parameter file (default sim/robot.toml)")
+    from host.cli.plant import add_plant_argument
+
+    add_plant_argument(parser)
     parser.add_argument("--chunk", type=_positive_int, default=500, help="runs per task")
     parser.add_argument("--duration", type=float, default=5.0, help="simulated seconds per run")
     parser.add_argument("--noise", default="uniform:0.001", metavar="SPEC",
@@ -196,6 +199,9 @@ def run(args: argparse.Namespace) -> int:
         raise A.UsageError(f"--worst must be >= 0, got {args.worst}")
     out = A.check_out_dir(args.out, "--out")
     params = load_params(args.params)
+    from host.cli.plant import load_plant
+
+    plant = load_plant(getattr(args, "plant", None), params)
     try:
         noise = parse_noise(args.noise)
     except ValueError as exc:
@@ -203,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     bar = ProgressBar(f"sweep {args.kind}", enabled=not args.quiet)
     base = SweepConfig(params=params, design=_chosen_design(args), uncertainty=Uncertainty(tilt=args.tilt0),
-                       seed=args.seed, duration=args.duration, noise=noise, drive=args.drive)
+                       seed=args.seed, duration=args.duration, noise=noise, drive=args.drive, plant=plant)
     where = f"on Dask at {args.scheduler}" if args.scheduler else "in this process"
     print(f"upright sweep {args.kind}: seed {args.seed}, noise {args.noise}, drive {args.drive}, {where}")
     from host.studies.sweep import SweepInterrupted
@@ -213,7 +219,7 @@ def run(args: argparse.Namespace) -> int:
             return _robustness(args, base, out, bar)
         if args.kind == "tune":
             return _tune(args, base, out, bar)
-        return _tilt(args, params, out, bar, noise)
+        return _tilt(args, params, out, bar, noise, plant)
     except SweepInterrupted as exc:
         _write_partial(args, exc, out)
         raise
@@ -324,7 +330,7 @@ def _tune(args: argparse.Namespace, cfg: Any, out: Path, bar: ProgressBar) -> in
     return 0
 
 
-def _tilt(args: argparse.Namespace, params: Any, out: Path, bar: ProgressBar, noise: Any) -> int:
+def _tilt(args: argparse.Namespace, params: Any, out: Path, bar: ProgressBar, noise: Any, plant: Any = None) -> int:
     from dataclasses import replace
 
     from host.studies.sweep import default_tilt_designs, tilt
@@ -336,7 +342,7 @@ def _tilt(args: argparse.Namespace, params: Any, out: Path, bar: ProgressBar, no
     else:
         designs = [replace(d, u_max=args.u_max) if args.u_max is not None else d for d in default_tilt_designs(params)]
     rows, table = tilt(params, designs, step=args.step, duration=args.duration, noise=noise, drive=args.drive,
-                       seed=args.seed, chunk=args.chunk, scheduler=args.scheduler, progress=bar)
+                       seed=args.seed, chunk=args.chunk, scheduler=args.scheduler, progress=bar, plant=plant)
     print(f"largest recoverable initial tilt, cart acceleration limited to {params.a_max:g} m/s^2 "
           f"(physical limit atan(a_max/g) = {rows[0]['physical_limit']:.4f} rad = {rows[0]['physical_limit_deg']:.1f} deg):")
     print(_fmt_table(rows, ("design", "tilt_max", "tilt_max_deg", "tilt_max_track", "physical_limit", "physical_limit_deg")))

@@ -14,7 +14,7 @@ __all__ = ["float_reference"]
 
 
 def float_reference(scenario: Scenario, params: RobotParams, *, init: str = "measured",
-                    seed: int | None = None, ctrl: Any = None) -> dict[str, np.ndarray]:
+                    seed: int | None = None, ctrl: Any = None, plant: RobotParams | None = None) -> dict[str, np.ndarray]:
     """The same scenario closed with the float discrete design in pure simulation.
 
     The controller is :func:`host.design.discrete.controller_for` of the *design* parameters
@@ -40,6 +40,8 @@ def float_reference(scenario: Scenario, params: RobotParams, *, init: str = "mea
     ctrl : DiscreteController, optional
         Another design (the one whose table :meth:`~host.hil.session.HilSession.use_gains`
         uploaded).
+    plant : RobotParams, optional
+        The simulated robot when it is not the design's (``--plant``).
 
     Returns
     -------
@@ -52,4 +54,4 @@ def float_reference(scenario: Scenario, params: RobotParams, *, init: str = "mea
     if init not in ("measured", "zero"):
         raise ValueError(f"init must be 'measured' or 'zero', got {init!r}")
     ctrl = controller_for(scenario, params) if ctrl is None else ctrl
-    return run_scenario_float(scenario, params, ctrl, init=init, seed=seed)
+    return run_scenario_float(scenario, params, ctrl, init=init, seed=seed, plant=plant)

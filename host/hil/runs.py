@@ -69,7 +69,8 @@ def run_scenarios(scenarios: Sequence[Scenario], *, port: str | None = None, lin
                   mode: str = "lockstep", out: str | Path | None = None, params: RobotParams | None = None,
                   compare: bool = False, gif: bool = True, plot: bool = True,
                   progress: Callable[[str, int, int], None] | None = None,
-                  on_result: Callable[[HilRun], None] | None = None, **session_kw: Any) -> list[HilRun]:
+                  on_result: Callable[[HilRun], None] | None = None, plant: RobotParams | None = None,
+                  **session_kw: Any) -> list[HilRun]:
     """Run scenarios through one HIL session and write their outputs.
 
     Parameters
@@ -81,7 +82,8 @@ def run_scenarios(scenarios: Sequence[Scenario], *, port: str | None = None, lin
     out : str or Path, optional
         Directory for CSV/PNG/GIF (nothing written when ``None``).
     params : RobotParams, optional
-        Robot parameters (default ``sim/robot.toml``).
+        The design's robot parameters (default ``sim/robot.toml``): the float reference's
+        design and, without ``plant``, the simulated robot.
     compare : bool
         Also run the float pure simulation and keep it in ``HilRun.reference``.
     gif, plot : bool
@@ -91,6 +93,9 @@ def run_scenarios(scenarios: Sequence[Scenario], *, port: str | None = None, lin
     on_result : callable, optional
         ``on_result(run)`` once a scenario has finished and its files are written (so an
         interrupted multi-scenario run still knows what finished).
+    plant : RobotParams, optional
+        The simulated robot when it differs from the design (``--plant``); the scenario's
+        ``[params]`` are applied on top of it.  The firmware keeps its own gains.
     **session_kw
         Passed to :class:`~host.hil.session.HilSession`.
     """
@@ -99,9 +104,9 @@ def run_scenarios(scenarios: Sequence[Scenario], *, port: str | None = None, lin
     with HilSession(port, link=link, mode=mode, **session_kw) as sess:
         for sc in scenarios:
             cb = (lambda k, n, _name=sc.name: progress(_name, k, n)) if progress else None
-            run = sess.run(sc, params, progress=cb)
+            run = sess.run(sc, params if plant is None else plant, progress=cb)
             if compare:
-                run.reference = float_reference(sc, params)
+                run.reference = float_reference(sc, params, plant=plant)
             if out is not None:
                 run.stats["files"] = {k: str(v) for k, v in write_outputs(run, out, gif=gif, plot=plot).items()}
             runs.append(run)

@@ -33,6 +33,7 @@ __all__ = [
     "SweepConfig",
     "Task",
     "tasks_for",
+    "default_chunk",
     "run_task",
     "run_tasks",
     "concat",
@@ -221,6 +222,12 @@ class SweepConfig:
         runs (common random numbers) and a task simulates all its designs in one batch.
     per_design : int
         Runs per design when ``designs`` is given.
+    plant : RobotParams, optional
+        The simulated robot when it is not the design's (``--plant``, see
+        :func:`sim.params.plant_params`): the centre of the ranges, the nominal delay of the
+        tilt mode, the motor and sensors that make the counts.  Default: ``params``.
+    engine : str, optional
+        :func:`sim.batch.simulate_batch` engine (default: numba when importable).
     """
 
     params: RobotParams
@@ -234,6 +241,8 @@ class SweepConfig:
     tilts: tuple[float, ...] | None = None
     designs: tuple[Design, ...] = ()
     per_design: int = 0
+    plant: RobotParams | None = None
+    engine: str | None = None
 
     def __post_init__(self) -> None:
         if self.designs:
@@ -286,7 +295,7 @@ def sample_runs(cfg: SweepConfig, start: int, stop: int) -> tuple[RunSet, dict[s
     """
     if not 0 <= start <= stop or (cfg.size is not None and stop > cfg.size):
         raise SweepError(f"bad run range {start}..{stop} (sweep size {cfg.size})")
-    p = cfg.params
+    p = cfg.params if cfg.plant is None else cfg.plant
     n = stop - start
     g = np.arange(start, stop, dtype=np.int64)
     index = g % cfg.per_design if cfg.designs else g  # the run of each sweep index
@@ -307,7 +316,9 @@ def sample_runs(cfg: SweepConfig, start: int, stop: int) -> tuple[RunSet, dict[s
         f_R = 1.0 + un.motor * sym[:, 4]
         f_k = 1.0 + un.motor * sym[:, 5]
         dl = un.delay[0] + (un.delay[1] - un.delay[0]) * u[:, 6]
-        dticks = np.array([delay_steps(float(v), rate) for v in dl], dtype=np.int64)
+        # the draw is continuous; the simulated delay is the nearest whole tick (the sensors
+        # are sampled once per tick) and the table's "delay" column is that simulated delay
+        dticks = np.rint(dl * rate).astype(np.int64)
         phi0 = un.tilt * sym[:, 7]
         rows = []
         for j in range(n):
@@ -362,6 +373,8 @@ def run_task(cfg: SweepConfig, start: int, stop: int) -> dict[str, np.ndarray]:
         drive=cfg.drive,
         settle_band=cfg.settle_band,
         accel_limit=p.a_max if cfg.tilts is not None else None,
+        plant=cfg.plant,
+        engine=cfg.engine,
     )
     table.update(res.metrics)
     table.update(checks(res.metrics, p))
@@ -379,8 +392,25 @@ def checks(m: Mapping[str, np.ndarray], p: RobotParams) -> dict[str, np.ndarray]
             "worst_ratio": ratio}
 
 
-def tasks_for(cfg: SweepConfig, n: int, chunk: int = 1000) -> list[Task]:
-    """Split ``n`` runs of ``cfg`` into tasks of at most ``chunk`` runs."""
+MAX_CHUNK = 5000
+"""Most runs in one task by default (memory of the noise block, progress granularity)."""
+
+
+def default_chunk(n: int, workers: int | None = None) -> int:
+    """Runs per task sized to the workers: ``ceil(n / workers)``, at most :data:`MAX_CHUNK`.
+
+    ``workers`` defaults to 1 for a local sweep: there the compiled kernel spreads each task
+    over all of numba's threads itself, so one task per process is the right size; on Dask
+    give the cluster's worker count (one task per worker).
+    """
+    w = max(1, int(workers or 1))
+    return max(1, min(MAX_CHUNK, -(-int(n) // w)))
+
+
+def tasks_for(cfg: SweepConfig, n: int, chunk: int | None = None) -> list[Task]:
+    """Split ``n`` runs of ``cfg`` into tasks of at most ``chunk`` runs (default
+    :func:`default_chunk`)."""
+    chunk = default_chunk(n) if chunk is None else chunk
     if n < 1 or chunk < 1:
         raise SweepError(f"need n >= 1 and chunk >= 1, got n={n}, chunk={chunk}")
     return [(cfg, a, min(a + chunk, n)) for a in range(0, n, chunk)]
@@ -437,7 +467,7 @@ def run_tasks(
 
 
 # ------------------------------------------------------------------ robustness
-def robustness(cfg: SweepConfig, n: int, *, chunk: int = 1000, scheduler: str | None = None,
+def robustness(cfg: SweepConfig, n: int, *, chunk: int | None = None, scheduler: str | None = None,
                progress: Callable[[int, int], None] | None = None) -> dict[str, np.ndarray]:
     """Monte Carlo of ``n`` runs; one row per run (see :func:`run_task`)."""
     return concat(run_tasks(tasks_for(cfg, n, chunk), scheduler=scheduler, progress=progress))
@@ -474,9 +504,10 @@ def worst_case_scenarios(cfg: SweepConfig, table: Mapping[str, np.ndarray], k: i
 
     Each carries the run's true robot (``[params]``), delay, initial state, noise model and
     noise seed, and in ``[expect]`` what the run showed; :func:`runset_from_scenario`
-    (or any simulator reading scenarios) replays it.
+    (or any simulator reading scenarios) replays it (with the sweep's ``--plant`` file, if
+    any, as the plant: the ``[params]`` are the keys that differ from it).
     """
-    p = cfg.params
+    p = cfg.params if cfg.plant is None else cfg.plant
     out = []
     for rank, i in enumerate(worst_cases(table, k)):
         run = int(table["run"][i])
@@ -516,8 +547,9 @@ def write_scenarios(scenarios: Iterable[Scenario], directory: str) -> list[str]:
     return paths
 
 
-def runset_from_scenario(scenario: Scenario, params: RobotParams) -> RunSet:
-    """A one-run :class:`RunSet` replaying ``scenario`` (true robot = overrides applied).
+def runset_from_scenario(scenario: Scenario, params: RobotParams, plant: RobotParams | None = None) -> RunSet:
+    """A one-run :class:`RunSet` replaying ``scenario`` (true robot = overrides applied to
+    ``plant``, default ``params``; simulate it with the same ``plant=``).
 
     Raises
     ------
@@ -527,7 +559,7 @@ def runset_from_scenario(scenario: Scenario, params: RobotParams) -> RunSet:
     """
     if scenario.forces or scenario.reference.kind != "none":
         raise SweepError(f"scenario {scenario.name}: the batch simulator replays no forces and no moving reference")
-    true = scenario.apply(params)
+    true = scenario.apply(params if plant is None else plant)
     values = {k: np.array([getattr(true, k)]) for k in ("M", "m", "L", "I", "b", "g", "V_supply", "R", "kt")}
     return RunSet(
         x0=np.array([scenario.x0]),
@@ -557,7 +589,7 @@ def design_random(n: int, seed: int = 0) -> list[Design]:
     return out
 
 
-def tune(cfg: SweepConfig, designs: Sequence[Design], n: int, *, chunk: int = 1000, scheduler: str | None = None,
+def tune(cfg: SweepConfig, designs: Sequence[Design], n: int, *, chunk: int | None = None, scheduler: str | None = None,
          progress: Callable[[int, int], None] | None = None) -> tuple[list[dict[str, Any]], dict[str, np.ndarray]]:
     """Score every design by the same robustness sweep (same seeds: common random numbers).
 
@@ -637,8 +669,8 @@ def physical_tilt_limit(params: RobotParams) -> float:
 
 def tilt(params: RobotParams, designs: Sequence[Design], *, step: float = 0.005, hi: float | None = None,
          duration: float = 5.0, noise: NoiseModel | None = None, drive: str = "motor", seed: int = 0,
-         chunk: int = 1000, scheduler: str | None = None, progress: Callable[[int, int], None] | None = None,
-         ) -> tuple[list[dict[str, Any]], dict[str, np.ndarray]]:
+         chunk: int | None = None, scheduler: str | None = None, progress: Callable[[int, int], None] | None = None,
+         plant: RobotParams | None = None) -> tuple[list[dict[str, Any]], dict[str, np.ndarray]]:
     """Largest initial tilt each design recovers from with the cart acceleration limited to ``a_max``.
 
     The drive is limited twice: the controller saturates its force at ``(M + m) a_max``
@@ -664,7 +696,7 @@ def tilt(params: RobotParams, designs: Sequence[Design], *, step: float = 0.005,
     u_lim = (params.M + params.m) * params.a_max
     designs = [d if d.u_max is not None else replace(d, u_max=u_lim) for d in designs]
     cfg = SweepConfig(params=params, uncertainty=Uncertainty.none(), seed=seed, duration=duration, noise=noise,
-                      drive=drive, tilts=tilts, designs=tuple(designs), per_design=len(tilts))
+                      drive=drive, tilts=tilts, designs=tuple(designs), per_design=len(tilts), plant=plant)
     t = concat(run_tasks(tasks_for(cfg, len(designs) * len(tilts), chunk), scheduler=scheduler, progress=progress))
     rec = ~t["fallen"] & np.isfinite(t["settle"])
     t["recovered"] = rec
