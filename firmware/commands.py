@@ -60,6 +60,9 @@ class Dispatcher:
         self.n_refused = 0
         self.n_handled = 0
         self.dec = None
+        # MODE: the link that runs this dispatcher sets on_mode(mode) -> OK or a reason (it
+        # switches after the ACK went out); None: the board has no other mode (NOT_SUPPORTED)
+        self.on_mode = None
         self._feed = target.feed_watchdog if hasattr(target, "feed_watchdog") else None
         self._fill_version = target.fill_version if hasattr(target, "fill_version") else None
         self._fill_stats = target.fill_stats if hasattr(target, "fill_stats") else None
@@ -198,6 +201,14 @@ class Dispatcher:
             return self._gains_chunk(rx[0], buf, rx[1], seq)
         if mid == T.GAINS_COMMIT:
             return self._gains_commit(seq)
+        if mid == T.MODE:
+            if rx[0] > T.MODE_REPL:
+                return self._nack(mid, seq, T.R_OUT_OF_RANGE)
+            if not self._motor_off():
+                return self._nack(mid, seq, T.R_ARMED)
+            if self.on_mode is None:
+                return self._nack(mid, seq, T.R_NOT_SUPPORTED)
+            return self._reply(mid, seq, self.on_mode(rx[0]))
         if mid == T.REQUEST:
             w = rx[0]
             if w == T.HEARTBEAT:

@@ -22,9 +22,16 @@ from . import codec
 from . import commands
 from . import crc16
 from . import framing
+from . import msgtable as T
 from .pacer import Pacer
 
 _RX = const(64)
+
+
+class ModeSwitch(Exception):
+    # MODE hil/repl was ACKed: raised out of poll() (so out of App.run()) once the ACK is
+    # written; main.py hands the link to the mode asked for (SerialLink.mode)
+    pass
 
 
 class SerialLink:
@@ -43,6 +50,11 @@ class SerialLink:
         self.disp.dec = self.dec
         self.pacer = Pacer(app, self.disp)
         self._tick = self.pacer.tick
+        # MODE: the mode asked for (-1: stay in robot mode); the exception made now (the
+        # heap is locked when it is raised)
+        self.mode = -1
+        self._switch = ModeSwitch()
+        self.disp.on_mode = self._on_mode
         self.rx = bytearray(_RX)
         self._scan = self.dec.scan
         self._uart_write = uart.write
@@ -57,7 +69,15 @@ class SerialLink:
         n = self._any()
         if n:
             self._receive(n)
+            if self.mode >= 0:
+                raise self._switch
         self._tick()
+
+    def _on_mode(self, m):
+        # MODE (commands.py: motor off, m valid): robot is this mode already
+        if m != T.MODE_ROBOT:
+            self.mode = m
+        return T.OK
 
     def _receive(self, n):
         # at most _RX bytes this tick, n of them waiting now

@@ -47,10 +47,15 @@ def main(link=None, repl_ms=None):
     cause = hal.reset_cause()
     link = link or getattr(board, "LINK", "uart")
     boot = boot_count()
-    port = _port(board, hal, link, repl_ms)
+    if link == "usb":
+        ms = getattr(board, "USB_REPL_MS", 0) if repl_ms is None else repl_ms
+        if ms > 0:
+            import time
+            time.sleep_ms(ms)  # Ctrl-C now: KeyboardInterrupt, the REPL (motor off since HalPico())
+    port = None
     try:
         while True:
-            mode = _robot(board, hal, link, port, boot, cause)
+            mode, port = _robot(board, hal, link, port, boot, cause)
             cause = T.RC_POWER_ON
             while mode == T.MODE_HIL:
                 mode = _hil(port, boot)
@@ -62,15 +67,12 @@ def main(link=None, repl_ms=None):
             close()
 
 
-def _port(board, hal, link, repl_ms=None):
-    # the link's byte stream, made once and kept across mode switches (None: CAN)
+def _port(hal, link):
+    # the link's byte stream, made once (when the first app is ready: the link opens with the
+    # loop) and kept across mode switches; None: CAN
     if link == "can":
         return None
     if link == "usb":
-        ms = getattr(board, "USB_REPL_MS", 0) if repl_ms is None else repl_ms
-        if ms > 0:
-            import time
-            time.sleep_ms(ms)  # Ctrl-C now: KeyboardInterrupt, the REPL (motor off since HalPico())
         from .link_usb import UsbStream
         return UsbStream()
     return hal.uart()
@@ -89,7 +91,7 @@ def _hil(port, boot):
 
 
 def _robot(board, hal, link, port, boot, cause):
-    # The robot: the paced loop until a MODE switch (returns the mode asked for).
+    # The robot: the paced loop until a MODE switch (returns the mode asked for and the port).
     # Safety net around the loop (see docs/firmware.md, "Hardware cut-offs"):
     #  - a hung loop stops feeding the hardware watchdog (board.WDT_MS): the board resets,
     #    its pins fall back to inputs (driver enable pulled low), and the reset-cause marker
@@ -111,6 +113,8 @@ def _robot(board, hal, link, port, boot, cause):
         # saved parameters and gain table (two copies on the flash filesystem), before the link
         from .store import ConfigStore
         app.attach_store(ConfigStore(getattr(board, "CONFIG_DIR", "")))
+        if port is None:
+            port = _port(hal, link)
         app.set_link(_link(board, hal, app, link, port))
     except BaseException:
         hal.off()
@@ -122,7 +126,7 @@ def _robot(board, hal, link, port, boot, cause):
         hal.off()
         hal.wdt_stop()
         hal.mark(T.RC_POWER_ON)
-        return app.link.mode
+        return app.link.mode, port
     except KeyboardInterrupt:
         hal.off()
         hal.wdt_stop()

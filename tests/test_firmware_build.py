@@ -90,7 +90,8 @@ def test_bundle(tmp_path) -> None:
     assert bundle.main(["--arch", "armv6m", "--out", str(tmp_path / "fw")]) == 0
     files = {p.name for p in (tmp_path / "fw" / "firmware").iterdir()}
     assert {"app.mpy", "controller.mpy", "gains.mpy", "hal_pico.mpy", "main.mpy", "__init__.py"} <= files
-    assert "hal_hil.mpy" not in files
+    # one bundle, every use: the HIL main is in it (MODE hil, firmware/main.py); the unix port's pty is not
+    assert {"hal_hil.mpy", "main_hil.mpy", "link_usb.mpy"} <= files and "uart_unix.mpy" not in files
     assert "firmware.main" in (tmp_path / "fw" / "main.py").read_text().replace("from firmware import main", "firmware.main")
     with pytest.raises(ValueError):
         bundle.compile_module(FW / "app.py", tmp_path / "x.mpy", arch="z80")

@@ -29,6 +29,37 @@ SKIP: dict[str, str] = {
                                     "tests/test_rp2040_hil.py::test_emulate_pty_serves_the_host_link opens it",
     "upright generate": "rewrites the repository's tracked generated files; the `--check` form is run, "
                         "and tests/test_generated.py renders every file",
+    # "On a real robot": the same code against the virtual board (tests/test_board_cli.py, through a
+    # pullable relay) and the emulated Pico running the flashed bundle (tests/test_rp2040_modes.py)
+    "upright board --port /dev/ttyUSB0 status": "needs a board on /dev/ttyUSB0; "
+                                                "tests/test_board_cli.py::test_status_json",
+    "upright board --port /dev/ttyUSB0 calibrate --out robot.toml": "needs a board and a person to move the robot; "
+                                                                    "tests/test_board_cli.py::test_calibrate_scripted",
+    "upright board --port /dev/ttyUSB0 params set max_duty 8000": "needs a board on /dev/ttyUSB0; "
+                                                                  "tests/test_board_cli.py::test_params_by_name",
+    "upright board --port /dev/ttyUSB0 params set max_duty 32767": "needs a board on /dev/ttyUSB0; "
+                                                                   "tests/test_board_cli.py::test_params_by_name",
+    "upright board --port /dev/ttyUSB0 params save": "needs a board on /dev/ttyUSB0; tests/test_board_cli.py::"
+                                                     "test_calibrate_scripted saves, tests/test_firmware_store.py "
+                                                     "reloads at boot",
+    "upright board --port /dev/ttyUSB0 gains upload --design --params robot.toml --save":
+        "needs a board on /dev/ttyUSB0; tests/test_board_cli.py::test_gains_upload_crc_read_back",
+    "upright board --port /dev/ttyUSB0 arm": "needs a board; arms until Ctrl-C: "
+                                            "tests/test_board_cli.py::test_arm_feeds_watchdog_then_disarms, "
+                                            "::test_ctrl_c_disarms_and_exits_130",
+    "upright board --port /dev/ttyUSB0 log --seconds 10 --out run.parquet":
+        "needs a board on /dev/ttyUSB0; tests/test_board_cli.py::test_log_csv_rows_match_telemetry",
+    "upright board --port /dev/ttyUSB0 excite --arm --seconds 20 --out prbs.csv":
+        "needs a board on /dev/ttyUSB0; tests/test_board_cli.py::test_excite_recorded",
+    "upright dashboard --port /dev/ttyUSB0": "needs a board; serves until Ctrl-C: the same page and hub on the "
+                                             "virtual board in tests/test_dashboard_browser.py (--virtual)",
+    "upright hil --port /dev/ttyUSB0": "needs a board on /dev/ttyUSB0; tests/test_rp2040_modes.py::"
+                                       "test_mode_hil_over_uart0_then_a_lockstep_hil_run_then_back_to_the_robot "
+                                       "runs the same HilSession (mode hil, lockstep, mode robot) on the emulated Pico",
+    "upright board --port /dev/ttyUSB0 mode robot": "needs a board on /dev/ttyUSB0; tests/test_rp2040_modes.py "
+                                                    "(mode hil/robot over UART0 on the emulated Pico)",
+    "upright board --port /dev/ttyACM0 mode repl": "needs a board on its USB serial; tests/test_rp2040_modes.py::"
+                                                   "test_usb_link_heartbeat_mode_hil_and_back_to_the_repl",
 }
 
 # command prefix -> arguments added to keep the test short (the reason in the comment)

@@ -91,15 +91,15 @@ def slave_of(master_fd: int) -> str:
     return f"/dev/pts/{n}"
 
 
-def open_serial(port: str, *, baudrate: int = 115200, timeout: float | None = 1.0) -> Any:
+def open_serial(port: str, *, baudrate: int | None = None, timeout: float | None = 1.0) -> Any:
     """Open a serial port (or pyserial URL) for a link, with a one-line error.
 
     Parameters
     ----------
     port : str
         Device path, pyserial URL, or :data:`PTMX` for a new virtual port.
-    baudrate : int
-        Line rate (ignored by ptys).
+    baudrate : int, optional
+        Line rate (ignored by ptys); default the board's (``firmware/board.py`` ``UART_BAUD``).
     timeout : float or None
         Read timeout (s).
 
@@ -114,8 +114,10 @@ def open_serial(port: str, *, baudrate: int = 115200, timeout: float | None = 1.
     """
     import serial
 
+    if baudrate is None:
+        from firmware.board import UART_BAUD as baudrate
     try:
-        return serial.serial_for_url(port, baudrate=baudrate, timeout=timeout)
+        return serial.serial_for_url(port, baudrate=int(baudrate), timeout=timeout)
     except (serial.SerialException, ValueError, OSError) as exc:
         raise PortError(f"cannot open serial port {port!r}: {_short(exc)}") from exc
 

@@ -12,6 +12,7 @@ Works the same on a real board (``--port /dev/ttyUSB0``), on the emulated Pico
     upright board --port /dev/ttyUSB0 log --seconds 10 --out run.parquet
     upright board --port /dev/ttyUSB0 calibrate --out robot.toml
     upright board --port /dev/ttyUSB0 excite --arm --seconds 20 --amplitude 0.02 --out prbs.csv
+    upright board --port /dev/ttyUSB0 mode hil                 # robot | hil | repl, no reflash
 
 Exit status: 0 done, 1 the board failed/refused/did not answer or the link was lost, 2 bad input
 (a parameter name or value outside the table, a file), 130 Ctrl-C -- after disarming the
@@ -59,6 +60,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sp.add_argument("--clear", action="store_true", help="clear latched faults first")
     sub.add_parser("disarm", help="disarm (motor off)")
     sub.add_parser("clear", help="clear latched faults (while disarmed)")
+    sp = sub.add_parser("mode", help="what the board runs on its link: robot (at boot), hil, repl (mpremote on USB)")
+    sp.add_argument("mode", choices=("robot", "hil", "repl"))
 
     sp = sub.add_parser("params", help="parameters by name, with units and ranges from the parameter table")
     psub = sp.add_subparsers(dest="params_action", metavar="get|set|save|list", required=True)
@@ -413,6 +416,7 @@ def _calibrate(b: Any, args: argparse.Namespace) -> int:
 ACTIONS: dict[str, Callable[[Any, argparse.Namespace], int]] = {
     "status": _status, "arm": _arm, "disarm": lambda b, a: (b.disarm(), _say("disarmed"))[1] or 0,
     "clear": lambda b, a: (b.clear_faults(), _say("faults cleared"))[1] or 0,
+    "mode": lambda b, a: (b.set_mode(a.mode), _say(f"mode {a.mode}"))[1] or 0,
     "params": _params, "gains": _gains, "log": _record,
     "excite": lambda b, a: _record(b, a, excite=True), "calibrate": _calibrate,
 }

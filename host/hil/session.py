@@ -42,7 +42,7 @@ from host.hil.lockstep import PRIME_TICK, Lockstep
 from host.hil.realtime import run_realtime
 from host.hil.results import HilRun
 from host.link import messages as M
-from host.link.clients import CanLink, CommandRefused, Link, LinkError, SerialLink
+from host.link.clients import BOARD_BAUD, CanLink, CommandRefused, Link, LinkError, SerialLink
 from sim.params import RobotParams, load_params
 from sim.plantsim import PlantSim
 from sim.scenario import Scenario
@@ -178,7 +178,7 @@ class HilSession:
     """
 
     def __init__(self, port: str | None = None, *, link: str = "serial", mode: str = "lockstep", node: int = 1,
-                 can_interface: str = "serial", baudrate: int = 115200, timeout: float = 2.0,
+                 can_interface: str = "serial", baudrate: int = BOARD_BAUD, timeout: float = 2.0,
                  fault_tx: Callable[[bytes], bytes] | None = None, fault_rx: Callable[[bytes], bytes] | None = None,
                  heapsize: str | None = None, rt_priority: int | None = 20, heap_lock: bool = False,
                  probe: bool = False) -> None:
@@ -214,6 +214,7 @@ class HilSession:
         self._gains_label = "firmware default"
         self.gains = self._gains_label
         self._custom: tuple[bytes, str] | None = None
+        self._switched = False  # open() sent MODE hil to a real board
 
     @property
     def virtual(self) -> bool:
@@ -257,13 +258,41 @@ class HilSession:
                 self.board.start()
             if any(self._fault):
                 install_fault(self.link, *self._fault)
+            if not self.virtual and self.link_kind == "serial" and self.mode == "lockstep":
+                self._enter_hil()
         except BaseException:
             self.close()
             raise
         return self
 
+    def _enter_hil(self) -> None:
+        # a board flashed with `make flash` runs the robot at boot: MODE hil hands its link to
+        # the lockstep HIL main (firmware/main.py, no reflash); one already in HIL mode ACKs it
+        try:
+            self._link().request(M.BY_NAME["mode"](mode=T.MODE_HIL), timeout=self.timeout / 4, retries=3)
+        except CommandRefused as exc:
+            raise HilError(f"the board on {self.port} refused HIL mode ({exc}): disarm it first") from exc
+        except LinkError as exc:
+            raise HilError(f"no answer to MODE hil from {self.port}: {exc}") from exc
+        self._switched = True
+
+    def _leave_hil(self) -> None:
+        # back to the robot (best effort: the board may be gone; a reset does the same)
+        self._switched = False
+        link = self.link
+        if link is None:
+            return
+        for msg in (M.BY_NAME["disarm"](), M.BY_NAME["mode"](mode=T.MODE_ROBOT)):
+            try:
+                link.request(msg, timeout=self.timeout / 4, retries=1)
+            except LinkError:
+                return
+
     def close(self) -> None:
-        """Close the link and stop the virtual board (idempotent)."""
+        """Close the link and stop the virtual board (idempotent); a real board switched to HIL
+        mode by :meth:`open` goes back to robot mode."""
+        if self._switched:
+            self._leave_hil()
         if self.link is not None:
             try:
                 self.link.close()

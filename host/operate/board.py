@@ -471,6 +471,13 @@ class Board:
         """Clear latched faults (refused while armed)."""
         self.request(M.BY_NAME["clear_faults"]())
 
+    def set_mode(self, mode: str) -> None:
+        """What the board runs on its link (``firmware/main.py``, MODE): ``robot`` (the control
+        loop, at boot), ``hil`` (lockstep HIL for ``upright hil --port``) or ``repl`` (the link
+        closed, MicroPython's REPL back: mpremote on a USB link).  Refused while armed."""
+        value = {"robot": T.MODE_ROBOT, "hil": T.MODE_HIL, "repl": T.MODE_REPL}[mode]
+        self.request(M.BY_NAME["mode"](mode=value))
+
     def set_reference(self, x_m: float) -> None:
         """Cart position reference (m); feeds the watchdog."""
         self.request(M.BY_NAME["set_reference"].from_physical(x_um=x_m))
