@@ -77,7 +77,7 @@ bench: setup
 	$(PY) -m host.bench.main --out $(OUT)/bench.json
 
 fuzz: setup
-	$(PY) -m host.bench.main --only proto_fuzz --out $(OUT)/fuzz.json
+	$(PY) -m host.bench.main --only proto_fuzz fuzz_states --out $(OUT)/fuzz.json
 
 soak: setup
 	$(BIN)/upright soak --sim-seconds 3600

@@ -25,6 +25,7 @@ BENCHES: dict[str, str] = {
     "firmware": "host.bench.firmware:bench",
     "hil": "host.bench.hil:bench_hil",
     "rp2040": "host.bench.rp2040:bench",
+    "fuzz_states": "host.bench.fuzz_states:bench",
 }
 
 
