@@ -297,6 +297,12 @@ class Hub:
             changed = self.heartbeat is None or (hb["state"], hb["faults"]) != (self.heartbeat["state"], self.heartbeat["faults"])
             self.heartbeat = hb
             self.hb_count += 1
+            crc = getattr(m, "gains_crc", None)  # the board reports its active table where the protocol has it
+            if crc is not None and crc != self.gains.get("crc"):
+                same = crc == self.gains.get("uploaded_crc")
+                self.gains = {"crc": crc, "label": self.gains.get("label", "") if same else "reported by the board",
+                              "uploaded_crc": self.gains.get("uploaded_crc")}
+                self._broadcast(_event("gains", self.gains))
             if changed:
                 self._broadcast(_event("hb", self._hb_payload()))
         for pl in self._listeners:
@@ -524,7 +530,7 @@ class Hub:
         """Upload a gain table (refused by the board while armed); returns its CRC."""
         crc = M.crc16(blob)
         self._command(lambda L: L.upload_gains(blob, timeout=0.5, retries=3))
-        self.gains = {"crc": crc, "label": label, "bytes": len(blob)}
+        self.gains = {"crc": crc, "label": label, "bytes": len(blob), "uploaded_crc": crc}
         self.note(f"gain table uploaded: {label}, CRC {crc:#06x}")
         self._broadcast(_event("gains", self.gains))
         return crc
