@@ -14,7 +14,10 @@
 #   watchdog besides set_reference, whose target method feeds it), fill_version(arr)
 #   (arr[3] = gains CRC-16, arr[4] = reset cause), fill_stats(arr) (STATS_LOOP fields),
 #   fill_telemetry(arr) (TELEM_STATE fields then TELEM_CTRL fields: 8 ints),
-#   fill_timing(arr) (TIMING fields: 4 ints).
+#   fill_timing(arr) (TIMING fields: 4 ints),
+#   fill_sensors_raw(arr) (SENSORS_RAW fields: adc, enc, pos; on REQUEST),
+#   cmd_save(dispatcher, seq) (SAVE_CONFIG: queue a save; the target answers it later
+#   with dispatcher.reply(SAVE_CONFIG, seq, reason)).
 # ARM is refused (R_STALE_EPOCH) unless its epoch is the one the heartbeat reports.
 # sender: any object with send(mid, seq, vals, voff) (framing.SerialTx,
 # canframe-based senders, or a test double); its n_sent (if it has one) is STATS_FRAMES'
@@ -89,6 +92,10 @@ class Dispatcher:
         if reason:
             return self._nack(mid, seq, reason)
         return self._ack(mid, seq)
+
+    def reply(self, mid, seq, reason):
+        # a deferred answer (SAVE_CONFIG: the target calls this once the save has run)
+        return self._reply(mid, seq, reason)
 
     def _param_value(self, index, seq):
         tx = self.tx
@@ -201,6 +208,12 @@ class Dispatcher:
             return self._gains_chunk(rx[0], buf, rx[1], seq)
         if mid == T.GAINS_COMMIT:
             return self._gains_commit(seq)
+        if mid == T.SAVE_CONFIG:
+            # queued by the target (cmd_save(dispatcher, seq)); answered through reply() when done
+            r = tg.cmd_save(self, seq)
+            if r:
+                return self._nack(mid, seq, r)
+            return T.OK
         if mid == T.MODE:
             if rx[0] > T.MODE_REPL:
                 return self._nack(mid, seq, T.R_OUT_OF_RANGE)
@@ -219,6 +232,9 @@ class Dispatcher:
                 self.send_timing(seq)
             elif w == T.VERSION:
                 self.send_version(seq)
+            elif w == T.SENSORS_RAW:
+                self.target.fill_sensors_raw(self.tx)
+                self.sender.send(T.SENSORS_RAW, seq, self.tx, 0)
             elif w == T.STATS_DECODE or w == T.STATS_FRAMES or w == T.STATS_LOOP:
                 self.send_stats(seq)
             else:

@@ -9,25 +9,7 @@ except ImportError:
         return x
 
 
-_BOOT_FILE = "boot_count"
-
-
-def boot_count(path=_BOOT_FILE):
-    # increment and return the persisted boot counter (mod 256) for HEARTBEAT.boot, so
-    # the host sees a reset; one small flash write per start-up
-    n = 0
-    try:
-        with open(path) as f:
-            n = int(f.read())
-    except (OSError, ValueError):
-        n = 0
-    n = (n + 1) & 0xFF
-    try:
-        with open(path, "w") as f:
-            f.write(str(n))
-    except OSError:
-        pass
-    return n
+from .boot import boot_count  # noqa: F401 - firmware.main.boot_count, as before
 
 
 def main(link=None, repl_ms=None):

@@ -273,7 +273,7 @@ def main(port=None, link="serial", mode="lockstep", node=1, uart=None, heap_lock
     # start increments it and HEARTBEAT.boot reports it, so the host sees a reset
     config = None
     if boot_file is not None:
-        from .main import boot_count
+        from .boot import boot_count
         config = {"boot": boot_count(boot_file)}
     if desktop:
         # the unix port on a desktop OS has no real-time guarantee (the hypervisor steals

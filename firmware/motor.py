@@ -2,7 +2,8 @@
 #   duty = (F R r/(n gear kt) + kt gear xdot/r) / V_supply * 32767
 # in fixed point: duty = (KDU u + KDV vh) >> SD, where vh is the controller's estimate of
 # the cart speed now (back-EMF compensation), then the deadband compensation in the
-# direction of the force, then the clamp to +-max_duty (the supply-voltage limit).
+# direction of the force, then -- when the app measures the motor supply -- the correction
+# duty x V_nominal / V_measured (Q12, 1/4..4), then the clamp to +-max_duty (the supply limit).
 
 try:
     from micropython import const
@@ -11,6 +12,12 @@ except ImportError:
         return x
 
 DUTY_MAX = const(32767)
+# supply correction (Q12): duty x nominal supply / measured supply
+VS_ONE = const(4096)
+_VS_MIN = const(1024)
+_VS_MAX = const(16384)
+# |duty| clamped here before the supply correction (x 16384 stays below 2**30)
+_D_PRE = const(65535)
 
 
 class Motor:
@@ -18,6 +25,8 @@ class Motor:
         # deadband: duty counts added in the direction of the force (None: the table's)
         self.backemf = backemf
         self.max_duty = DUTY_MAX
+        # nominal supply / measured supply in Q12 (VS_ONE: the supply the table assumes)
+        self.vscale = VS_ONE
         self.load(t, off)
         if deadband is not None:
             self.deadband = deadband
@@ -30,6 +39,18 @@ class Motor:
         self.half = (1 << (self.sd - 1)) if self.sd > 0 else 0
         self.deadband = t[o + 3]
 
+    def set_supply(self, mv, nominal_mv):
+        # the measured supply (mV; outside the loop or once a tick: one division)
+        if mv <= 0:
+            vs = _VS_MAX
+        else:
+            vs = ((nominal_mv << 12) + (mv >> 1)) // mv
+            if vs < _VS_MIN:
+                vs = _VS_MIN
+            elif vs > _VS_MAX:
+                vs = _VS_MAX
+        self.vscale = vs
+
     def duty(self, u, vh):
         # u: force (u LSB, clamped by the controller); vh: cart speed (xdot LSB, clamped)
         acc = self.kdu * u + self.half
@@ -40,6 +61,14 @@ class Motor:
             d += self.deadband
         elif u < 0:
             d -= self.deadband
+        vs = self.vscale
+        if vs != VS_ONE:
+            # the table's KDU/KDV assume the nominal supply: scale to the measured one
+            if d > _D_PRE:
+                d = _D_PRE
+            elif d < -_D_PRE:
+                d = -_D_PRE
+            d = (d * vs + 2048) >> 12
         l = self.max_duty
         if d > l:
             return l

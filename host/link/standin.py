@@ -29,6 +29,7 @@ class StandIn:
         self.gsum = -1
         self.quit = False
         self.epoch = 3  # arming epoch: every disarm changes it (as the app's)
+        self.saves = 0
 
     def cmd_arm(self):
         self.state = 1
@@ -64,6 +65,12 @@ class StandIn:
             s += buf[i]
         self.gsum = s
         return T.R_BAD_SHAPE if n % 2 else 0
+
+    def cmd_save(self, disp, seq):
+        # nothing to store: "saved" at once
+        self.saves += 1
+        disp.reply(T.SAVE_CONFIG, seq, 0)
+        return 0
 
     def fill_heartbeat(self, a):
         a[0] = self.state
