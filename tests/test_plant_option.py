@@ -180,3 +180,11 @@ def test_demo_accepts_plant(soft: Path, tmp_path: Path) -> None:
              "--plant", str(soft))
     assert r.returncode == 0, r.stdout + r.stderr
     assert f"plant: {soft}" in r.stderr and "tilt_0p1" in r.stdout
+
+
+def test_plant_by_name_from_sim_plants(tmp_path: Path, capsys) -> None:
+    # the README's example: a bare name is looked up in sim/plants/
+    assert main(["simulate", "--scenario", "tilt_0p1", "--csv", str(tmp_path / "x.csv"), "--plant", "soft_pendulum"]) == 0
+    err = capsys.readouterr().err
+    assert "plant: soft_pendulum" in err and "differs in: pendulum.I" in err
+    assert math.isclose(load_params(ROOT / "sim" / "plants" / "soft_pendulum.toml").I, 0.7 * load_params().I)

@@ -11,12 +11,26 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Any, Sequence, TextIO
 
 __all__ = ["add_plant_argument", "load_plant", "print_precedence"]
 
 HELP = ("robot TOML of the simulated plant when it differs from the design (the design keeps --params / "
-        "sim/robot.toml); a scenario's [params] and [sensors] delay override it (printed)")
+        "sim/robot.toml), or a name from sim/plants/ (soft_pendulum); a scenario's [params] and [sensors] delay "
+        "override it (printed)")
+
+
+PLANT_DIR = Path(__file__).resolve().parents[2] / "sim" / "plants"
+"""Shipped plant files, found by bare name (``--plant soft_pendulum``)."""
+
+
+def resolve(path: str) -> str:
+    """A path as given, or a bare name of :data:`PLANT_DIR` (``soft_pendulum``)."""
+    p = Path(path)
+    if not p.exists() and p.parent == Path(".") and (PLANT_DIR / f"{p.stem}.toml").exists():
+        return str(PLANT_DIR / f"{p.stem}.toml")
+    return path
 
 
 def add_plant_argument(parser: argparse.ArgumentParser) -> None:
@@ -37,7 +51,7 @@ def load_plant(path: str | None, design: Any, stream: TextIO | None = None) -> A
     from sim.params import load_params, plant_params
 
     stream = sys.stderr if stream is None else stream
-    plant, notes = plant_params(design, load_params(path))
+    plant, notes = plant_params(design, load_params(resolve(path)))
     diff = [k for k in plant.values if plant.values[k] != design.values[k]
             and not (plant.values[k] != plant.values[k] and design.values[k] != design.values[k])]
     print(f"plant: {path} (design: {design.source}); differs in: {', '.join(diff) or 'nothing'}", file=stream)
