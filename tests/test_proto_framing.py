@@ -105,6 +105,10 @@ def _frame_raw(raw: bytes) -> bytes:
     return b"\x00" + M.cobs_encode(raw) + b"\x00"
 
 
+# an id the table does not use (the largest free one)
+_FREE = max(i for i in range(T.MAX_ID + 1) if i not in M.MESSAGES)
+
+
 def test_drops_counted_by_cause():
     good = M.encode_serial(M.ParamGet(index=3), 9)
     raw = bytes([M.ParamGet.ID, 9, 3])
@@ -112,7 +116,7 @@ def test_drops_counted_by_cause():
     cases = {
         "crc": _frame_raw(raw + bytes([crc[0] ^ 1, crc[1]])),
         "length": _frame_raw(bytes([M.ParamGet.ID, 9, 3, 4]) + M.crc16(bytes([M.ParamGet.ID, 9, 3, 4])).to_bytes(2, "big")),
-        "unknown": _frame_raw(bytes([30, 9]) + M.crc16(bytes([30, 9])).to_bytes(2, "big")),
+        "unknown": _frame_raw(bytes([_FREE, 9]) + M.crc16(bytes([_FREE, 9])).to_bytes(2, "big")),
         "overrun": _frame_raw(bytes(range(1, 40))),
     }
     truncated = good[:-4] + b"\x00"

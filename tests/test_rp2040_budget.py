@@ -46,6 +46,7 @@ def mk(telem_div=1):
     cfg = B.config()
     cfg['watchdog_ms'] = 10000
     cfg['telem_div'] = telem_div
+    cfg['epoch'] = 0  # the arming epoch the scripted ARM frames carry
     app = App(hal, config=cfg)
     app.set_link(SerialLink(uart, app))
 """
@@ -80,7 +81,7 @@ def test_paced_loop_with_the_uart_link_allocates_nothing_per_tick(board: Emulate
     # commands arrive during the first measured chunk (arm, reference, requests: parsed,
     # dispatched, answered) and telemetry goes out every tick of every chunk
     board.exec("mk()\napp.run(n=2, lock=False)", timeout=2.0)
-    board.uart_write(_frames(M.BY_NAME["arm"](), M.BY_NAME["set_reference"](x_um=20000),
+    board.uart_write(_frames(M.BY_NAME["arm"](epoch=0), M.BY_NAME["set_reference"](x_um=20000),
                              M.BY_NAME["request"](msg_id=M.BY_NAME["timing"].ID),
                              M.BY_NAME["param_get"](index=0)))
     deltas = []
@@ -93,7 +94,7 @@ def test_paced_loop_with_the_uart_link_allocates_nothing_per_tick(board: Emulate
 
 def test_heap_locked_loop_does_not_latch_its_allocation_fault(board: EmulatedBoard) -> None:
     # locked from the first tick of a fresh App, as main.py runs it
-    board.uart_write(_frames(M.BY_NAME["arm"](), M.BY_NAME["set_reference"](x_um=-10000)))
+    board.uart_write(_frames(M.BY_NAME["arm"](epoch=0), M.BY_NAME["set_reference"](x_um=-10000)))
     out = board.exec("mk()\napp.run(n=200)\nprint(app.sup.state, app.sup.faults)", timeout=3.0)
     state, faults = (int(v) for v in out.split())
     assert not faults & F_LOOP, f"F_LOOP latched (faults={faults:#x})"
@@ -118,7 +119,7 @@ def test_whole_loop_iteration_within_a_generous_budget(board: EmulatedBoard) -> 
     # generous: with main.py's telemetry rate (every 10th tick) the loop keeps its 2 ms period
     # on average and no iteration takes more than 2.5 periods
     board.exec("mk(10)", timeout=2.0)
-    board.uart_write(_frames(M.BY_NAME["arm"]()))
+    board.uart_write(_frames(M.BY_NAME["arm"](epoch=0)))
     board.loop_probe(gap_us=50.0)
     board.loop_iters.clear()
     out = board.exec("app.run(n=250)\nprint(app.sup.state, app.timing.overruns)", timeout=3.0)
