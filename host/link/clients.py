@@ -167,6 +167,10 @@ class Link:
     def _close(self) -> None:  # pragma: no cover - abstract
         pass
 
+    #: the heartbeat thread may poll the input when nobody reads (a transport whose
+    #: non-blocking read can split a frame says no)
+    _background_reads = True
+
     @property
     def drops(self) -> dict[str, int]:
         """Frames dropped by the receiver, by cause."""
@@ -395,7 +399,7 @@ class Link:
             try:
                 self.send(_HOST_HEARTBEAT())
                 # nobody reading: take what arrived (board heartbeats) into the queue
-                if self._rx_lock.acquire(blocking=False):
+                if self._background_reads and self._rx_lock.acquire(blocking=False):
                     try:
                         got = self._recv_internal(0)
                     finally:
@@ -620,6 +624,9 @@ class CanLink(Link):
         if stream_crc is None:
             stream_crc = type(bus).__module__.startswith("can.interfaces.serial")
         self.stream_crc = bool(stream_crc)
+        # python-can's serial interface reads a frame in pieces with the port's timeout: a
+        # poll that starts mid-frame would lose it, so only the reader polls
+        self._background_reads = not self.stream_crc
         self._drops = {"unknown": 0, "length": 0, "other": 0, "crc": 0, "framing": 0}
 
     @property
