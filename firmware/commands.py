@@ -17,7 +17,8 @@
 #   fill_timing(arr) (TIMING fields: 4 ints),
 #   fill_sensors_raw(arr) (SENSORS_RAW fields: adc, enc, pos; on REQUEST),
 #   cmd_save(dispatcher, seq) (SAVE_CONFIG: queue a save; the target answers it later
-#   with dispatcher.reply(SAVE_CONFIG, seq, reason)).
+#   with dispatcher.reply(SAVE_CONFIG, seq, reason)); without fill_sensors_raw or cmd_save
+#   their request / SAVE_CONFIG is refused with R_NOT_SUPPORTED.
 # ARM is refused (R_STALE_EPOCH) unless its epoch is the one the heartbeat reports.
 # sender: any object with send(mid, seq, vals, voff) (framing.SerialTx,
 # canframe-based senders, or a test double); its n_sent (if it has one) is STATS_FRAMES'
@@ -69,6 +70,8 @@ class Dispatcher:
         self._feed = target.feed_watchdog if hasattr(target, "feed_watchdog") else None
         self._fill_version = target.fill_version if hasattr(target, "fill_version") else None
         self._fill_stats = target.fill_stats if hasattr(target, "fill_stats") else None
+        self._fill_raw = target.fill_sensors_raw if hasattr(target, "fill_sensors_raw") else None
+        self._save = target.cmd_save if hasattr(target, "cmd_save") else None
         self._counted = hasattr(sender, "n_sent")
 
     # ---- replies ----
@@ -210,7 +213,9 @@ class Dispatcher:
             return self._gains_commit(seq)
         if mid == T.SAVE_CONFIG:
             # queued by the target (cmd_save(dispatcher, seq)); answered through reply() when done
-            r = tg.cmd_save(self, seq)
+            if self._save is None:
+                return self._nack(mid, seq, T.R_NOT_SUPPORTED)
+            r = self._save(self, seq)
             if r:
                 return self._nack(mid, seq, r)
             return T.OK
@@ -232,8 +237,8 @@ class Dispatcher:
                 self.send_timing(seq)
             elif w == T.VERSION:
                 self.send_version(seq)
-            elif w == T.SENSORS_RAW:
-                self.target.fill_sensors_raw(self.tx)
+            elif w == T.SENSORS_RAW and self._fill_raw is not None:
+                self._fill_raw(self.tx)
                 self.sender.send(T.SENSORS_RAW, seq, self.tx, 0)
             elif w == T.STATS_DECODE or w == T.STATS_FRAMES or w == T.STATS_LOOP:
                 self.send_stats(seq)

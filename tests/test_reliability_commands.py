@@ -172,7 +172,8 @@ def test_commands_out_of_range_or_wrong_state_refused_mid_run_change_nothing(boa
         (M.BY_NAME["param_set"](index=T.P_MAX_DUTY, value=-1), T.R_OUT_OF_RANGE),
         (M.BY_NAME["param_set"](index=T.N_PARAMS + 3, value=1), T.R_BAD_INDEX),
         (M.BY_NAME["param_get"](index=200), T.R_BAD_INDEX),
-        (M.BY_NAME["param_set"](index=T.P_LOOP_RATE, value=400), T.R_ARMED),  # while balancing
+        # the period comes only from the gain table's RATE (issue 13): read-only in every state
+        (M.BY_NAME["param_set"](index=T.P_LOOP_RATE, value=400), T.R_READ_ONLY),
         (M.BY_NAME["clear_faults"](), T.R_BAD_STATE),  # while balancing
         (M.BY_NAME["gains_commit"](), T.R_BAD_SEQUENCE),
         (M.BY_NAME["gains_chunk"](offset=0, data=b"\x01" * 6), T.R_BAD_SEQUENCE),
