@@ -114,6 +114,12 @@ def render_protocol_md() -> str:
     out += [f"| {c} | `{n}` | {d} |" for c, n, d in T.REASONS]
     out += ["", "## Supervisor states (`state` fields)", "", "| value | name | meaning |", "|---:|---|---|"]
     out += [f"| {c} | `{n}` | {d} |" for c, n, d in T.STATES]
+    out += ["", "## Fault flags (`faults` fields: latched bits, cleared by `clear_faults` once the cause is gone)",
+            "", "What to check on the robot for each: docs/firmware.md, \"Fault flags\".", "",
+            "| bit | name | meaning |", "|---:|---|---|"]
+    out += [f"| {c} | `{n}` | {d.replace('|', '\\|')} |" for c, n, d in T.FAULTS]
+    out += ["", "## Reset causes (`version.reset_cause`)", "", "| value | name | meaning |", "|---:|---|---|"]
+    out += [f"| {c} | `{n}` | {d} |" for c, n, d in T.RESET_CAUSES]
     out += ["", "## Parameters (`param_get` / `param_set`)", "",
             "Values are i32 in the unit given; `param_set` outside [min, max] is refused with",
             "`out_of_range` before the firmware is asked.", "",
