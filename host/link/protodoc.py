@@ -14,6 +14,11 @@ def _type(fmt: str) -> str:
     return _TYPES.get(fmt, f"{fmt[:-1]} bytes" if fmt.endswith("s") else fmt)
 
 
+def _cell(text: str) -> str:
+    """``text`` safe inside a Markdown table cell (a ``|`` would end the cell)."""
+    return text.replace("|", "\\|")
+
+
 def render_protocol_md() -> str:
     """The protocol reference as Markdown (generated; do not edit the output)."""
     node = M.PARAMS["node_id"][4]
@@ -117,7 +122,7 @@ def render_protocol_md() -> str:
     out += ["", "## Fault flags (`faults` fields: latched bits, cleared by `clear_faults` once the cause is gone)",
             "", "What to check on the robot for each: docs/firmware.md, \"Fault flags\".", "",
             "| bit | name | meaning |", "|---:|---|---|"]
-    out += [f"| {c} | `{n}` | {d.replace('|', '\\|')} |" for c, n, d in T.FAULTS]
+    out += [f"| {c} | `{n}` | {_cell(d)} |" for c, n, d in T.FAULTS]
     out += ["", "## Reset causes (`version.reset_cause`)", "", "| value | name | meaning |", "|---:|---|---|"]
     out += [f"| {c} | `{n}` | {d} |" for c, n, d in T.RESET_CAUSES]
     out += ["", "## Parameters (`param_get` / `param_set`)", "",
