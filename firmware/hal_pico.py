@@ -86,14 +86,17 @@ class HalPico:
         self.b = board
         self._adc = machine.ADC(machine.Pin(board.ADC_PIN))
         self._adc_shift = board.ADC_SHIFT
-        # oversampling: n samples summed, shifted back to 12-bit counts (rounded)
+        # oversampling: n samples summed, shifted back to 12-bit counts.  Floor, no rounding
+        # constant: read_u16() is the 12-bit count v as (v << 4) | (v >> 8) (top bits repeated
+        # in the low nibble), so n samples of v sum to (v << (4+k)) + n*(v >> 8) with
+        # n*(v >> 8) < n*16 = 1 << (4+k): the floor shift gives v exactly; adding half an LSB
+        # would read v+1 for every v >= 2048 (2048 -> 2049, 4095 -> 4096)
         n = getattr(board, "ADC_OVERSAMPLE", 1)
         k = 0
         while (1 << k) < n:
             k += 1
         self._os_n = 1 << k
         self._os_shift = board.ADC_SHIFT + k
-        self._os_half = (1 << (self._os_shift - 1)) if self._os_shift > 0 else 0
         # open-wiper test (see read_angle_raw): PADS_BANK0 GPIOn register, its atomic
         # set/clear aliases (addresses made once: they are not small ints)
         self._open_every = getattr(board, "ADC_OPEN_TEST_TICKS", 0)
@@ -158,10 +161,10 @@ class HalPico:
             self.ticks_us = time.ticks_us
 
     def read_angle_raw(self):
-        # ADC_OVERSAMPLE samples averaged (12-bit counts, rounded); every ADC_OPEN_TEST_TICKS
+        # ADC_OVERSAMPLE samples averaged (12-bit counts, floor: exact, see __init__); every ADC_OPEN_TEST_TICKS
         # calls, one more sample with the pad pulled toward the far rail (wiper test)
         rd = self._read_u16
-        acc = self._os_half
+        acc = 0
         for _ in range(self._os_n):
             acc += rd()
         v = acc >> self._os_shift

@@ -131,8 +131,21 @@ def test_emulate_pty_serves_the_host_link(tmp_path: Path) -> None:
         with SerialLink(port, 1_000_000) as link:
             hb = link.expect("heartbeat", timeout=60)
             assert hb.state == 0 and hb.faults == 0
+            # arm() sends the heartbeat's arming epoch and starts the host heartbeat (the link
+            # watchdog's feed).  The board balances once App.run has measured 16 on-time periods
+            # (32 ms of board time after its start, about when the first heartbeat goes out):
+            # armed until then, balancing (upright) from then on
             link.arm(timeout=3, retries=3)
-            assert link.query("heartbeat", timeout=3, retries=3).state == 2  # upright: balancing
+            assert link.heartbeat_running
+            hb = link.query("heartbeat", timeout=3, retries=3)
+            for _ in range(50):
+                if hb.state != 1:
+                    break
+                hb = link.query("heartbeat", timeout=3, retries=3)
+            assert hb.state == 2 and hb.faults == 0, hb  # upright: balancing
+            assert hb.uptime_ms <= 100, f"balancing only at {hb.uptime_ms} ms (warm-up: 32 ms)"
+            time.sleep(1.0)  # the host heartbeat keeps it balancing (link watchdog 250 ms)
+            assert link.query("heartbeat", timeout=3, retries=3).state == 2
             link.disarm(timeout=3, retries=3)
             assert link.query("heartbeat", timeout=3, retries=3).state == 0
         p.stdin.close()  # end of input stops it

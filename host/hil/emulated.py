@@ -4,7 +4,8 @@ The board is :class:`host.boards.rp2040.board.EmulatedBoard` running the bundle'
 -- ``HalPico``, the paced ``App.run()`` with the heap locked, the UART0 host link at 1 Mbaud --
 exactly what a Pico runs after ``make flash``.  Nothing reaches it through link frames but what
 a host sends a real board (``disarm``, ``clear_faults``, a gain table when the scenario's noise
-needs one, ``param_set``, ``set_reference``, ``arm`` and a keep-alive for the command watchdog);
+needs one, ``param_set``, ``set_reference``, ``arm`` with the board's arming epoch and the
+``host_heartbeat`` that feeds the link watchdog);
 the sensors and the motor are its pins, in lock-step with emulated time:
 
 each plant tick k (the control period ``Ts`` of :class:`sim.plantsim.PlantSim`)
@@ -26,9 +27,13 @@ not have.
 
 Host frames are written at the emulated time the scenario says: a reference change for tick
 k+1 at the start of tick k (the firmware applies commands in the link poll after its step),
-``arm`` one tick before the scenario's first, the keep-alive (``set_reference`` repeated)
-every :attr:`EmulatedHil.keepalive_ms`.  Telemetry and heartbeats are decoded from UART0 and
-accounted for (:class:`host.hil.accounting.Sink`); the supervisor state per tick
+``arm`` one tick before the scenario's first, ``host_heartbeat`` every
+:attr:`EmulatedHil.keepalive_ms` (as :meth:`host.link.clients.Link.start_heartbeat` does).
+``App.run`` balances only once it has measured :data:`WARMUP_PERIODS` on-time loop periods in a
+row (since it started, or since a late tick while disarmed), so the host arms only after the
+loop probe has seen that many: arming a board that has just booted (or whose set-up made a tick
+late) would start balancing ticks after the scenario's start.  Telemetry and heartbeats are
+decoded from UART0 and accounted for (:class:`host.hil.accounting.Sink`); the supervisor state per tick
 (``fw_state``) is the last heartbeat's.  The tick time reported (``tick_us_*``) is the whole
 loop iteration (step + link poll) measured in emulated cycles at 125 MHz; the firmware's own
 ``step_us`` (telemetry) covers the control step only.
@@ -47,6 +52,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from firmware import app as _fwapp
 from firmware import msgtable as T
 from host.boards.rp2040.board import CYCLES_PER_US, FIRMWARE, BoardError, EmulatedBoard, StepResult
 from host.hil.accounting import Sink
@@ -66,6 +72,11 @@ __all__ = ["EmulatedHil", "run_emulated", "duty_over", "BoardError"]
 EDGE_US = 0.25
 """Shortest spacing of two generated encoder edges (us; 31 cycles, several PIO sampling passes)."""
 _ARM_TILT_MAX = next(p[4] for p in T.PARAMS if p[0] == T.P_ARM_TILT)
+WARMUP_PERIODS = int(getattr(_fwapp, "_WARMUP", 16))
+"""On-time loop periods ``App.run`` measures before ARMED may balance (``firmware/app.py``)."""
+_LATE = 1.5
+"""A loop period longer than this many nominal periods is late (``App._period``)."""
+_HOST_HEARTBEAT = M.BY_NAME["host_heartbeat"]
 _HEARTBEAT = M.BY_NAME["heartbeat"]
 _ACK = M.BY_NAME["ack"]
 _NACK = M.BY_NAME["nack"]
@@ -152,7 +163,7 @@ class EmulatedHil:
         noise on the encoder reading), spread at that pace: the PIO decoder samples its pins
         every few cycles and must see every state.
     keepalive_ms : float
-        Period of the host's keep-alive frame (the command watchdog is 250 ms).
+        Period of the host's ``host_heartbeat`` (the link watchdog is 250 ms).
     reply_ms : float
         Emulated time a command's answer may take (per attempt, 3 attempts).
     stall_ms : float
@@ -317,14 +328,31 @@ class EmulatedHil:
         self._table_key = key
         self.gains = label
 
-    def _phase(self) -> int:
-        # cycle of the next firmware loop iteration start >= now + one period, from the last ones
-        b = self._b()
+    def _phase(self, period_us: float, max_ms: float = 1000.0) -> int:
+        # cycle of a recent loop iteration start, once the loop has run WARMUP_PERIODS on-time
+        # periods in a row (the firmware's timing_ok: an arm before it balances late)
+        self._b()
         self._iters.clear()
         self._idle(6000.0)
         if len(self._iters) < 2:
             raise HilError(f"the firmware loop is not running (no loop iterations found)\n{self._tail()}")
-        return self._iters[-1][0]
+        late = _LATE * period_us * CYCLES_PER_US
+        waited = 6.0
+        while True:
+            starts = [s0 for s0, _ in self._iters]
+            on_time = 0
+            for a, c in zip(starts[-2::-1], starts[:0:-1]):
+                if c - a > late:
+                    break
+                on_time += 1
+            if on_time >= WARMUP_PERIODS + 2:
+                return starts[-1]
+            if waited >= max_ms:
+                raise HilError(f"the firmware loop does not keep its period: {on_time} on-time periods in a row "
+                               f"after {waited:.0f} ms of board time ({WARMUP_PERIODS} needed to balance)"
+                               f"\n{self._tail()}")
+            self._idle(2000.0)
+            waited += 2.0
 
     # ------------------------------------------------------------------ one scenario
     def run(self, scenario: Scenario, params: RobotParams | None = None, *,
@@ -368,7 +396,7 @@ class EmulatedHil:
         except CommandRefused as exc:
             raise HilError(f"the board refused the set-up of {scenario.name}: {exc}\n{self._tail()}") from exc
         # align: plant tick 0 starts margin_us before a loop iteration; arm one tick earlier
-        s = self._phase()
+        s = self._phase(period_us)
         now = b.cycles
         margin = int(round(self.margin_us * CYCLES_PER_US))
         k = max(0, -(-(now + pc + margin - s) // pc))
@@ -392,11 +420,14 @@ class EmulatedHil:
             adc, enc = sim.read()
             self._set_pins(adc, enc)
             ref = float(x_ref_at((k + 1) * sim.Ts))
-            if ref != ref_prev or k % keep == 0:
-                # the reference of tick k+1 (applied in this tick's link poll); repeated as
-                # the keep-alive that feeds the command watchdog
+            if ref != ref_prev:
+                # the reference of tick k+1 (applied in this tick's link poll)
                 self.host.send(M.BY_NAME["set_reference"](x_um=int(round(ref * 1e6))))  # type: ignore[union-attr]
                 ref_prev = ref
+            if k % keep == 0:
+                # the host heartbeat that feeds the link watchdog (a real host's Link sends it
+                # on its own clock; a set-point only when the reference changes)
+                self.host.send(_HOST_HEARTBEAT())  # type: ignore[union-attr]
             c0 = b.cycles
             r, _ = self._run(period_us, sink, k)
             duty = duty_over(motor, r, c0, r.cycles)
