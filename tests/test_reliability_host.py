@@ -107,12 +107,22 @@ def test_host_crash_fails_safe_and_new_host_reconnects_without_reset(line) -> No
     host.arm()
     assert host.query("heartbeat").state in (ARMED, BALANCING)
     host.disarm()
+    # the heartbeat thread arm() started must end with the test: the next test's pty can get
+    # this descriptor number, and a leftover thread would feed that board's watchdog
+    host.stop_heartbeat()
 
 
 def test_board_reset_mid_run_detected_by_boot_counter(line) -> None:
     ser, board = line
     host = serial_link_on_fd(ser.fileno())
     host.arm()
+    try:
+        _reset_mid_run(host, board)
+    finally:
+        host.stop_heartbeat()  # as above: a leftover thread would write to a reused descriptor
+
+
+def _reset_mid_run(host, board) -> None:
     _stream(host, 200)
     hb0 = host.query("heartbeat")
     assert hb0.state == BALANCING and hb0.uptime_ms >= 300, hb0
@@ -146,10 +156,11 @@ def test_host_heartbeats_feed_the_watchdog_polls_do_not(line) -> None:
         assert hb.state == BALANCING and not hb.faults & F_WATCHDOG, hb
         time.sleep(0.05)
     host.stop_heartbeat()
-    # polls only: the watchdog fires after 250 ms of BOARD time.  Board time runs slow on a
-    # loaded machine (late ticks are not made up; a CI run beside emulator jobs saw 3 s of
-    # wall time pass with the board still balancing), so the bound is one second of the
-    # board's own uptime (4x the watchdog), with a generous wall-clock cap against a hang
+    # polls only: the watchdog fires after 250 ms of BOARD time (which runs slow on a loaded
+    # machine: late ticks are not made up), so the bound is one second of the board's own
+    # uptime (4x the watchdog), with a generous wall-clock cap against a hang.  (This test once
+    # failed in the full file because an earlier test's heartbeat thread outlived it and fed
+    # this board through a reused descriptor: those tests now stop it.)
     u0 = hb.uptime_ms
     t_end = time.perf_counter() + 20.0
     while time.perf_counter() < t_end and hb.state != FAULT and (hb.uptime_ms - u0) % 65536 < 1000:
