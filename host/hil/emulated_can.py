@@ -22,7 +22,7 @@ from typing import Any, Callable, Sequence
 
 from host.boards.rp2040.board import CYCLES_PER_US, FIRMWARE, StepResult
 from host.boards.rp2040.can import CanBoard
-from host.hil.emulated import EmulatedHil
+from host.hil.emulated import EmulatedHil, run_all
 from host.hil.results import HilRun
 from host.link import messages as M
 from sim.params import RobotParams, load_params
@@ -125,20 +125,6 @@ def run_emulated_can(scenarios: Sequence[Scenario], *, out: str | Path | None = 
                      firmware: Path = FIRMWARE, board: CanBoard | None = None, channel: str = "upright-hil",
                      node_id: int = 1) -> list[HilRun]:
     """:func:`host.hil.emulated.run_emulated` over CAN (same outputs)."""
-    from host.hil.reference import float_reference
-    from host.hil.runs import write_outputs
-
-    params = params or load_params()
-    runs: list[HilRun] = []
     with EmulatedCanHil(bundle_dir, firmware=firmware, board=board, channel=channel, node_id=node_id) as hil:  # type: ignore[arg-type]
-        for sc in scenarios:
-            cb = (lambda k, n, _name=sc.name: progress(_name, k, n)) if progress else None
-            run = hil.run(sc, params, progress=cb)
-            if compare:
-                run.reference = float_reference(sc, params)
-            if out is not None:
-                run.stats["files"] = {k: str(v) for k, v in write_outputs(run, out, gif=gif, plot=plot).items()}
-            runs.append(run)
-            if on_result is not None:
-                on_result(run)
-    return runs
+        return run_all(hil, scenarios, params or load_params(), out=out, compare=compare, gif=gif, plot=plot,
+                       progress=progress, on_result=on_result)
