@@ -186,6 +186,30 @@ def test_telemetry_rows_pair_and_count_losses(tmp_path: Path) -> None:
         hub.close()
 
 
+def test_the_heartbeat_crc_byte_confirms_an_upload_and_flags_another_table(tmp_path: Path) -> None:
+    # the heartbeat carries only the low 8 bits of the active table's CRC-16: a heartbeat after an
+    # upload must confirm that table, not replace its CRC by one byte (CI caught 116 == 0xF574 & 0xFF)
+    board = _Board()
+    hub = Hub(SharedLink(board), {"mode": "test"}, tmp_path)
+    board.hub = hub
+    try:
+        hb = M.BY_NAME["heartbeat"]
+        vals = {f.name: 0 for f in hb.FIELDS}
+        blob = G.design_table("shipped")[0]
+        crc = hub.upload_gains(blob, "shipped")
+        assert crc == G.M.crc16(blob)
+        hub.on_message(hb(**{**vals, "gains_crc": crc & 0xFF}), 1)
+        assert hub.gains["crc"] == crc and hub.gains["label"] == "shipped"
+        other = (crc + 1) & 0xFF  # the board now runs a table this dashboard did not upload
+        hub.on_message(hb(**{**vals, "gains_crc": other}), 2)
+        assert hub.gains["crc"] is None and hub.gains["crc_low8"] == other
+        assert "reported by the board" in hub.gains["label"]
+        hub.on_message(hb(**{**vals, "gains_crc": crc & 0xFF}), 3)  # back to the uploaded one
+        assert hub.gains["crc"] == crc and hub.gains["label"] == "shipped"
+    finally:
+        hub.close()
+
+
 # ---------------------------------------------------------------- the server, over HTTP
 def _req(url: str, data: bytes | None = None, headers: dict | None = None) -> tuple[int, dict]:
     r = urllib.request.Request(url, data=data, headers=headers or {}, method="POST" if data is not None else "GET")

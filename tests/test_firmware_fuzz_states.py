@@ -17,7 +17,9 @@ from host.bench import fuzz_states as F
 
 def test_command_sequence_fuzz_short() -> None:
     F.STATS.clear()
-    F.run(max_examples=40, steps=50)
+    # a fixed draw (derandomize): 40 random examples missed one of the four fault kinds below in
+    # about one run of three (CI once saw no estop); 120 fixed ones reach all of them in ~4 s
+    F.run(max_examples=120, steps=50, derandomize=True)
     s = F.STATS
     # the run went where it matters: balancing with the motor driven, and faults of many kinds
     assert s.get("ticks", 0) > 20_000

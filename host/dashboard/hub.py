@@ -297,11 +297,20 @@ class Hub:
             changed = self.heartbeat is None or (hb["state"], hb["faults"]) != (self.heartbeat["state"], self.heartbeat["faults"])
             self.heartbeat = hb
             self.hb_count += 1
-            crc = getattr(m, "gains_crc", None)  # the board reports its active table where the protocol has it
-            if crc is not None and crc != self.gains.get("crc"):
-                same = crc == self.gains.get("uploaded_crc")
-                self.gains = {"crc": crc, "label": self.gains.get("label", "") if same else "reported by the board",
-                              "uploaded_crc": self.gains.get("uploaded_crc")}
+            # the heartbeat carries the low 8 bits of the active table's CRC-16 (VERSION has all 16):
+            # a table known here whose low byte matches stays; another low byte means the board runs
+            # a table this dashboard did not upload
+            low = getattr(m, "gains_crc", None)
+            known = self.gains.get("crc")
+            if low is not None and (known is None or (known & 0xFF) != low) and self.gains.get("crc_low8") != low:
+                up = self.gains.get("uploaded_crc")
+                if up is not None and (up & 0xFF) == low:
+                    self.gains = {**self.gains, "crc": up, "crc_low8": low,
+                                  "label": self.gains.get("uploaded_label", self.gains.get("label", ""))}
+                else:
+                    self.gains = {"crc": None, "crc_low8": low, "uploaded_crc": up,
+                                  "uploaded_label": self.gains.get("uploaded_label"),
+                                  "label": f"reported by the board (CRC low byte {low:#04x})"}
                 self._broadcast(_event("gains", self.gains))
             if changed:
                 self._broadcast(_event("hb", self._hb_payload()))
@@ -530,7 +539,7 @@ class Hub:
         """Upload a gain table (refused by the board while armed); returns its CRC."""
         crc = M.crc16(blob)
         self._command(lambda L: L.upload_gains(blob, timeout=0.5, retries=3))
-        self.gains = {"crc": crc, "label": label, "bytes": len(blob), "uploaded_crc": crc}
+        self.gains = {"crc": crc, "label": label, "bytes": len(blob), "uploaded_crc": crc, "uploaded_label": label}
         self.note(f"gain table uploaded: {label}, CRC {crc:#06x}")
         self._broadcast(_event("gains", self.gains))
         return crc

@@ -106,7 +106,8 @@ function showHeartbeat(hb) {
 }
 
 function showGains(g) {
-  $("gcrc").textContent = g.crc == null ? "?" : "0x" + g.crc.toString(16).padStart(4, "0");
+  $("gcrc").textContent = g.crc != null ? "0x" + g.crc.toString(16).padStart(4, "0")
+    : g.crc_low8 != null ? "0x??" + g.crc_low8.toString(16).padStart(2, "0") : "?";
   $("glabel").textContent = g.label || "";
 }
 
