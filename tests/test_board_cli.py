@@ -118,6 +118,10 @@ def test_arm_feeds_watchdog_then_disarms(relay):
     p = board(relay, "arm", "--seconds", "1.5")
     assert p.returncode == 0, p.stderr
     assert "armed" in p.stderr and "disarmed" in p.stderr
+    lines = [ln.strip() for ln in p.stderr.splitlines() if ln.startswith("upright board: ")]
+    # while armed it reports armed/balancing, never the stale pre-arm "disarmed" heartbeat
+    assert lines[-1] == "upright board: disarmed" and "upright board: disarmed" not in lines[:-1], lines
+    assert any(ln in ("upright board: armed", "upright board: balancing") for ln in lines), lines
     st = json.loads(board(relay, "status", "--json").stdout)
     assert st["state"] == "disarmed" and st["faults"] == 0
 

@@ -210,24 +210,33 @@ def _status(b: Any, args: argparse.Namespace) -> int:
 
 def _hold_armed(b: Any, seconds: float | None, tick: Callable[[float], None] | None = None) -> str:
     """Keep the host heartbeat going while armed; returns why it ended."""
+    from host.link import messages as M
+
     t0 = time.monotonic()
     last_state = None
+    armed_seen = False
     while True:
         b.keepalive()
         b.poll(0.02)
         el = time.monotonic() - t0
         hb = b.heartbeat
         if hb is not None:
-            from host.link import messages as M
-
             name = M.STATES.get(hb.state, str(hb.state))
-            if name != last_state:
+            if name == "disarmed" and not armed_seen:
+                # a heartbeat the board sent before it took the arm (the last one polled, or one
+                # still on the line): not news
+                pass
+            elif name != last_state:
                 _err(f"upright board: {name}")
                 last_state = name
+            if name != "disarmed":
+                armed_seen = True
             if name == "fault":
                 from host.operate.board import fault_names
 
                 return "fault: " + ",".join(fault_names(hb.faults))
+            if name == "disarmed" and armed_seen:
+                return "disarmed by another host"
         if tick is not None:
             tick(el)
         if seconds is not None and el >= seconds:
@@ -244,7 +253,7 @@ def _arm(b: Any, args: argparse.Namespace) -> int:
          " disarms)")
     why = _hold_armed(b, args.seconds)
     b.disarm()
-    _err("upright board: disarmed")
+    _err("upright board: disarmed" + (" (by another host)" if why.startswith("disarmed") else ""))
     if why.startswith("fault"):
         raise RunFailed(f"the board latched a fault while armed ({why[7:]})")
     return 0
