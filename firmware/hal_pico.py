@@ -11,11 +11,19 @@
 
 import machine
 import rp2
+import sys
 import time
+from array import array
 
 try:
+    import micropython
     from micropython import const
-except ImportError:  # CPython with stand-in machine/rp2 (tests)
+except ImportError:  # CPython with stand-in machine/rp2 (tests): the viper paths stay unused
+    class micropython:
+        @staticmethod
+        def viper(f):
+            return f
+
     def const(x):
         return x
 
@@ -31,6 +39,26 @@ _MARK = const(0x2AFE0000)  # marker | cause (a small int)
 # PWM INTR (raw wrap flags, write 1 to clear): a new compare is in force after the next wrap
 _PWM_INTR = const(0x400500A4)
 _WRAP_SPINS = const(400)  # bound of the wait for a wrap (one PWM period is a few spins)
+# the per-tick I/O on the RP2040's registers (viper, installed by __init__ on the rp2 port
+# only: the methods of the same names below are the portable reference).  One call each
+# instead of a Python call per machine.ADC/PIO/PWM access: a call costs ~5-10 us on a
+# 125 MHz M0+, the register access well under one.  _io holds their small-int state:
+_IO_OS_N = const(0)  # ADC samples per reading
+_IO_OS_K = const(1)  # ... their log2
+_IO_OPEN_EVERY = const(2)  # open-wiper test period (readings; 0: off)
+_IO_OPEN_N = const(3)  # readings since the last test
+_IO_DIR = const(4)  # DIR level in force (== _dir_now)
+_IO_MSIGN = const(5)  # motor sign
+_IO_ADC_CH = const(6)  # ADC input of the angle pot (ADC_PIN - 26)
+_IO_VSUP_CH = const(7)  # ADC input of the supply divider
+_IO_VSUP_MUL = const(8)  # supply scale (see _read_supply_mv)
+_IO_SM = const(9)  # encoder state machine within its PIO block
+_IO_PIO = const(10)  # its PIO block (0, 1)
+_IO_SLICE = const(11)  # PWM slice of the motor pin
+_IO_CHAN = const(12)  # its channel (0: A, 1: B)
+_IO_ESTOP = const(13)  # e-stop GPIO (-1: none)
+_IO_N = const(14)
+_SPINS = const(2000)  # bound of the waits for an ADC conversion (~2 us) or a PIO push
 
 
 @rp2.asm_pio(in_shiftdir=rp2.PIO.SHIFT_LEFT, out_shiftdir=rp2.PIO.SHIFT_RIGHT)
@@ -156,9 +184,142 @@ class HalPico:
         self._duty_u16 = self._pwm.duty_u16
         self._dir_value = self._dir.value
         # the clock the loop reads several times a tick: time.ticks_us itself (same values),
-        # not a method around it (CPython tests: the method)
+        # not a method around it (CPython tests: the method); likewise ticks_diff
         if hasattr(time, "ticks_us"):
             self.ticks_us = time.ticks_us
+            self.ticks_diff = time.ticks_diff
+        # the register fast paths (rp2 port only; CPython stand-ins run the methods below),
+        # and the port's own tick arithmetic for App.run/Timing (C: a third of the cost of
+        # fixmath's, the same values for this 2**30 clock)
+        self._io = None
+        if sys.platform == "rp2" and self._mem is not None and board.PWM_PIN < 30:
+            self._fast(board, k)
+            self.ticks_diff_fast = time.ticks_diff
+            self.ticks_add_fast = time.ticks_add
+
+    def _fast(self, board, k):
+        # start-up: the state of the viper I/O paths, then they replace the methods
+        io = array("i", [0] * _IO_N)
+        io[_IO_OS_N] = self._os_n
+        io[_IO_OS_K] = k
+        io[_IO_OPEN_EVERY] = self._open_every
+        io[_IO_DIR] = self._dir_now
+        io[_IO_MSIGN] = self._msign
+        io[_IO_ADC_CH] = board.ADC_PIN - 26
+        io[_IO_SM] = board.ENC_PIO_SM & 3
+        io[_IO_PIO] = (board.ENC_PIO_SM >> 2) & 1
+        io[_IO_SLICE] = (board.PWM_PIN >> 1) & 7
+        io[_IO_CHAN] = board.PWM_PIN & 1
+        io[_IO_ESTOP] = -1 if self._estop_pin is None else board.ESTOP_PIN
+        self._io = io
+        self.read_angle_raw = self._read_angle_v
+        self.read_encoder = self._read_encoder_v
+        self.set_motor = self._set_motor_v
+        self.estop = self._estop_v
+        if self._vsup is not None:
+            io[_IO_VSUP_CH] = board.VSUP_ADC_PIN - 26
+            io[_IO_VSUP_MUL] = self._vsup_mul
+            self.read_supply_mv = self._supply_v
+
+    @micropython.viper
+    def _read_angle_v(self) -> int:
+        # read_angle_raw on the ADC registers (CS at 0x4004C000, RESULT at +4): as
+        # machine.ADC.read_u16 does (select the input, START_ONCE, wait for READY), n times;
+        # the 12-bit counts summed and floored (their exact mean for a constant input)
+        s = ptr32(self._io)
+        a = ptr32(0x4004C000)
+        cs = (a[0] & (-0x700D)) | (s[_IO_ADC_CH] << 12)  # AINSEL, START_ONCE/MANY cleared
+        n = s[_IO_OS_N]
+        acc = 0
+        while n > 0:
+            a[0] = cs | 4
+            w = _SPINS
+            while w > 0 and not (a[0] & 0x100):
+                w -= 1
+            acc += a[1] & 0xFFF
+            n -= 1
+        v = acc >> s[_IO_OS_K]
+        e = s[_IO_OPEN_EVERY]
+        if e > 0:
+            c = s[_IO_OPEN_N] + 1
+            if c >= e:
+                s[_IO_OPEN_N] = 0
+                self._open_test(v)
+            else:
+                s[_IO_OPEN_N] = c
+        return v
+
+    @micropython.viper
+    def _supply_v(self) -> int:
+        # _read_supply_mv on the ADC registers (one conversion of the divider's input)
+        s = ptr32(self._io)
+        a = ptr32(0x4004C000)
+        a[0] = (a[0] & (-0x700D)) | (s[_IO_VSUP_CH] << 12) | 4
+        w = _SPINS
+        while w > 0 and not (a[0] & 0x100):
+            w -= 1
+        return ((a[1] & 0xFFF) * s[_IO_VSUP_MUL]) >> 12
+
+    @micropython.viper
+    def _read_encoder_v(self) -> int:
+        # read_encoder on the PIO registers (FSTAT +4, FLEVEL +0xC, RXF0 +0x20): FIFO level
+        # + 1 values, each taken once the FIFO is not empty (bounded waits)
+        s = ptr32(self._io)
+        sm = s[_IO_SM]
+        p = ptr32((0x5020 + (s[_IO_PIO] << 4)) << 16)  # PIO0/PIO1 base (no big-int literal in arithmetic)
+        lvl = (p[3] >> (sm * 8 + 4)) & 0xF
+        empty = 1 << (sm + 8)
+        v = 0
+        while lvl >= 0:
+            w = _SPINS
+            while w > 0 and (p[1] & empty):
+                w -= 1
+            v = p[8 + sm]
+            lvl -= 1
+        return v & 0xFFFF
+
+    @micropython.viper
+    def _set_motor_v(self, duty: int):
+        # set_motor with the compare register written directly (machine.PWM.duty_u16's
+        # rounding: cc = (du * (TOP + 1) + 32767) // 65535, the division done exactly by
+        # shifts for the products below 2**31); a reversal takes the method's path
+        if self._hit:
+            duty = 0  # the e-stop fired since the loop last looked
+        s = ptr32(self._io)
+        if s[_IO_MSIGN] < 0:
+            duty = -duty
+        d = 0
+        if duty < 0:
+            d = 1
+            duty = -duty
+        if d != s[_IO_DIR]:
+            self._reverse(d)
+        if duty > 32767:
+            duty = 32767
+        b = 0x4005  # PWM base, shifted at run time (a folded constant would be a big int)
+        pw = ptr32((b << 16) + s[_IO_SLICE] * 20)
+        top = pw[4] & 0xFFFF
+        if top > 0x7FFF:
+            self._duty_u16(duty << 1)
+            return
+        x = (duty << 1) * (top + 1) + 32767
+        cc = (x + (x >> 16) + 1) >> 16
+        if s[_IO_CHAN]:
+            pw[3] = (pw[3] & 0xFFFF) | (cc << 16)
+        else:
+            pw[3] = (pw[3] & (-0x10000)) | cc
+
+    @micropython.viper
+    def _estop_v(self) -> bool:
+        # estop on the SIO GPIO_IN register
+        hit = self._hit
+        self._hit = False
+        if hit:
+            return True
+        pin = int(ptr32(self._io)[_IO_ESTOP])
+        if pin < 0:
+            return False
+        return ((ptr32(0xD0000004)[0] >> pin) & 1) == 0
 
     def read_angle_raw(self):
         # ADC_OVERSAMPLE samples averaged (12-bit counts, floor: exact, see __init__); every ADC_OPEN_TEST_TICKS
@@ -226,22 +387,27 @@ class HalPico:
             d = 1
             duty = -duty
         if d != self._dir_now:
-            # never reverse under drive: duty 0 first, and DIR only once 0 is in force (the
-            # compare register is double-buffered: it takes effect at the next PWM wrap)
-            self._duty_u16(0)
-            m = self._mem
-            if m is not None:
-                b = self._wrap_bit
-                m[self._intr] = b
-                n = _WRAP_SPINS
-                while n > 0 and not (m[self._intr] & b):
-                    n -= 1
-            self._dir_value(d)
-            self._dir_now = d
+            self._reverse(d)
         if duty > 32767:
             duty = 32767
         # 0..32767 -> 0..65534 of the PWM period
         self._duty_u16(duty << 1)
+
+    def _reverse(self, d):
+        # never reverse under drive: duty 0 first, and DIR only once 0 is in force (the
+        # compare register is double-buffered: it takes effect at the next PWM wrap)
+        self._duty_u16(0)
+        m = self._mem
+        if m is not None:
+            b = self._wrap_bit
+            m[self._intr] = b
+            n = _WRAP_SPINS
+            while n > 0 and not (m[self._intr] & b):
+                n -= 1
+        self._dir_value(d)
+        self._dir_now = d
+        if self._io is not None:
+            self._io[_IO_DIR] = d
 
     def set_enable(self, on):
         # driver enable (EN/nSLEEP): 1 only while balancing (the supervisor decides)
