@@ -238,12 +238,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="out/design", help="directory for the PNG figures")
     parser.add_argument("--no-figures", action="store_true", help="print the report only")
     parser.add_argument("--no-search", action="store_true", help="skip the LQR weight search")
+    from host.cli.args import nonneg_int, positive_int
+
+    parser.add_argument("--robust", action="store_true",
+                        help="robust design: the weights, estimator and force clamp with the best worst case over "
+                             "the uncertainty set (sim/uncertainty.toml)")
+    parser.add_argument("--uncertainty", metavar="TOML", default=None,
+                        help="--robust: uncertainty set replacing sim/uncertainty.toml's keys")
+    parser.add_argument("--candidates", type=positive_int, default=24,
+                        help="--robust: designs evaluated (the budget; default 24, a few minutes on 2 cores)")
+    parser.add_argument("--seed", type=nonneg_int, default=0, help="--robust: seed of the candidate draw")
+    parser.add_argument("--json", metavar="FILE", default=None, help="--robust: write the result as JSON")
 
 
 def run(args: argparse.Namespace) -> int:
     """Print the design report and write the figures."""
     from host.cli.args import check_out_dir
 
+    if getattr(args, "robust", False):
+        from host.cli.design_robust import run_robust
+
+        return run_robust(args)
+    if getattr(args, "uncertainty", None) is not None or getattr(args, "json", None) is not None:
+        from host.cli.args import UsageError
+
+        raise UsageError("--uncertainty and --json need --robust")
     if not args.no_figures:
         check_out_dir(args.out, "--out")
     params = load_params(args.params)

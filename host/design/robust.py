@@ -1,0 +1,358 @@
+"""Robust design: the worst case of a design over an uncertainty set, and a search for the best.
+
+The **uncertainty set** (:class:`UncertaintySet`, ``sim/uncertainty.toml`` by default) is a box of
+factors on the design model's values -- pivot inertia, cart mass, pendulum mass, friction,
+supply voltage, motor constant -- and a range of measurement delays.  A design is scored at
+every vertex of the box and at seeded random points inside it (:meth:`UncertaintySet.points`).
+
+A **candidate** (:class:`Candidate`) is what the firmware's gain table carries: LQR weights
+``Q`` (diagonal) and ``R``, the estimator (the Kalman filter's measurement noise divided by an
+``observer`` speed factor) and the force clamp (``a_cmd``: the cart acceleration the clamp
+allows from upright, :func:`host.design.discrete.force_clamp`).  The design model is always
+the nominal robot: the firmware does not know where in the box the real robot is.
+
+**Scoring** (:func:`evaluate`) uses the report's scenarios on the nonlinear plant with the
+sensors' quantisation, the true motor (supply, back-EMF) and the delayed, discrete loop:
+
+* ``step`` -- the 20 cm cart step held 5 s (``ref_step_20cm``): both edges, each from rest,
+  i.e. a +20 cm and a -20 cm step over 5 s each;
+* ``square`` -- the 20 cm square wave, each level held 2.2 s (``square_wave_20cm_2p2s``): its
+  edges from rest, +-20 cm, each to settle within its 2.2 s level;
+* ``tilt`` -- released at rest with 0.1 rad (``tilt_0p1``), 5 s;
+* ``push`` -- 0.2 N on the cart for 5 s (``push_0p2N_5s``, 8 s).
+
+``step``, ``square`` and ``tilt`` run in the batch simulator (:func:`sim.batch.simulate_batch`,
+traces recorded), one run per point and edge; the metrics are the scenario metrics of
+:func:`sim.metrics.compute_metrics` on those traces (settling of phi and, with a reference,
+of x) with the batch's own peak |xddot|.  The batch cannot apply a force profile, so ``push``
+runs in the scenario simulator (:func:`sim.plantsim.run_scenario_float`) at the nominal point
+and the ``push_points`` points worst for the batch scenarios.
+
+Constraints (the report's, from the robot file): ``|phi| < phi_max`` (0.3 rad), ``|xddot| <=
+a_max`` (5 m/s^2), settling ``<= t_settle`` (2.5 s; the square wave's level is 2.2 s, so
+there it must settle within the level).  :func:`search` (in :mod:`host.design.robust_search`)
+maximises the worst case.
+
+The controller is the float :class:`~host.design.discrete.DiscreteController` whose tables the
+firmware runs in fixed point (the export's quantisation error is below one output LSB, and
+HIL agrees with the float loop within two ADC counts: ``docs/parameters.md``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from sim.params import RobotParams
+
+from .uncertainty import (FACTORS, UNCERTAINTY_FILE, Point, UncertaintyError, UncertaintySet, load_uncertainty,
+                          uncertainty_from_dict)
+
+__all__ = [
+    "UNCERTAINTY_FILE",
+    "FACTORS",
+    "SCENARIOS",
+    "CONSTRAINTS",
+    "UncertaintyError",
+    "UncertaintySet",
+    "Point",
+    "load_uncertainty",
+    "uncertainty_from_dict",
+    "Candidate",
+    "shipped",
+    "Evaluation",
+    "evaluate",
+    "worst_rows",
+    "corner_scenario",
+]
+
+SCENARIOS = ("step", "square", "push", "tilt")
+CONSTRAINTS = ("phi_max", "a_max", "settle")
+STEP = 0.2  # m, the report's cart step and square-wave amplitude
+SQUARE_LEVEL = 2.2  # s, each level of the report's square wave
+TILT = 0.1  # rad
+RUN_S = 5.0  # s, batch runs (the step's hold)
+UNSETTLED = 5.0  # ratio given to a run that never settles; every ratio is capped there (a fall is a fall)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A design: LQR weights, estimator speed and force clamp (what a gain table carries).
+
+    Parameters
+    ----------
+    name : str
+    Q : 4 floats
+        Diagonal of the continuous LQR state weight ``[x, xdot, phi, phidot]``.
+    R : float
+        Continuous LQR input weight.
+    observer : float
+        Kalman filter designed for ``SIGMA_MEAS / observer`` (> 1: trusts the sensors more).
+    a_cmd : float
+        Force clamp as the cart acceleration it allows from upright (m/s^2).
+    """
+
+    name: str
+    Q: tuple[float, float, float, float]
+    R: float
+    observer: float = 1.0
+    a_cmd: float = 4.4
+
+    def controller(self, params: RobotParams) -> Any:
+        """The :class:`host.design.discrete.DiscreteController` of this design for ``params``."""
+        from host.design import discrete
+
+        sig = tuple(s / self.observer for s in discrete.SIGMA_MEAS)
+        return discrete.controller_ss(params, Q=self.Q, R=self.R, u_max=discrete.force_clamp(params, self.a_cmd),
+                                      sigma_meas=sig)
+
+    def u_max(self, params: RobotParams) -> float:
+        """The force clamp (N) for ``params``."""
+        from host.design.discrete import force_clamp
+
+        return force_clamp(params, self.a_cmd)
+
+    def as_dict(self, params: RobotParams) -> dict[str, Any]:
+        """JSON-friendly description (with the clamp in N and the export command)."""
+        q = " ".join(f"{v:.6g}" for v in self.Q)
+        return {"name": self.name, "Q": list(self.Q), "R": self.R, "observer": self.observer, "a_cmd": self.a_cmd,
+                "u_max": self.u_max(params),
+                "export": f"upright export --Q {q} --R {self.R:.6g} --u-max {self.u_max(params):.6g}"}
+
+
+def shipped() -> Candidate:
+    """The shipped firmware design (``Q_DEFAULT``, ``R_DEFAULT``, ``A_CMD_DEFAULT``)."""
+    from host.design.discrete import A_CMD_DEFAULT, Q_DEFAULT, R_DEFAULT
+
+    return Candidate("shipped", tuple(float(v) for v in Q_DEFAULT), float(R_DEFAULT), 1.0, float(A_CMD_DEFAULT))  # type: ignore[arg-type]
+
+
+@dataclass
+class Evaluation:
+    """Metrics of one candidate at every point of the set.
+
+    Attributes
+    ----------
+    candidate : Candidate
+    points : list of Point
+    metrics : dict
+        ``metrics[scenario][constraint]`` -> ndarray over points (``nan`` where the scenario
+        was not run at that point: the push outside its points).  ``settle`` is ``inf`` when
+        the run never settles (or falls); :meth:`ratios` turns that into :data:`UNSETTLED`.
+    limits : dict
+        Constraint limits (``phi_max``, ``a_max``, ``settle``; the square wave's settle limit is
+        ``min(t_settle, 2.2 s)``).
+    """
+
+    candidate: Candidate
+    points: list[Point]
+    metrics: dict[str, dict[str, np.ndarray]]
+    limits: dict[str, dict[str, float]]
+
+    def ratios(self, scenario: str, constraint: str) -> np.ndarray:
+        """Value / limit per point (> 1 fails; never settled or beyond -> :data:`UNSETTLED`; not run -> nan)."""
+        v = self.metrics[scenario][constraint]
+        r = v / self.limits[scenario][constraint]
+        return np.where(np.isinf(v), UNSETTLED, np.minimum(r, UNSETTLED))
+
+    def worst(self, scenario: str, constraint: str) -> tuple[float, float, int]:
+        """``(value, ratio, point index)`` of the worst point (value ``inf``: never settled)."""
+        r = self.ratios(scenario, constraint)
+        if not np.any(np.isfinite(r)):
+            return math.nan, math.nan, -1
+        i = int(np.nanargmax(r))
+        return float(self.metrics[scenario][constraint][i]), float(r[i]), i
+
+    @property
+    def score(self) -> tuple[float, int, float]:
+        """Sort key, smaller is better: worst ratio, number of failing checks, mean ratio."""
+        rs = [self.ratios(s, c) for s in self.metrics for c in CONSTRAINTS]
+        allr = np.concatenate([r[np.isfinite(r)] for r in rs])
+        return float(np.max(allr)), int(np.sum(allr > 1.0)), float(np.mean(allr))
+
+    @property
+    def passes(self) -> bool:
+        """Every constraint met at every point where each scenario ran."""
+        return self.score[0] <= 1.0
+
+
+def _scenario(kind: str, amplitude: float = 0.0, duration: float = RUN_S, point: Point | None = None,
+              params: RobotParams | None = None, rate: float = 500.0) -> Any:
+    """A :class:`sim.scenario.Scenario` of a batch run (for its metrics, or to replay a corner)."""
+    from sim.scenario import load_scenario, scenario_from_dict
+
+    if kind == "push":
+        sc = load_scenario("push_0p2N_5s")
+    else:
+        d: dict[str, Any] = {"name": f"robust_{kind}", "duration": duration,
+                             "description": f"robust design, {kind} from rest (batch run)"}
+        if kind == "tilt":
+            d["initial"] = {"phi": TILT}
+        else:
+            d["reference"] = {"kind": "step", "start": 0.0, "amplitude": amplitude}
+        sc = scenario_from_dict(d)
+    if point is not None and params is not None:
+        sc = replace(sc, param_overrides=point.overrides(params), delay=point.delay_ticks / rate,
+                     description=f"{sc.description}; robot: {point.label(rate)}")
+    return sc
+
+
+def corner_scenario(kind: str, point: Point, params: RobotParams, sign: float = 1.0) -> Any:
+    """The scenario of one run of the robust evaluation at ``point`` (replayable: ``upright simulate``).
+
+    ``kind`` is one of :data:`SCENARIOS`; ``sign`` the direction of the step edge.
+    """
+    if kind not in SCENARIOS:
+        raise ValueError(f"kind must be one of {SCENARIOS}, got {kind!r}")
+    dur = {"step": RUN_S, "square": SQUARE_LEVEL, "tilt": RUN_S, "push": 8.0}[kind]
+    return _scenario(kind, sign * STEP, dur, point, params, float(params.rate))
+
+
+def _metrics_of(traces: Mapping[str, np.ndarray], j: int, scenario: Any, params: RobotParams,
+                n_ticks: int) -> tuple[float, float]:
+    """Peak |phi| and settling time of batch run ``j`` over its first ``n_ticks``.
+
+    The settling definition of :func:`sim.metrics.compute_metrics` for a scenario with one
+    segment (the disturbance at t = 0): phi and, with a reference, x, each into its band
+    (2 % of the response, at least the sensor floor); ``nan`` if never settled or fallen.
+    """
+    from sim.metrics import settling_time
+
+    t = traces["t"][:n_ticks]
+    phi = traces["phi"][:n_ticks, j]
+    end = float(t[-1] + (t[1] - t[0]))
+    floor_phi = 2.0 * params.pot_range / 2**params.adc_bits
+    floor_x = 4.0 * math.pi * params.r_wheel / params.enc_cpr
+    peak = float(np.max(np.abs(phi)))
+    if not abs(float(phi[-1])) < params.phi_max:
+        return peak, math.nan
+    worst = settling_time(t, phi, t0=0.0, t1=end, floor=floor_phi)
+    if scenario.reference.kind != "none" and not math.isnan(worst):
+        x = traces["x"][:n_ticks, j]
+        tail = x[-max(1, int(round(0.05 * x.size))):]
+        scale = max(abs(scenario.reference.amplitude), float(np.max(np.abs(x - np.mean(tail)))))
+        worst = max(worst, settling_time(t, x, t0=0.0, t1=end, scale=scale, floor=floor_x))
+    return peak, worst
+
+
+def _batch_part(params: RobotParams, ctrl: Any, points: Sequence[Point], engine: str | None,
+                chunk: int) -> dict[str, dict[str, np.ndarray]]:
+    """step (+-), square (+- edges in the first 2.2 s) and tilt at every point, in the batch."""
+    from sim.batch import RunSet, simulate_batch
+
+    n = len(points)
+    kinds = [("up", STEP, 0.0), ("down", -STEP, 0.0), ("tilt", 0.0, TILT)]
+    out = {k: {c: np.full(n, -np.inf) for c in CONSTRAINTS} for k in ("step", "square", "tilt")}
+    sc_step = {+1: _scenario("step", STEP), -1: _scenario("step", -STEP)}
+    sc_sq = {+1: _scenario("square", STEP, SQUARE_LEVEL), -1: _scenario("square", -STEP, SQUARE_LEVEL)}
+    sc_tilt = _scenario("tilt")
+    Ts = 1.0 / float(params.rate)
+    n_sq = int(round(SQUARE_LEVEL / Ts))
+    runs_all = [(i, kind) for i in range(n) for kind in range(len(kinds))]
+    for a in range(0, len(runs_all), chunk):
+        part = runs_all[a:a + chunk]
+        vals = [points[i].values(params) for i, _ in part]
+        x0 = np.zeros((len(part), 4))
+        x0[:, 2] = [kinds[k][2] for _, k in part]
+        rs = RunSet(x0=x0, values={key: np.array([v[key] for v in vals]) for key in vals[0]},
+                    delay_ticks=np.array([points[i].delay_ticks for i, _ in part], dtype=np.int64),
+                    noise_seed=np.zeros(len(part), dtype=np.int64),
+                    x_ref=np.array([kinds[k][1] for _, k in part]))
+        res = simulate_batch(params, ctrl, rs, duration=RUN_S, record=True, engine=engine)
+        tr = res.traces
+        assert tr is not None
+        n_full = tr["x"].shape[0]
+        for j, (i, k) in enumerate(part):
+            acc = float(res.metrics["xddot_max"][j])
+            name = kinds[k][0]
+            if name == "tilt":
+                ph, st = _metrics_of(tr, j, sc_tilt, params, n_full)
+                _worse(out["tilt"], i, ph, acc, st)
+                continue
+            sgn = 1 if name == "up" else -1
+            ph, st = _metrics_of(tr, j, sc_step[sgn], params, n_full)
+            _worse(out["step"], i, ph, acc, st)
+            ph, st = _metrics_of(tr, j, sc_sq[sgn], params, n_sq)
+            _worse(out["square"], i, ph, acc, st)
+    return out
+
+
+def _worse(m: dict[str, np.ndarray], i: int, phi: float, acc: float, settle: float) -> None:
+    """Keep the worse of the runs at point ``i`` (never settled: ``inf``, the worst)."""
+    for key, v in (("phi_max", phi), ("a_max", acc), ("settle", math.inf if math.isnan(settle) else settle)):
+        m[key][i] = max(m[key][i], v)
+
+
+def _push_part(params: RobotParams, ctrl: Any, points: Sequence[Point], which: Sequence[int]) -> dict[str, np.ndarray]:
+    """The push scenario in the scenario simulator at the points ``which`` (nan elsewhere)."""
+    from sim.metrics import compute_metrics
+    from sim.plantsim import run_scenario_float
+
+    out = {c: np.full(len(points), np.nan) for c in CONSTRAINTS}
+    for i in which:
+        sc = corner_scenario("push", points[i], params)
+        log = run_scenario_float(sc, params, ctrl)
+        m = compute_metrics(log, sc, params)
+        out["phi_max"][i] = m.peak_phi
+        out["a_max"][i] = m.peak_xddot
+        out["settle"][i] = math.inf if math.isnan(m.settling_time) else m.settling_time
+    return out
+
+
+def evaluate(params: RobotParams, cand: Candidate, uset: UncertaintySet, *, push: bool = True,
+             engine: str | None = None, chunk: int = 192, points: Sequence[Point] | None = None) -> Evaluation:
+    """Score ``cand`` at every point of ``uset`` (see the module docstring).
+
+    Parameters
+    ----------
+    params : RobotParams
+        The design model (the nominal robot, the firmware's parameters).
+    cand : Candidate
+    uset : UncertaintySet
+    push : bool
+        Also run the push at the nominal point and ``uset.push_points`` worst points.
+    engine : str, optional
+        Batch engine (default numba when importable).
+    chunk : int
+        Runs per batch call (memory: traces of ``chunk`` runs).
+    points : sequence of Point, optional
+        Evaluate at these points instead of ``uset.points(...)``.
+
+    Returns
+    -------
+    Evaluation
+    """
+    rate = float(params.rate)
+    pts = list(points) if points is not None else uset.points(rate, params.delay)
+    ctrl = cand.controller(params)
+    metrics: dict[str, dict[str, np.ndarray]] = _batch_part(params, ctrl, pts, engine, chunk)
+    lim = {"phi_max": float(params.phi_max), "a_max": float(params.a_max), "settle": float(params.t_settle)}
+    limits = {s: dict(lim) for s in SCENARIOS}
+    limits["square"]["settle"] = min(float(params.t_settle), SQUARE_LEVEL)
+    ev = Evaluation(cand, pts, metrics, limits)
+    if push:
+        per_point = np.max([ev.ratios(s, c) for s in metrics for c in CONSTRAINTS], axis=0)
+        order = [int(i) for i in np.argsort(-per_point, kind="stable") if i != 0][: uset.push_points]
+        metrics["push"] = _push_part(params, ctrl, pts, [0, *order])
+    return ev
+
+
+def worst_rows(ev: Evaluation, params: RobotParams) -> list[dict[str, Any]]:
+    """The worst case per scenario and constraint: value, limit, ratio, PASS/FAIL and the robot."""
+    rows = []
+    rate = float(params.rate)
+    for s in SCENARIOS:
+        if s not in ev.metrics:
+            continue
+        ran = int(np.sum(np.isfinite(ev.ratios(s, "phi_max"))))
+        for c in CONSTRAINTS:
+            v, r, i = ev.worst(s, c)
+            lim = ev.limits[s][c]
+            rows.append({"scenario": s, "constraint": c, "worst": v, "limit": lim, "ratio": r,
+                         "verdict": "PASS" if r <= 1.0 else "FAIL", "points": ran,
+                         "fails": int(np.sum(ev.ratios(s, c) > 1.0)), "at": ev.points[i].label(rate) if i >= 0 else "",
+                         "point": i})
+    return rows

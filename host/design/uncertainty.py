@@ -1,0 +1,215 @@
+"""The uncertainty set of the robust design: a box of factors on the model's values and a delay range.
+
+Loaded from ``sim/uncertainty.toml`` (:data:`UNCERTAINTY_FILE`) or a file that replaces its keys
+(:func:`load_uncertainty`); a bad file is refused with the offending key named
+(:class:`UncertaintyError`).  :meth:`UncertaintySet.points` gives the robots a design is scored
+on: the nominal one, every vertex of the box and seeded random points inside it.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from sim.params import RobotParams
+
+__all__ = ["UNCERTAINTY_FILE", "FACTORS", "UncertaintyError", "Point", "UncertaintySet", "uncertainty_from_dict",
+           "load_uncertainty"]
+
+UNCERTAINTY_FILE = Path(__file__).resolve().parents[2] / "sim" / "uncertainty.toml"
+"""The default uncertainty set."""
+
+FACTORS: dict[str, tuple[str, str]] = {
+    "inertia": ("I", "pendulum inertia about the pivot"),
+    "cart_mass": ("M", "cart mass"),
+    "pendulum_mass": ("m", "pendulum mass (camera and shaft)"),
+    "friction": ("b", "cart friction"),
+    "supply": ("V_supply", "supply voltage"),
+    "motor_constant": ("kt", "motor torque/back-EMF constant"),
+}
+"""Factor keys of an uncertainty file -> (batch parameter, meaning)."""
+
+_OTHER_KEYS = ("delay", "random", "seed", "push_points")
+
+
+class UncertaintyError(ValueError):
+    """A bad uncertainty file or value; ``key`` names the offending key."""
+
+    def __init__(self, key: str, message: str) -> None:
+        super().__init__(f"{key}: {message}" if key else message)
+        self.key = key
+
+
+@dataclass(frozen=True)
+class Point:
+    """One robot of the uncertainty set: factors on the model's values and a delay in ticks."""
+
+    factors: Mapping[str, float]
+    delay_ticks: int
+    vertex: bool
+
+    def label(self, rate: float) -> str:
+        """Compact text, e.g. ``inertia x0.5 cart_mass x1.2 ... delay 20 ms``."""
+        parts = [f"{k} x{v:.3g}" for k, v in self.factors.items() if v != 1.0]
+        parts.append(f"delay {1e3 * self.delay_ticks / rate:.0f} ms")
+        return " ".join(parts)
+
+    def overrides(self, params: RobotParams) -> dict[str, float]:
+        """Robot-file overrides (scenario ``[params]``) that make this robot from ``params``."""
+        f = self.factors
+        fm = f.get("pendulum_mass", 1.0)
+        return {
+            "cart.M": params.M * f.get("cart_mass", 1.0),
+            "pendulum.m_cam": params.m_cam * fm,
+            "pendulum.m_shaft": params.m_shaft * fm,
+            "pendulum.L_cm": params.L,  # masses scaled together: the centre of mass stays
+            "pendulum.I": params.I * f.get("inertia", 1.0),
+            "cart.b": params.b * f.get("friction", 1.0),
+            "motor.V_supply": params.V_supply * f.get("supply", 1.0),
+            "motor.kt": params.kt * f.get("motor_constant", 1.0),
+        }
+
+    def values(self, params: RobotParams) -> dict[str, float]:
+        """Batch parameter values (:data:`sim.batch.VARIED_KEYS`) of this robot."""
+        return {name: float(getattr(params, name)) * self.factors.get(k, 1.0) for k, (name, _) in FACTORS.items()}
+
+    def as_dict(self, rate: float) -> dict[str, Any]:
+        """JSON-friendly description."""
+        return {**{k: float(v) for k, v in self.factors.items()}, "delay_s": self.delay_ticks / rate,
+                "vertex": self.vertex}
+
+
+@dataclass(frozen=True)
+class UncertaintySet:
+    """Ranges of the robust design (see ``sim/uncertainty.toml``).
+
+    Parameters
+    ----------
+    factors : mapping of str to (float, float)
+        ``lo, hi`` factor on the model's value for each key of :data:`FACTORS`.
+    delay : (float, float)
+        Measurement delay range (s); both bounds whole numbers of control ticks.
+    random : int
+        Random points inside the box, on top of the vertices.
+    seed : int
+        Seed of the random points.
+    push_points : int
+        Points worst for the batch scenarios at which the push is also run.
+    source : str
+        Where the set came from.
+    """
+
+    factors: Mapping[str, tuple[float, float]]
+    delay: tuple[float, float] = (0.0, 0.02)
+    random: int = 32
+    seed: int = 0
+    push_points: int = 6
+    source: str = "<defaults>"
+
+    def delay_ticks(self, rate: float) -> tuple[int, int]:
+        """The delay bounds in control ticks at ``rate``.
+
+        Raises
+        ------
+        UncertaintyError
+            A bound that is not a whole number of ticks (never rounded silently).
+        """
+        out = []
+        for v in self.delay:
+            t = v * rate
+            if abs(t - round(t)) > 1e-6:
+                raise UncertaintyError("delay", f"{v:g} s is not a whole number of {1e3 / rate:g} ms sensor samples "
+                                                f"at {rate:g} Hz (in {self.source})")
+            out.append(int(round(t)))
+        return out[0], out[1]
+
+    def points(self, rate: float, nominal_delay: float) -> list[Point]:
+        """The nominal robot, the vertices of the box (duplicates removed), then the random points."""
+        d_lo, d_hi = self.delay_ticks(rate)
+        keys = list(FACTORS)
+        axes = [sorted({float(v) for v in self.factors[k]}) for k in keys] + [sorted({d_lo, d_hi})]
+        pts = [Point({k: 1.0 for k in keys}, int(round(nominal_delay * rate)), False)]
+        pts += [Point(dict(zip(keys, combo[:-1])), int(combo[-1]), True) for combo in itertools.product(*axes)]
+        rng = np.random.default_rng(self.seed)
+        for _ in range(self.random):
+            f = {k: float(lo + (hi - lo) * rng.random()) for k, (lo, hi) in self.factors.items()}
+            pts.append(Point(f, int(rng.integers(d_lo, d_hi + 1)), False))
+        return pts
+
+
+def _pair(v: Any, key: str, src: str, lo_bound: float, hi_bound: float) -> tuple[float, float]:
+    ok = isinstance(v, list) and len(v) == 2 and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+    if not ok:
+        raise UncertaintyError(key, f"expected [lo, hi] (two numbers), got {v!r} (in {src})")
+    lo, hi = float(v[0]), float(v[1])
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo_bound <= lo <= hi <= hi_bound) or (lo_bound == 0 and key != "delay" and lo <= 0):
+        raise UncertaintyError(key, f"expected {lo_bound:g} {'<' if key != 'delay' else '<='} lo <= hi <= {hi_bound:g}, "
+                                    f"got [{lo:g}, {hi:g}] (in {src})")
+    return lo, hi
+
+
+def _count(data: Mapping[str, Any], key: str, default: int, src: str, hi: int) -> int:
+    v = data.get(key, default)
+    if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= hi:
+        raise UncertaintyError(key, f"expected an integer in 0..{hi}, got {v!r} (in {src})")
+    return v
+
+
+def uncertainty_from_dict(data: Mapping[str, Any], source: str = "<dict>", base: "UncertaintySet | None" = None) -> UncertaintySet:
+    """Validate a parsed uncertainty mapping; keys it leaves out keep ``base``'s values.
+
+    Raises
+    ------
+    UncertaintyError
+        On an unknown key or a bad value (the key is named).
+    """
+    known = (*FACTORS, *_OTHER_KEYS)
+    for k in data:
+        if k not in known:
+            raise UncertaintyError(k, f"unknown key (known: {', '.join(known)}) (in {source})")
+    b = base
+    factors = dict(b.factors) if b is not None else {}
+    for k in FACTORS:
+        if k in data:
+            factors[k] = _pair(data[k], k, source, 0.0, 100.0)
+        elif k not in factors:
+            raise UncertaintyError(k, f"missing (in {source})")
+    delay = _pair(data["delay"], "delay", source, 0.0, 0.1) if "delay" in data else (b.delay if b else (0.0, 0.02))
+    return UncertaintySet(
+        factors=factors,
+        delay=delay,
+        random=_count(data, "random", b.random if b else 32, source, 100_000),
+        seed=_count(data, "seed", b.seed if b else 0, source, 2**63 - 1),
+        push_points=_count(data, "push_points", b.push_points if b else 6, source, 100_000),
+        source=source,
+    )
+
+
+def load_uncertainty(path: str | Path | None = None) -> UncertaintySet:
+    """The uncertainty set of a TOML file: ``sim/uncertainty.toml`` with the file's keys replacing it.
+
+    Raises
+    ------
+    UncertaintyError
+        Unreadable file, bad TOML, unknown key or bad value (``key`` names it).
+    """
+    base_data = tomllib.loads(UNCERTAINTY_FILE.read_text())
+    base = uncertainty_from_dict(base_data, str(UNCERTAINTY_FILE))
+    if path is None:
+        return base
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise UncertaintyError("", f"cannot read uncertainty file {p}: {exc.strerror or exc}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise UncertaintyError("", f"{p}: not valid TOML: {exc}") from None
+    return uncertainty_from_dict(data, str(p), base)
