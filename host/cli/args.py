@@ -30,7 +30,7 @@ __all__ = [
     "EXIT_OK", "EXIT_FAILED", "EXIT_USAGE", "EXIT_INTERRUPTED",
     "UsageError", "RunFailed", "OneLineParser",
     "finite", "positive", "nonneg", "duration", "tilt", "in_range", "positive_int", "nonneg_int", "int_range",
-    "nonempty", "scheduler_address", "check_out_dir", "check_out_file", "board_baud",
+    "nonempty", "scheduler_address", "can_interface", "check_out_dir", "check_out_file", "board_baud",
 ]
 
 EXIT_OK = 0
@@ -168,6 +168,16 @@ def scheduler_address(text: str) -> str:
     scheme, sep, rest = text.partition("://")
     if not sep or scheme not in ("tcp", "tls", "inproc", "ucx", "ws", "wss") or not rest:
         raise argparse.ArgumentTypeError(f"expected a scheduler address like tcp://HOST:8786, got {text!r}")
+    return text
+
+
+def can_interface(text: str) -> str:
+    """A python-can interface name (``socketcan``, ``slcan``, ``pcan``, ``udp_multicast``, ...)."""
+    from can.interfaces import VALID_INTERFACES
+
+    if text not in VALID_INTERFACES:
+        raise argparse.ArgumentTypeError(f"not a python-can interface: {text!r} (one of "
+                                         f"{', '.join(sorted(VALID_INTERFACES))})")
     return text
 
 

@@ -41,7 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--baud", "--baudrate", dest="baud", type=A.positive_int, default=A.board_baud(),
                         help=f"serial line rate (default {A.board_baud()}: firmware/board.py UART_BAUD)")
     parser.add_argument("--node", type=A.int_range(0, 63), default=1, help="CAN node id (default 1)")
-    parser.add_argument("--can-interface", default="slcan", metavar="NAME",
+    parser.add_argument("--can-interface", type=A.can_interface, default="slcan", metavar="NAME",
                         help="python-can interface with --link can (default slcan)")
     parser.add_argument("--timeout", type=A.in_range(0.01, 60), default=0.3,
                         help="seconds per request attempt (default 0.3; 3 retries)")
@@ -210,31 +210,12 @@ def _status(b: Any, args: argparse.Namespace) -> int:
 
 def _hold_armed(b: Any, seconds: float | None, tick: Callable[[float], None] | None = None) -> str:
     """Keep the host heartbeat going while armed; returns why it ended."""
-    import signal
-    import threading
-
     from host.link import messages as M
 
-    # Ctrl-C sets a flag the loop checks between link calls: a KeyboardInterrupt raised inside
-    # the link (holding its lock, half a frame written) could leave the disarm that follows stuck
-    stop = threading.Event()
-    prev = None
-    if threading.current_thread() is threading.main_thread():
-        prev = signal.signal(signal.SIGINT, lambda _s, _f: stop.set())
-    try:
-        return _hold_loop(b, seconds, tick, stop, M)
-    finally:
-        if prev is not None:
-            signal.signal(signal.SIGINT, prev)
-
-
-def _hold_loop(b: Any, seconds: float | None, tick: Callable[[float], None] | None, stop: Any, M: Any) -> str:
     t0 = time.monotonic()
     last_state = None
     armed_seen = False
     while True:
-        if stop.is_set():
-            raise KeyboardInterrupt
         b.keepalive()
         b.poll(0.02)
         el = time.monotonic() - t0

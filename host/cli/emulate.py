@@ -1,4 +1,5 @@
-"""``upright emulate rp2040 --pty``: an emulated Pico running the firmware, its host link on a pty.
+"""``upright emulate rp2040 --pty | --can``: an emulated Pico running the firmware, its host link on a
+pty or on a CAN bus other processes join.
 
 Starts the firmware bundle on the emulated RP2040 (rp2040js, MicroPython's rp2 port: the board
 as after ``make flash``), bridges its host link (UART0, 1 Mbaud) to a new pseudo-terminal, prints
@@ -8,6 +9,16 @@ that takes ``--port`` then works against it as against a board on ``/dev/ttyUSB0
     $ upright emulate rp2040 --pty
     /dev/pts/7
     $ upright proto dump --port /dev/pts/7          # in another terminal
+
+With ``--can [CHANNEL]`` the board runs its CAN link instead (``main.main(link="can")``: the
+MCP2515 on SPI1, modelled at the register level) and the emulated bus is bridged to a python-can
+bus (``--can-interface``, default ``udp_multicast``: every process on the machine that opens the
+same group joins it; the default group is interface-local, so no frame leaves the machine).  It
+prints the bus as one ``can:INTERFACE:CHANNEL`` line (what ``upright proto dump`` takes)::
+
+    $ upright emulate rp2040 --can
+    can:udp_multicast:ff11:7079:7468:6f6e:6465:6d6f:6d63:6173
+    $ upright board --link can --can-interface udp_multicast --port ff11:7079:7468:6f6e:6465:6d6f:6d63:6173 status
 
 The pendulum is held upright (ADC at the potentiometer offset) and the cart still.  The
 emulation runs at about 0.1x real time: board time passes ten times slower than on the wall.
@@ -26,12 +37,27 @@ from typing import Any, Sequence
 
 __all__ = ["add_arguments", "run", "hil_emulated"]
 
+UDP_LOCAL_GROUP = "ff11:7079:7468:6f6e:6465:6d6f:6d63:6173"
+"""Default ``udp_multicast`` group (= ``host.boards.rp2040.can.UDP_LOCAL_GROUP``, not imported at
+start-up): interface-local IPv6 scope, delivered on this machine only."""
+SOCKETCAN_DEFAULT = "vcan0"
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``upright emulate``."""
+    from host.cli.args import can_interface
+
     parser.add_argument("board", choices=("rp2040",), help="the emulated board (rp2040: Raspberry Pi Pico)")
-    parser.add_argument("--pty", action="store_true", required=True,
-                        help="bridge the board's host link (UART0) to a new pseudo-terminal and print its path")
+    link = parser.add_mutually_exclusive_group(required=True)
+    link.add_argument("--pty", action="store_true",
+                      help="bridge the board's host link (UART0) to a new pseudo-terminal and print its path")
+    link.add_argument("--can", nargs="?", const="", default=None, metavar="CHANNEL",
+                      help="run the board's CAN link (MCP2515 on SPI1) and bridge its bus to the python-can "
+                           f"channel CHANNEL (default for udp_multicast: {UDP_LOCAL_GROUP}, loopback only; "
+                           f"socketcan: {SOCKETCAN_DEFAULT}); prints can:INTERFACE:CHANNEL")
+    parser.add_argument("--can-interface", type=can_interface, default="udp_multicast", metavar="NAME",
+                        help="python-can interface of --can: udp_multicast (default; other processes on this "
+                             "machine), socketcan (a vcan/can interface), ... -- not virtual (one process only)")
     parser.add_argument("--bundle", metavar="DIR", default=None,
                         help="firmware bundle to put on the board's flash (default: built from firmware/)")
 
@@ -61,6 +87,8 @@ def run(args: argparse.Namespace) -> int:
         bundle = Path(args.bundle)
         if not (bundle / "main.py").is_file():
             raise UsageError(f"--bundle: {bundle} holds no main.py (make firmware writes one)")
+    if args.can is not None:
+        return _serve_can(args, bundle)
     print("upright emulate: booting the emulated RP2040 (main.py)...", file=sys.stderr, flush=True)
     try:
         bridge = PtyBridge(bundle)
@@ -79,6 +107,71 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _can_channel(interface: str, channel: str) -> str:
+    """The channel of ``--can`` (its default per interface); refuses what cannot work (exit 2)."""
+    import ipaddress
+
+    from host.cli.args import UsageError
+
+    if interface == "virtual":
+        raise UsageError("--can-interface virtual: python-can's virtual bus lives inside one process, no other "
+                         "tool could join it; use udp_multicast (this machine) or socketcan (vcan0)")
+    if not channel:
+        channel = {"udp_multicast": UDP_LOCAL_GROUP, "socketcan": SOCKETCAN_DEFAULT}.get(interface, "")
+        if not channel:
+            raise UsageError(f"--can: name the {interface} channel (e.g. --can PCAN_USBBUS1)")
+    if interface == "udp_multicast":
+        try:
+            addr = ipaddress.ip_address(channel)
+        except ValueError:
+            raise UsageError(f"--can: a udp_multicast channel is a multicast group address, got {channel!r} "
+                             f"(default {UDP_LOCAL_GROUP})") from None
+        if not addr.is_multicast:
+            raise UsageError(f"--can: {channel} is not a multicast group address (default {UDP_LOCAL_GROUP})")
+        if not (addr.version == 6 and (addr.packed[1] & 0x0F) == 1):
+            print(f"upright emulate: note: group {channel} is not interface-local (ff?1::); the bus's frames "
+                  "also go out on the network", file=sys.stderr)
+    return channel
+
+
+def _serve_can(args: argparse.Namespace, bundle: Path | None) -> int:
+    """``--can``: the board's CAN link bridged to a python-can bus until Ctrl-C / end of input."""
+    from host.boards.rp2040.board import BoardError
+    from host.boards.rp2040.can import CanBoard
+    from sim.params import load_params
+
+    interface = args.can_interface
+    channel = _can_channel(interface, args.can)
+    print(f"upright emulate: booting the emulated RP2040 (main.py, CAN link) on python-can {interface} "
+          f"{channel}...", file=sys.stderr, flush=True)
+    try:
+        board = CanBoard(channel=channel, interface=interface, bundle_dir=bundle,
+                         adc=int(round(load_params().pot_offset)))
+    except BoardError as exc:
+        return _board_failed(exc)
+    except Exception as exc:  # python-can could not open the bus (no such interface, no vcan0, ...)
+        if type(exc).__module__.split(".")[0] != "can" and not isinstance(exc, (OSError, ImportError)):
+            raise
+        print(f"upright emulate: cannot open python-can {interface} channel {channel}: "
+              f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}", file=sys.stderr)
+        return 1
+    try:
+        from firmware import board as fb
+
+        print(f"can:{interface}:{channel}", flush=True)
+        print(f"upright emulate: host link (CAN, MCP2515 on SPI1, {fb.CAN_BITRATE // 1000} kbit/s, node 1) on "
+              f"python-can {interface} {channel}; Ctrl-C or end of input stops\n"
+              f"upright emulate: e.g. upright board --link can --can-interface {interface} --port {channel} status",
+              file=sys.stderr, flush=True)
+        try:
+            board.serve(stop=_stdin_closed)
+        except BoardError as exc:
+            return _board_failed(exc)
+    finally:
+        board.close()
+    return 0
+
+
 def _board_failed(exc: BaseException, who: str = "upright emulate") -> int:
     """One line naming the failure, then the board's last output (exit status 1)."""
     head, _, tail = str(exc).partition("\n")
@@ -89,7 +182,7 @@ def _board_failed(exc: BaseException, who: str = "upright emulate") -> int:
 
 
 def hil_emulated(args: argparse.Namespace, out: Path, scenarios: Sequence[Any], progress: Any,
-                 json_path: Path | None, *, cli: Any) -> int:
+                 json_path: Path | None, *, cli: Any, plant: Any = None) -> int:
     """``upright hil --emulate rp2040``: the scenarios on the emulated Pico, the plant on its pins.
 
     Same table, CSV/PNG/GIF and summary file as ``--virtual`` (:mod:`host.cli.hil`), plus the
@@ -97,6 +190,8 @@ def hil_emulated(args: argparse.Namespace, out: Path, scenarios: Sequence[Any], 
     per scenario.  A board that fails prints one line and its last output (exit status 1);
     Ctrl-C writes what finished, marked partial.  ``cli`` is :mod:`host.cli.hil` (its table,
     summary file and partial-run helpers; passed in, so the two modules import no circle).
+    ``plant`` (``--plant``): the robot on the board's pins when it differs from the design (the
+    firmware keeps its gains; a scenario's ``[params]`` apply on top, as for ``--virtual``).
     """
     from host.boards.rp2040.board import BoardError
     from host.cli.main import interrupted
@@ -114,7 +209,7 @@ def hil_emulated(args: argparse.Namespace, out: Path, scenarios: Sequence[Any], 
     done: list[Any] = []
     try:
         runs = run_emulated(scenarios, out=out, compare=not args.no_compare, gif=not (args.no_gif or args.no_plots),
-                            plot=not args.no_plots, progress=progress, on_result=done.append)
+                            plot=not args.no_plots, progress=progress, on_result=done.append, plant=plant)
     except (BoardError, HilError) as exc:
         if not interrupted():
             return _board_failed(exc, "upright hil")

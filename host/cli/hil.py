@@ -53,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", default="all", metavar="NAME", type=A.nonempty,
                         help="scenario name(s) comma-separated, a TOML path, or 'all' (the report's; default)")
     parser.add_argument("--out", default="out/hil", metavar="DIR", help="output directory (default out/hil)")
-    parser.add_argument("--can-interface", default="slcan", metavar="NAME",
+    parser.add_argument("--can-interface", type=A.can_interface, default="slcan", metavar="NAME",
                         help="python-can interface for --port with --link can (default slcan)")
     parser.add_argument("--node", type=A.int_range(0, 63), default=1, help="CAN node id of the board (default 1)")
     parser.add_argument("--baudrate", type=A.positive_int, default=A.board_baud(),
@@ -213,15 +213,13 @@ def run(args: argparse.Namespace) -> int:
     from sim.params import load_params
 
     plant = load_plant(getattr(args, "plant", None), load_params())
-    if plant is not None and args.emulate:
-        raise A.UsageError("--plant: not available with --emulate yet (the emulated board's plant is its own)")
     check_scenarios(scenarios, plant)
     print_precedence(scenarios, plant)
     prog = Progress(enabled=not args.quiet)
     if args.emulate:
         from host.cli.emulate import hil_emulated
 
-        return hil_emulated(args, out, scenarios, prog, json_path, cli=sys.modules[__name__])
+        return hil_emulated(args, out, scenarios, prog, json_path, cli=sys.modules[__name__], plant=plant)
     where = "virtual board (MicroPython unix port on a pty)" if args.port is None else args.port
     if not args.quiet:
         print(f"upright hil: {len(scenarios)} scenario(s), {args.link} link, {args.mode}, {where}", file=sys.stderr)

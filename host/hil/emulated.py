@@ -470,28 +470,32 @@ def run_emulated(scenarios: Sequence[Scenario], *, out: str | Path | None = None
                  compare: bool = True, gif: bool = True, plot: bool = True,
                  progress: Callable[[str, int, int], None] | None = None,
                  on_result: Callable[[HilRun], None] | None = None, bundle_dir: Path | None = None,
-                 firmware: Path = FIRMWARE, board: EmulatedBoard | None = None) -> list[HilRun]:
+                 firmware: Path = FIRMWARE, board: EmulatedBoard | None = None,
+                 plant: RobotParams | None = None) -> list[HilRun]:
     """Run scenarios on one emulated board and write their outputs, as
-    :func:`host.hil.runs.run_scenarios` does for the virtual board (same CSV/PNG/GIF)."""
+    :func:`host.hil.runs.run_scenarios` does for the virtual board (same CSV/PNG/GIF; ``params``
+    the design, ``plant`` the simulated robot when it differs: ``--plant``)."""
     with EmulatedHil(bundle_dir, firmware=firmware, board=board) as hil:
         return run_all(hil, scenarios, params or load_params(), out=out, compare=compare, gif=gif, plot=plot,
-                       progress=progress, on_result=on_result)
+                       progress=progress, on_result=on_result, plant=plant)
 
 
 def run_all(hil: "EmulatedHil", scenarios: Sequence[Scenario], params: RobotParams, *,
             out: str | Path | None = None, compare: bool = True, gif: bool = True, plot: bool = True,
             progress: Callable[[str, int, int], None] | None = None,
-            on_result: Callable[[HilRun], None] | None = None) -> list[HilRun]:
+            on_result: Callable[[HilRun], None] | None = None, plant: RobotParams | None = None) -> list[HilRun]:
     """Run scenarios one after another on an open emulated HIL (UART or CAN), with the float
-    reference and the outputs as :func:`host.hil.runs.run_scenarios` writes them."""
+    reference and the outputs as :func:`host.hil.runs.run_scenarios` writes them.  ``params`` is
+    the design; ``plant`` (``--plant``) the simulated robot when it differs, the scenario's
+    ``[params]`` on top of it, as for the virtual board."""
     from host.hil.runs import write_outputs
 
     runs: list[HilRun] = []
     for sc in scenarios:
         cb = (lambda k, n, _name=sc.name: progress(_name, k, n)) if progress else None
-        run = hil.run(sc, params, progress=cb)
+        run = hil.run(sc, params if plant is None else plant, progress=cb)
         if compare:
-            run.reference = float_reference(sc, params)
+            run.reference = float_reference(sc, params, plant=plant)
         if out is not None:
             run.stats["files"] = {k: str(v) for k, v in write_outputs(run, out, gif=gif, plot=plot).items()}
         runs.append(run)

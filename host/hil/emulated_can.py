@@ -123,8 +123,8 @@ def run_emulated_can(scenarios: Sequence[Scenario], *, out: str | Path | None = 
                      progress: Callable[[str, int, int], None] | None = None,
                      on_result: Callable[[HilRun], None] | None = None, bundle_dir: Path | None = None,
                      firmware: Path = FIRMWARE, board: CanBoard | None = None, channel: str = "upright-hil",
-                     node_id: int = 1) -> list[HilRun]:
-    """:func:`host.hil.emulated.run_emulated` over CAN (same outputs)."""
+                     node_id: int = 1, plant: RobotParams | None = None) -> list[HilRun]:
+    """:func:`host.hil.emulated.run_emulated` over CAN (same outputs; ``plant`` as there)."""
     with EmulatedCanHil(bundle_dir, firmware=firmware, board=board, channel=channel, node_id=node_id) as hil:  # type: ignore[arg-type]
         return run_all(hil, scenarios, params or load_params(), out=out, compare=compare, gif=gif, plot=plot,
-                       progress=progress, on_result=on_result)
+                       progress=progress, on_result=on_result, plant=plant)
