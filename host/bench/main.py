@@ -20,6 +20,7 @@ from typing import Any, Sequence
 # name -> "module:function"
 BENCHES: dict[str, str] = {
     "batch": "host.bench.batch:bench",
+    "robust": "host.bench.robust:bench",
     "proto": "host.bench.proto:bench_throughput",
     "proto_fuzz": "host.bench.proto:bench_fuzz",
     "firmware": "host.bench.firmware:bench",
