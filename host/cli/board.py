@@ -210,12 +210,31 @@ def _status(b: Any, args: argparse.Namespace) -> int:
 
 def _hold_armed(b: Any, seconds: float | None, tick: Callable[[float], None] | None = None) -> str:
     """Keep the host heartbeat going while armed; returns why it ended."""
+    import signal
+    import threading
+
     from host.link import messages as M
 
+    # Ctrl-C sets a flag the loop checks between link calls: a KeyboardInterrupt raised inside
+    # the link (holding its lock, half a frame written) could leave the disarm that follows stuck
+    stop = threading.Event()
+    prev = None
+    if threading.current_thread() is threading.main_thread():
+        prev = signal.signal(signal.SIGINT, lambda _s, _f: stop.set())
+    try:
+        return _hold_loop(b, seconds, tick, stop, M)
+    finally:
+        if prev is not None:
+            signal.signal(signal.SIGINT, prev)
+
+
+def _hold_loop(b: Any, seconds: float | None, tick: Callable[[float], None] | None, stop: Any, M: Any) -> str:
     t0 = time.monotonic()
     last_state = None
     armed_seen = False
     while True:
+        if stop.is_set():
+            raise KeyboardInterrupt
         b.keepalive()
         b.poll(0.02)
         el = time.monotonic() - t0
