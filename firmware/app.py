@@ -293,7 +293,9 @@ class App:
             if start:
                 s.zero()
                 c.reset(s.yx, s.yp)
-            u = self._cstep(c, s.yx, s.yp, self.ref)
+            # catch mode for large tilts (a compare, a row swap; the reference it returns
+            # differs from self.ref only while handing back)
+            u = self._cstep(c, s.yx, s.yp, c.schedule(self.ref))
             duty = self.motor.duty(u, c.vh)
             # the driver is enabled only while balancing, before the first duty
             if not self._en:

@@ -14,6 +14,14 @@
 # rounding dead zone (without it a cart speed below ~0.01 m/s never moved x).
 # The state limits are the declared bounds of the proof, so clamping keeps every
 # accumulator inside -2**30 .. 2**30-1 whatever the inputs.
+#
+# Catch mode (issue 15 item 3; host/design/catch.py): the table carries a second force row
+# (KFC, KBC, KRC, KIC, SKC) and its clamp (CATCH[3]) for large tilts.  schedule(), called
+# once per tick before step(), switches between the two by swapping the row's array
+# pointers and scalars -- the estimator, the predictor and the stored forces are shared,
+# so nothing else changes.  Tracking -> catch when |p_phi| > CATCH[0] (phi LSB; 0: off);
+# catch -> tracking only once |p_phi| < CATCH[1], |p_phidot| < CATCH[8] (hysteresis) AND the rows, evaluated
+# on the same (p, b, r), differ by at most CATCH[2] (u LSB): the hand-back is bumpless.
 
 try:
     from micropython import const
@@ -56,8 +64,14 @@ class Controller:
         self.m = fixmath.zeros(8)
         self.sm = fixmath.zeros(4)
         self.rf = fixmath.zeros(4)
-        self.kf = fixmath.zeros(4)
-        self.kb = fixmath.zeros(d if d > 0 else 1)
+        # the force row in use (kf, kb, kr, ki, sk, hk, ulim) points at the tracking set
+        # (kft ...) or the catch set (kfc ...): schedule() swaps them
+        self.kft = fixmath.zeros(4)
+        self.kbt = fixmath.zeros(d if d > 0 else 1)
+        self.kfc = fixmath.zeros(4)
+        self.kbc = fixmath.zeros(d if d > 0 else 1)
+        self.kf = self.kft
+        self.kb = self.kbt
         self.kv = fixmath.zeros(4)
         self.kvb = fixmath.zeros(d if d > 0 else 1)
         self.ad = fixmath.zeros(16)
@@ -75,6 +89,39 @@ class Controller:
         self.ki = 0
         self.sk = 0
         self.hk = 0
+        self.ulim_t = 0
+        self.krt = 0
+        self.kit = 0
+        self.skt = 0
+        self.hkt = 0
+        self.ulim_c = 0
+        self.krc = 0
+        self.kic = 0
+        self.skc = 0
+        self.hkc = 0
+        self.phi_on = 0  # catch mode thresholds (phi LSB; phi_on 0: no catch mode)
+        self.phi_off = 0
+        self.du = 0  # largest force step (u LSB) accepted at the hand-back
+        # the live force clamp ulo <= u <= uhi: +-ulim while tracking; in catch mode a clamp
+        # on the cart's acceleration, centred on -cphi * phi (>> sphi), |u| <= ucmax
+        self.uhi = 0
+        self.ulo = 0
+        self.cphi = 0
+        self.sphi = 0
+        self.ucmax = 0
+        # hand-back: the tracking row starts from the reference rr that makes its force
+        # equal the catch row's (rr = r + ((uc - ut) * rg) >> srg), then rr moves to the set
+        # reference by rstep x LSB per tick
+        self.rr = 0
+        self.ramp = False
+        self.rstep = 0
+        self.w_off = 0  # |phidot| (phidot LSB) below which the hand-back may happen
+        self.rg = 0
+        self.srg = 0
+        self.emax = 0
+        self.catching = False
+        self.n_catch = 0  # catch-mode entries since the last load
+        self.bump = 0  # force difference of the two rows at the latest hand-back (u LSB)
         self.skv = 0
         self.hkv = 0
         self.integ = 0
@@ -93,7 +140,8 @@ class Controller:
         for i in range(4):
             self.lim[i] = t[o["LIM"] + i]
             self.sm[i] = t[o["SM"] + i]
-            self.kf[i] = t[o["KF"] + i]
+            self.kft[i] = t[o["KF"] + i]
+            self.kfc[i] = t[o["KFC"] + i]
             self.kv[i] = t[o["KV"] + i]
             self.bd[i] = t[o["BD"] + i]
             self.sa[i] = t[o["SA"] + i]
@@ -102,15 +150,45 @@ class Controller:
         for i in range(16):
             self.ad[i] = t[o["AD"] + i]
         for i in range(d):
-            self.kb[i] = t[o["KB"] + i]
+            self.kbt[i] = t[o["KB"] + i]
+            self.kbc[i] = t[o["KBC"] + i]
             self.kvb[i] = t[o["KVB"] + i]
-        self.ulim = t[o["ULIM"]]
+        self.ulim_t = t[o["ULIM"]]
         self.rlim = t[o["RLIM"]]
         self.ilim = t[o["ILIM"]]
-        self.kr = t[o["KR"]]
-        self.ki = t[o["KI"]]
-        self.sk = t[o["SK"]]
-        self.hk = (1 << (self.sk - 1)) if self.sk > 0 else 0
+        self.krt = t[o["KR"]]
+        self.kit = t[o["KI"]]
+        self.skt = t[o["SK"]]
+        self.hkt = (1 << (self.skt - 1)) if self.skt > 0 else 0
+        ca = o["CATCH"]
+        self.phi_on = t[ca]
+        self.phi_off = t[ca + 1]
+        self.du = t[ca + 2]
+        self.ulim_c = t[ca + 3]
+        self.cphi = t[ca + 4]
+        self.sphi = t[ca + 5]
+        self.ucmax = t[ca + 6]
+        self.krc = t[o["KRC"]]
+        self.kic = t[o["KIC"]]
+        self.skc = t[o["SKC"]]
+        self.hkc = (1 << (self.skc - 1)) if self.skc > 0 else 0
+        self.rstep = t[ca + 7]
+        self.w_off = t[ca + 8]
+        # rg / 2**srg = 2**skt / krt (x LSB per u LSB); |e| <= emax keeps e * rg small
+        self.emax = 2 * self.ucmax + 2
+        self.rg = 0
+        self.srg = 0
+        if self.krt != 0:
+            s = 0
+            while s < 24:
+                g = ((1 << (self.skt + s + 1)) + self.krt) // (2 * self.krt)
+                if (g if g > 0 else -g) * self.emax > 0x1FFFFFFF:
+                    break
+                self.rg = g
+                self.srg = s
+                s += 1
+        self.n_catch = 0
+        self._use(False)
         self.skv = t[o["SKV"]]
         self.hkv = (1 << (self.skv - 1)) if self.skv > 0 else 0
         self.reset(0, 0)
@@ -150,6 +228,21 @@ class Controller:
         il = t[o["ILIM"]]
         if ul <= 0 or ul > _B_MAX or rl <= 0 or rl > _B_MAX or il <= 0 or il > _B_MAX:
             return R_UNSTABLE
+        # catch mode: thresholds within the tilt range, its clamp like ULIM; a stored force
+        # is bounded by the larger clamp (ub) in every row that reads one
+        ca = o["CATCH"]
+        uc = t[ca + 3]
+        if uc <= 0 or uc > _B_MAX or t[ca + 2] < 0 or t[ca + 2] > _B_MAX:
+            return R_UNSTABLE
+        if t[ca] < 0 or t[ca + 1] < 0 or t[ca + 1] > t[ca] or t[ca] > t[lim + 2]:
+            return R_UNSTABLE
+        # the clamp's centre: |cphi| * phi limit within budget, shift sane, ucmax >= ulim_c
+        ucm = t[ca + 6]
+        if ucm < uc or ucm > _B_MAX or self._term(self._start(t[ca + 5]), t[ca + 4], t[lim + 2]) < 0:
+            return R_UNSTABLE
+        if t[ca + 7] < 0 or t[ca + 7] > t[o["RLIM"]] or t[ca + 8] < 0:
+            return R_UNSTABLE
+        ub = ul if ul > ucm else ucm
         d = self.d
         ebx = 2 * t[lim]
         ebp = 2 * t[lim + 2]
@@ -161,34 +254,39 @@ class Controller:
                 return R_UNSTABLE
         tot = self._start(t[o["SK"]])
         tv = self._start(t[o["SKV"]])
+        tc = self._start(t[o["SKC"]])
         for j in range(4):
             tot = self._term(tot, t[o["KF"] + j], t[lim + j])
             tv = self._term(tv, t[o["KV"] + j], t[lim + j])
+            tc = self._term(tc, t[o["KFC"] + j], t[lim + j])
         for j in range(d):
-            tot = self._term(tot, t[o["KB"] + j], ul)
-            tv = self._term(tv, t[o["KVB"] + j], ul)
+            tot = self._term(tot, t[o["KB"] + j], ub)
+            tv = self._term(tv, t[o["KVB"] + j], ub)
+            tc = self._term(tc, t[o["KBC"] + j], ub)
         tot = self._term(tot, t[o["KR"]], rl)
         tot = self._term(tot, t[o["KI"]], il)
-        if tot < 0 or tv < 0:
+        tc = self._term(tc, t[o["KRC"]], rl)
+        tc = self._term(tc, t[o["KIC"]], il)
+        if tot < 0 or tv < 0 or tc < 0:
             return R_UNSTABLE
         for i in range(4):
             tot = self._start(t[o["SA"] + i])
             for j in range(4):
                 tot = self._term(tot, t[o["AD"] + 4 * i + j], t[lim + j])
-            tot = self._term(tot, t[o["BD"] + i], ul)
+            tot = self._term(tot, t[o["BD"] + i], ub)
             if tot < 0:
                 return R_UNSTABLE
         # telemetry conversions: 5 gains on the state limits and the force limit
         to = o["TEL"]
         for j in range(5):
             tot = self._start(t[to + 5])
-            tot = self._term(tot, t[to + j], ul if j == 4 else t[lim + j])
+            tot = self._term(tot, t[to + j], ub if j == 4 else t[lim + j])
             if tot < 0 or t[to + 5] < 1:
                 return R_UNSTABLE
         # motor: KDU u + KDV vh, then the deadband
         mo = o["MOT"]
         tot = self._start(t[mo + 2])
-        tot = self._term(tot, t[mo], ul)
+        tot = self._term(tot, t[mo], ub)
         tot = self._term(tot, t[mo + 1], t[lim + 1])
         if tot < 0 or t[mo + 3] < 0 or t[mo + 3] > 32767:
             return R_UNSTABLE
@@ -212,6 +310,122 @@ class Controller:
         self.u = 0
         self.u_raw = 0
         self.vh = 0
+        self.ramp = False
+        self._use(False)
+
+    # ---- catch mode: which force row step() uses (allocation-free, integers only) ----
+    def _use(self, catch):
+        # point the force row at the catch set (True) or the tracking set (False)
+        self.catching = catch
+        if catch:
+            self.kf = self.kfc
+            self.kb = self.kbc
+            self.kr = self.krc
+            self.ki = self.kic
+            self.sk = self.skc
+            self.hk = self.hkc
+            self.ulim = self.ulim_c
+            self._clamp_c()
+        else:
+            self.kf = self.kft
+            self.kb = self.kbt
+            self.kr = self.krt
+            self.ki = self.kit
+            self.sk = self.skt
+            self.hk = self.hkt
+            self.ulim = self.ulim_t
+            self.uhi = self.ulim_t
+            self.ulo = -self.ulim_t
+
+    def _clamp_c(self):
+        # catch mode: the clamp of the cart acceleration as a force range from the tilt
+        # estimate, u in [-ulim_c - sh, ulim_c - sh] with sh = cphi * phi >> sphi, |u| <= ucmax
+        sh = (self.p[2] * self.cphi) >> self.sphi
+        m = self.ucmax - self.ulim_c
+        if sh > m:
+            sh = m
+        elif sh < -m:
+            sh = -m
+        self.uhi = self.ulim_c - sh
+        self.ulo = -self.ulim_c - sh
+
+    def _row(self, kf, kb, kr, ki, sk, hk, r):
+        # a force row on the a-priori estimate p and the stored forces b (before clamping);
+        # the same terms and bounds as step()'s force row (the headroom proof covers it)
+        p = self.p
+        acc = kf[0] * p[0] + kf[1] * p[1] + kf[2] * p[2] + kf[3] * p[3] + kr * r + hk
+        b = self.b
+        for i in range(self.d):
+            acc += kb[i] * b[i]
+        if ki:
+            acc += ki * self.integ
+        return acc >> sk
+
+    def schedule(self, r):
+        # once per tick before step(), returns the reference for step(): enter catch mode
+        # on a large tilt; hand back to the tracking row once the tilt is small, from the
+        # reference that makes both rows agree (within du), then ramp it to r
+        ph = self.p[2]
+        if not self.catching:
+            on = self.phi_on
+            if on > 0 and (ph > on or ph < -on):
+                self._use(True)
+                self.n_catch += 1
+                self.ramp = False
+                self._clamp_c()
+                return r
+            if self.ramp:
+                q = self.rr
+                st = self.rstep
+                if q > r + st:
+                    q -= st
+                elif q < r - st:
+                    q += st
+                else:
+                    q = r
+                    self.ramp = False
+                self.rr = q
+                return q
+            return r
+        self._clamp_c()
+        off = self.phi_off
+        if ph >= off or ph <= -off:
+            return r
+        w = self.p[3]
+        off = self.w_off
+        if w >= off or w <= -off:
+            return r
+        uc = self._row(self.kfc, self.kbc, self.krc, self.kic, self.skc, self.hkc, r)
+        if uc > self.uhi:
+            uc = self.uhi
+        elif uc < self.ulo:
+            uc = self.ulo
+        e = uc - self._row(self.kft, self.kbt, self.krt, self.kit, self.skt, self.hkt, r)
+        l = self.emax
+        if e > l:
+            e = l
+        elif e < -l:
+            e = -l
+        q = r + ((e * self.rg) >> self.srg)
+        l = self.rlim
+        if q > l:
+            q = l
+        elif q < -l:
+            q = -l
+        ut = self._row(self.kft, self.kbt, self.krt, self.kit, self.skt, self.hkt, q)
+        l = self.ulim_t
+        if ut > l:
+            ut = l
+        elif ut < -l:
+            ut = -l
+        e = ut - uc
+        if -self.du <= e <= self.du:
+            self.bump = e
+            self._use(False)
+            self.rr = q
+            self.ramp = q != r
+            return q
+        return r
 
     # ---- the hot path: one control tick, integers only, no allocation ----
     def step(self, yx, yp, r):
@@ -282,14 +496,16 @@ class Controller:
             acc += ki * self.integ
         u = acc >> self.sk
         self.u_raw = u
-        l = self.ulim
+        l = self.uhi
         sat = 0
         if u > l:
             u = l
             sat = 1
-        elif u < -l:
-            u = -l
-            sat = -1
+        else:
+            l = self.ulo
+            if u < l:
+                u = l
+                sat = -1
         if ki:
             # conditional integration: never push further into a saturated force
             inc = (r - x0 + _INTEG_HALF) >> _INTEG_SHIFT

@@ -101,14 +101,16 @@ def step_native(c, yx, yp, r):
         acc += ki * c.integ
     u = acc >> c.sk
     c.u_raw = u
-    l = c.ulim
+    l = c.uhi
     sat = 0
     if u > l:
         u = l
         sat = 1
-    elif u < -l:
-        u = -l
-        sat = -1
+    else:
+        l = c.ulo
+        if u < l:
+            u = l
+            sat = -1
     if ki:
         # conditional integration: never push further into a saturated force
         inc = (r - x0 + _INTEG_HALF) >> _INTEG_SHIFT
@@ -255,14 +257,16 @@ def step_viper(c, yx: int, yp: int, r: int) -> int:
         acc += ki * int(c.integ)
     u = acc >> int(c.sk)
     c.u_raw = u
-    l = int(c.ulim)
+    l = int(c.uhi)
     sat = 0
     if u > l:
         u = l
         sat = 1
-    elif u < -l:
-        u = -l
-        sat = -1
+    else:
+        l = int(c.ulo)
+        if u < l:
+            u = l
+            sat = -1
     if ki:
         # conditional integration: never push further into a saturated force
         inc = (r - x0 + _INTEG_HALF) >> _INTEG_SHIFT

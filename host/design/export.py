@@ -53,8 +53,10 @@ from typing import Sequence
 
 import numpy as np
 
+from host.design.catch import CATCH_DEFAULT, CatchDesign, catch_clamp, catch_rows
 from host.design.discrete import DiscreteController, controller_ss, force_limit
 from sim.params import RobotParams, load_params
+from sim.plant import linear_model
 
 __all__ = [
     "VERSION",
@@ -114,6 +116,15 @@ LAYOUT: tuple[tuple[str, int | str], ...] = (
     ("ENCJ", 1),  # largest plausible encoder step per tick (counts)
     ("CAL", 2),  # ADC counts with the pendulum upright (pot_offset), ADC full scale
     ("TEL", 6),  # telemetry: unit = (v * TEL[j] + 2**(S-1)) >> S, S = TEL[5]
+    # catch mode (host/design/catch.py): PHI_ON, PHI_OFF (phi LSB; PHI_ON 0 = off), DU, ULC (u LSB),
+    # CPHI, SPHI (clamp centre -(phi * CPHI) >> SPHI, u LSB), UCMAX (|u| bound in catch mode),
+    # RSTEP (x LSB per tick: the reference ramp after the hand-back), W_OFF (phidot LSB)
+    ("CATCH", 9),
+    ("KFC", 4),  # the catch force row, same form and bounds as KF .. KI, SK
+    ("KBC", "D"),
+    ("KRC", 1),
+    ("KIC", 1),
+    ("SKC", 1),
 )
 
 
@@ -237,6 +248,7 @@ def export(
     deadband: int = 0,
     v_limit: float | None = None,
     w_limit: float | None = None,
+    catch: CatchDesign | None = CATCH_DEFAULT,
 ) -> FixedDesign:
     """Quantise a discrete controller into the firmware's integer tables.
 
@@ -258,6 +270,10 @@ def export(
     w_limit : float, optional
         Clamp of the tilt-rate estimate, rad/s (default ``W_LIMIT`` = 120 rad/s, for the
         same reason: 0.07 rad rms per tick of angle noise).
+    catch : CatchDesign or None
+        The catch-mode row for large tilts (:mod:`host.design.catch`), designed on the
+        controller's own plant; ``None`` exports it switched off (``PHI_ON = 0``, the
+        tracking row's gains and clamp).
 
     Returns
     -------
@@ -292,11 +308,20 @@ def export(
     # controller's clamp u_max, usually well inside it, is an integer limit in that format.
     # A format fitted to a small clamp would make the LSB finer than the duty can express
     # and cost the force row its shift (the stored-force gains kb_i < 1 would be coarse)
-    EU = _pow2_lsb(max(c.u_max, force_limit(p)))
+    uc_si = catch_clamp(p, catch) if catch is not None else c.u_max
+    EU = _pow2_lsb(max(c.u_max, uc_si, force_limit(p)))
     s = np.array([m_per_count / 2**QX, 2.0**-EV, rad_per_count / 2**QP, 2.0**-EW])
     su = 2.0**-EU
     LIM = [int(math.floor(lim_si[i] / s[i])) for i in range(4)]
     ULIM = int(math.floor(c.u_max / su))
+    ULC = int(math.floor(uc_si / su))
+    # catch mode clamps the cart acceleration: u in [-ULC, ULC] - cphi * phi (linear model,
+    # cphi = A[1,2] / B[1] N/rad), its centre bounded by the shift at phi = +-pi/2
+    A_lin, B_lin, _, _ = linear_model(p)
+    cphi_si = float(A_lin[1, 2] / B_lin[1, 0])
+    rphi = _row("catch clamp", [cphi_si * s[2] / su], [LIM[2]])
+    UCMAX = ULC + (rphi.worst >> rphi.shift) + 1
+    UB = max(ULIM, UCMAX)  # bound of a stored force (either row's clamp)
     RLIM = int(math.floor(p.track / s[0]))
     ILIM = 2**16
     YLIM = [LIM[0] >> QX, LIM[2] >> QP]
@@ -314,16 +339,28 @@ def export(
     Kf, kb = c.Kf[0], c.kb
     integ_lsb = 2**INTEG_SHIFT * s[0] * Ts  # m*s per integrator LSB
     coeffs_u = [-Kf[j] * s[j] / su for j in range(4)] + [-kb[i] for i in range(d)] + [c.kr * s[0] / su, math.copysign(ki, c.kr) * integ_lsb / su]
-    ru = _row("force", coeffs_u, LIM + [ULIM] * d + [RLIM, ILIM])
+    ru = _row("force", coeffs_u, LIM + [UB] * d + [RLIM, ILIM])
     rows.append(ru)
+    if catch is not None:
+        kfc, kbc, krc = catch_rows(c, catch)
+        coeffs_c = [-kfc[j] * s[j] / su for j in range(4)] + [-kbc[i] for i in range(d)] + [krc * s[0] / su, 0.0]
+        CATCH = [int(round(catch.phi_on / s[2])), int(round(catch.phi_off / s[2])), int(round(catch.du / su)), ULC]
+    else:
+        coeffs_c = coeffs_u
+        CATCH = [0, 0, 0, ULC]
+    rstep = int(round(catch.r_rate * Ts / s[0])) if catch is not None else 0
+    w_off = int(round(catch.w_off / s[3])) if catch is not None else 0
+    CATCH += [rphi.gains[0], rphi.shift, UCMAX, max(rstep, 1 if catch is not None else 0), w_off]
+    rc = _row("catch force", coeffs_c, LIM + [UB] * d + [RLIM, ILIM])
+    rows += [rc, rphi]
     Phi = np.linalg.matrix_power(c.Ad, d)
     gam = [(np.linalg.matrix_power(c.Ad, d - 1 - i) @ c.Bd)[1, 0] for i in range(d)]
-    rv = _row("speed", [Phi[1, j] * s[j] / s[1] for j in range(4)] + [g * su / s[1] for g in gam], LIM + [ULIM] * d)
+    rv = _row("speed", [Phi[1, j] * s[j] / s[1] for j in range(4)] + [g * su / s[1] for g in gam], LIM + [UB] * d)
     rows.append(rv)
     AD, BD, SA = [], [], []
     Adm = c.Ad - np.eye(4)
     for i in range(4):
-        r = _row(f"update[{i}]", [Adm[i, j] * s[j] / s[i] for j in range(4)] + [c.Bd[i, 0] * su / s[i]], LIM + [ULIM], residual=True)
+        r = _row(f"update[{i}]", [Adm[i, j] * s[j] / s[i] for j in range(4)] + [c.Bd[i, 0] * su / s[i]], LIM + [UB], residual=True)
         rows.append(r)
         AD += list(r.gains[:4])
         BD.append(r.gains[4])
@@ -331,7 +368,7 @@ def export(
     # force -> duty: V = F R r/(n gear kt) + kt gear xdot / r, duty = V/V_supply * 32767
     kdu = p.R * p.r_wheel / (p.n_motors * p.gear * p.kt) / p.V_supply * DUTY_MAX * su
     kdv = p.kt * p.gear / p.r_wheel / p.V_supply * DUTY_MAX * s[1]
-    rm = _row("duty", [kdu, kdv], [ULIM, LIM[1]])
+    rm = _row("duty", [kdu, kdv], [UB, LIM[1]])
     rows.append(rm)
     # reference um -> x LSB by an exact-ish division: r = (um * 1000 + RDIV/2) // RDIV
     rdiv = int(round(s[0] * 1e9))  # x LSB in nm
@@ -341,7 +378,7 @@ def export(
     rows.append(rr)
     rt = _row("tilt", [1e-3 / rad_per_count], [TILT_MRAD_MAX])
     rows.append(rt)
-    tel_b = LIM + [ULIM]
+    tel_b = LIM + [UB]
     tel_s = list(s) + [su]
     TEL = []
     tsh = TEL_SHIFT
@@ -384,6 +421,12 @@ def export(
         "ENCJ": [encj],
         "CAL": [int(p.pot_offset), 2 ** int(p.adc_bits) - 1],
         "TEL": TEL,
+        "CATCH": CATCH,
+        "KFC": list(rc.gains[:4]),
+        "KBC": list(rc.gains[4 : 4 + d]),
+        "KRC": [rc.gains[4 + d]],
+        "KIC": [rc.gains[5 + d]],
+        "SKC": [rc.shift],
     }
     fd = FixedDesign(
         params=p, ctrl=c, ki=ki, deadband=int(deadband),
@@ -455,7 +498,7 @@ def render_default() -> str:
 # ---- firmware/fastpath.py: the controller step compiled by the native and viper emitters ----
 
 _FAST_ARRAYS = ("p", "m", "lim", "sm", "rf", "xf", "kf", "kv", "b", "kb", "kvb", "ad", "bd", "sa", "ra")
-_FAST_SCALARS = ("kr", "hk", "hkv", "d", "ki", "sk", "ulim", "ilim", "skv", "aw", "integ")
+_FAST_SCALARS = ("kr", "hk", "hkv", "d", "ki", "sk", "ulim", "uhi", "ulo", "ilim", "skv", "aw", "integ")
 
 _FAST_HEADER = '''# GENERATED by host/design/export.py (render_fastpath) from firmware/controller.py -- do not edit.
 # Regenerate with `upright generate` (tests/test_generated.py fails when this is stale).

@@ -1,0 +1,133 @@
+"""Catch mode for large tilts (issue 15 item 3; firmware/controller.py schedule, host/design/catch.py).
+
+* firmware in the loop on the MicroPython unix port (virtual board): the report's 0.3 rad
+  tilt recovered within 5 m/s^2 and settled within 2.5 s; the tracking design alone falls;
+* the hand-back to the tracking row is bumpless (force step bounded) -- in-process runs of
+  the same firmware code under CPython;
+* zero allocation per tick with catch mode active and across the switches (heap locked);
+* the catch path on the emulated RP2040 (test_catch_rp2040.py).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from host.bench.catch import run_tilt
+from host.boards import fwharness as H
+from host.boards.mpyrun import run_unix
+from host.design.catch import CATCH_DEFAULT, physical_bound
+from host.design.export import export
+from host.hil.runs import run_scenarios
+from sim.params import load_params
+from sim.scenario import load_scenario
+
+P = load_params()
+
+
+def test_tilt_0p3_recovered_in_hil_on_the_unix_port(tmp_path) -> None:
+    (run,) = run_scenarios([load_scenario("tilt_0p3")], out=tmp_path, gif=False, plot=False)
+    summ = run.summary()
+    m = summ.metrics
+    checks = {c.name: c.status for c in summ.checks}
+    assert checks["a_max"] == "PASS" and m.peak_xddot <= 5.0, m.peak_xddot
+    assert checks["settle"] == "PASS" and m.settling_time < 2.5, m.settling_time
+    assert m.peak_phi < 0.31  # caught at once: the tilt never grew past its start
+    assert abs(float(run.log["phi"][-1])) < 0.01
+    assert summ.as_expected
+
+
+def test_tracking_design_alone_falls_and_catch_mode_recovers() -> None:
+    off = run_tilt(0.3, fd=export(P, catch=None))
+    on = run_tilt(0.3)
+    assert not off.recovered and off.faults and off.n_catch == 0
+    assert on.recovered and on.faults == 0 and on.n_catch == 1 and on.a_max <= 5.0
+    # small tilts never enter catch mode: the shipped tracking behaviour is unchanged
+    small = run_tilt(0.1)
+    assert small.recovered and small.n_catch == 0
+
+
+def test_handback_is_bumpless() -> None:
+    r = run_tilt(0.3)
+    fd = export(P)
+    su = fd.lsb["u"]
+    assert not math.isnan(r.handback_s), "no hand-back to the tracking row"
+    assert r.handback_s < 2.0
+    assert abs(r.bump_n) <= CATCH_DEFAULT.du + su
+    log = r.log
+    k = int(np.nonzero(np.diff(log["catch"].astype(int)) < 0)[0][0]) + 1  # first tracking tick
+    us = log["u_sat"]
+    step = abs(us[k] - us[k - 1])
+    # the force moves by no more than an ordinary tick's change around the switch
+    ordinary = float(np.max(np.abs(np.diff(us[k - 50:k - 1]))))
+    assert step <= max(0.05, 2.0 * ordinary), (step, ordinary)
+    # after the hand-back the pendulum stays upright and the cart returns to the reference
+    assert np.max(np.abs(log["phi"][k:])) < 0.1
+    assert not log["catch"][k:].any()
+
+
+def test_catch_without_hysteresis_would_chatter_guard() -> None:
+    # the thresholds the table carries: hysteresis and a bump bound, in range
+    fd = export(P)
+    on, off, du, ulc, cphi, sphi, ucmax, rstep, woff = fd.tables["CATCH"]
+    assert 0 < off < on and du > 0 and ulc > fd.tables["ULIM"][0] * 0 and ucmax >= ulc
+    assert rstep >= 1 and woff > 0 and cphi > 0
+    assert physical_bound(P) == pytest.approx(math.atan(5.0 / 9.8))
+
+
+ALLOC = H.INTS_SRC + H.FAKE_HAL + """
+import micropython
+from firmware.app import App
+class G:
+    pass
+G.VERSION = %d
+G.CRC = %d
+G.LAYOUT = %r
+G.FLAT = tuple(ints(%r))
+hal = Hal()
+app = App(hal, gains=G, config={'watchdog_ms': 0, 'arm_tilt_mrad': 500, 'stall_ms': 0})
+c = app.ctrl
+app.step()
+app.cmd_arm()
+ADC = (2048 + 300, 2048 + 250, 2048 - 280, 2048 + 5, 2048 - 3, 2048)
+def run(n):
+    for k in range(n):
+        hal.adc = ADC[(k // 40) %% 6]
+        hal.enc = (k * 3) & 0xFFFF
+        app.step()
+        if k %% 97 == 0:
+            # force the hand-back test and the reference ramp with a settled estimate
+            c.p[2] = 0
+            c.p[3] = 0
+            app.cmd_clear_faults()
+            app.cmd_arm()
+run(200)
+n0 = c.n_catch
+micropython.heap_lock()
+try:
+    run(3000)
+    print('OK', c.n_catch - n0, int(c.ramp), c.catching)
+except MemoryError:
+    print('ALLOC')
+micropython.heap_unlock()
+# the check is real: an allocation under the lock raises
+micropython.heap_lock()
+try:
+    x = [0] * 8
+    print('NOCHECK')
+except MemoryError:
+    print('CHECKED')
+micropython.heap_unlock()
+"""
+
+
+def test_no_allocation_with_catch_mode_active_unix() -> None:
+    fd = export(P)
+    layout = tuple(H.layout_of(fd))
+    code = ALLOC % (fd.tables["HDR"][0], fd.crc(), layout, " ".join(map(str, fd.flat())))
+    out = run_unix(code, timeout=120).split()
+    assert out[0] == "OK", out
+    assert int(out[1]) >= 5  # catch mode entered (and left) many times under the lock
+    assert out[-1] == "CHECKED"
