@@ -27,6 +27,8 @@ SKIP: dict[str, str] = {
                           "tests/test_proto_cli.py dumps a live pty instead",
     "upright emulate rp2040 --pty": "serves its pty until Ctrl-C; "
                                     "tests/test_rp2040_hil.py::test_emulate_pty_serves_the_host_link opens it",
+    "upright emulate rp2040 --can": "serves its CAN bus until Ctrl-C; tests/test_rp2040_can_hil.py::"
+                                    "test_emulate_can_serves_board_status_over_udp_multicast runs upright board on it",
     "upright generate": "rewrites the repository's tracked generated files; the `--check` form is run, "
                         "and tests/test_generated.py renders every file",
     # "On a real robot": the same code against the virtual board (tests/test_board_cli.py, through a
