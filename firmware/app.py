@@ -76,6 +76,7 @@ from . import crc16
 from . import fixmath
 from . import msgtable as T
 from .controller import Controller
+from .excite import EXC_OPEN, Excite
 from .motor import Motor
 from .sensors import Sensors
 from .supervisor import ARMED, BALANCING, DISARMED, FAULT, F_ADC_OPEN, F_CONFIG, F_GAINS, F_LOOP, F_UNDERVOLT, Supervisor
@@ -142,6 +143,8 @@ class App:
         self.sensors = Sensors(flat, off, cfg.get("adc_sign", 1), cfg.get("enc_sign", 1), cfg.get("pot_offset"))
         self.motor = Motor(flat, off, cfg.get("deadband"), cfg.get("backemf", True))
         self.sup = Supervisor()
+        # identification excitation (EXCITE; firmware/excite.py)
+        self.exc = Excite()
         self.timing = Timing(1000000 // self.rate)
         self.boot = cfg.get("boot", 0) & 0xFF
         self.ref = 0
@@ -297,6 +300,8 @@ class App:
             # differs from self.ref only while handing back)
             u = self._cstep(c, s.yx, s.yp, c.schedule(self.ref))
             duty = self.motor.duty(u, c.vh)
+            if self.exc.on:
+                duty = self._excite(c, u)
             # the driver is enabled only while balancing, before the first duty
             if not self._en:
                 self._drive(1)
@@ -305,6 +310,8 @@ class App:
             self._set_motor(0)
             if self._en:
                 self._drive(0)
+            # disarm or fault: the excitation stops (the telemetry keeps its mode)
+            self.exc.on = 0
         self.duty = duty
         # counters wrap at 2**30 without computing it (not a small int on 32 bits)
         self.tick = fixmath.ticks_next(self.tick)
@@ -315,6 +322,28 @@ class App:
         self._us_frac = f
         self.step_us = tm.end(t0, self._ticks())
         return duty
+
+    def _excite(self, c, u):
+        # the excitation on the force (mode 1: added, clamped, stored for the predictor;
+        # mode 2: alone, no back-EMF compensation); telemetry's force shows what was applied
+        ex = self.exc
+        e = ex.next()
+        if ex.mode == EXC_OPEN:
+            u = e
+            vh = 0
+        else:
+            u = fixmath.clamp(u + e, c.ulim)
+            if c.d > 0:
+                c.b[c.d - 1] = u
+            vh = c.vh
+        c.u = u
+        return self.motor.duty(u, vh)
+
+    def cmd_excite(self, mode, amp_mn, div):
+        # EXCITE: start (only while balancing) or stop the identification excitation
+        if mode != 0 and self.sup.state != BALANCING:
+            return T.R_BAD_STATE
+        return self.exc.start(mode, amp_mn, div, self.table[self.off["FMT"] + 4], self.ctrl.ulim)
 
     def _supply(self, st):
         # the motor supply: filtered (8 ticks), scales the duty; returns F_UNDERVOLT when it
@@ -721,6 +750,11 @@ class App:
             arr[3] = self._tel(xf[3], 3)
             arr[4] = self._tel(self.ref, 0)
             arr[5] = self._tel(c.u, 4)
+        if self.exc.mode:
+            # an excitation is set: x and phi as the sensors read them (upright identify)
+            s = self.sensors
+            arr[0] = self._tel(fixmath.clamp(s.yx, c.lim[0]), 0)
+            arr[2] = self._tel(fixmath.clamp(s.yp, c.lim[2]), 2)
         arr[6] = self.duty
         arr[7] = self.step_us if self.step_us < _U16 else _U16
 

@@ -72,6 +72,7 @@ class Dispatcher:
         self._fill_stats = target.fill_stats if hasattr(target, "fill_stats") else None
         self._fill_raw = target.fill_sensors_raw if hasattr(target, "fill_sensors_raw") else None
         self._save = target.cmd_save if hasattr(target, "cmd_save") else None
+        self._excite = target.cmd_excite if hasattr(target, "cmd_excite") else None
         self._counted = hasattr(sender, "n_sent")
 
     # ---- replies ----
@@ -227,6 +228,10 @@ class Dispatcher:
             if self.on_mode is None:
                 return self._nack(mid, seq, T.R_NOT_SUPPORTED)
             return self._reply(mid, seq, self.on_mode(rx[0]))
+        if mid == T.EXCITE:
+            if self._excite is None:
+                return self._nack(mid, seq, T.R_NOT_SUPPORTED)
+            return self._reply(mid, seq, self._excite(rx[0], rx[2], rx[1]))
         if mid == T.REQUEST:
             w = rx[0]
             if w == T.HEARTBEAT:

@@ -70,6 +70,11 @@ MODE = const(30)
 MODE_ROBOT = const(0)
 MODE_HIL = const(1)
 MODE_REPL = const(2)
+# EXCITE (9: two bits from ARM) and its modes (firmware/excite.py)
+EXCITE = const(9)
+EXC_OFF = const(0)
+EXC_ADD = const(1)
+EXC_OPEN = const(2)
 
 MAX_ID = const(31)
 MAX_PAYLOAD = const(8)
@@ -232,6 +237,17 @@ MESSAGES = (
      "2 repl (link closed, MicroPython REPL back, e.g. for mpremote on a USB link). Only while the motor is "
      "off (disarmed or fault); ACK (then the switch) or NACK (ARMED, OUT_OF_RANGE).",
      (("mode", "B", 1, "", "0 robot, 1 hil, 2 repl"),)),
+    (EXCITE, "excite", TO_BOARD,
+     "Identification excitation played by the firmware (upright board excite, upright identify): a PRBS "
+     "(15-bit LFSR, each bit held div ticks) of +-amp on the cart force; mode 1 adds it to the controller's "
+     "force, mode 2 applies it alone, open loop (cart-only run: pendulum removed or locked), mode 0 stops. "
+     "Starts only while balancing (BAD_STATE); amp at most half the gain table's force clamp and the sum "
+     "clamped to it (OUT_OF_RANGE otherwise); stops by itself on disarm and on any fault. While a mode is "
+     "set, TELEM_STATE x and phi are the sensors as read (not the estimate) and TELEM_CTRL force is the "
+     "force applied, excitation included. ACK or NACK.",
+     (("mode", "B", 1, "", "0 off, 1 added to the balancing force, 2 open loop (force = excitation)"),
+      ("div", "B", 1, "tick", "control ticks per PRBS bit (1..255)"),
+      ("amp_mn", "H", 0.001, "N", "amplitude (1..10000 mN)"))),
 )
 
 # ---- refusal reasons (NACK.reason; also the return codes of the target methods) ----

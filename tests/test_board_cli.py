@@ -160,16 +160,25 @@ def test_log_csv_rows_match_telemetry(relay, tmp_path):
 
 
 def test_excite_recorded(relay, tmp_path):
+    # the firmware's own PRBS (EXCITE, issue 15 item 4): every tick recorded (telem_div 1 for
+    # the run, put back after), the force column +-amplitude around the controller's force
     out = tmp_path / "prbs.parquet"
-    p = board(relay, "excite", "--seconds", "2", "--amplitude", "0.005", "--bit", "0.1", "--out", str(out))
+    p = board(relay, "excite", "--seconds", "2", "--amplitude", "0.5", "--div", "4", "--out", str(out))
     assert p.returncode == 0, p.stderr
     import pyarrow.parquet as pq
 
     t = pq.read_table(out).to_pydict()
-    assert len(t["t"]) > 60
-    assert set(round(v, 4) for v in t["ref_cmd"]) == {0.005, -0.005}
-    # the board's own reference follows the commands
-    assert {round(v, 3) for v in t["ref"]} <= {0.005, -0.005, 0.0}
+    on = [i for i, m in enumerate(t["excite"]) if m == 1]
+    assert len(on) > 400  # 500 rows/s while exciting (telem_div 1)
+    assert set(t["exc_amp_n"][i] for i in on) == {0.5} and set(t["exc_div"][i] for i in on) == {4}
+    f = [t["force"][i] for i in on[20:]]
+    assert max(f) - min(f) > 0.9  # +-0.5 N on a steady balancing force
+    p = board(relay, "params", "get", "telem_div", "--json")
+    assert json.loads(p.stdout) == {"telem_div": 10}
+    bad = board(relay, "excite", "--seconds", "1", "--amplitude", "5", "--out", str(tmp_path / "x.csv"))
+    assert bad.returncode == 1 and "out_of_range" in bad.stderr, bad.stderr
+    st = json.loads(board(relay, "status", "--json").stdout)
+    assert st["state"] == "disarmed"
 
 
 def test_unplugged_mid_log_keeps_rows(relay, tmp_path):

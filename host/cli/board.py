@@ -11,7 +11,8 @@ Works the same on a real board (``--port /dev/ttyUSB0``), on the emulated Pico
     upright board --port /dev/ttyUSB0 gains upload --params robot.toml --save
     upright board --port /dev/ttyUSB0 log --seconds 10 --out run.parquet
     upright board --port /dev/ttyUSB0 calibrate --out robot.toml
-    upright board --port /dev/ttyUSB0 excite --arm --seconds 20 --amplitude 0.02 --out prbs.csv
+    upright board --port /dev/ttyUSB0 excite --arm --seconds 20 --amplitude 0.5 --out bal.csv
+    upright board --port /dev/ttyUSB0 excite --cart-only --seconds 8 --amplitude 1 --out cart.csv
     upright board --port /dev/ttyUSB0 mode hil                 # robot | hil | repl, no reflash
 
 Exit status: 0 done, 1 the board failed/refused/did not answer or the link was lost, 2 bad input
@@ -94,12 +95,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sp.add_argument("--no-motor", action="store_true", help="skip the motor-sign step")
     sp.add_argument("--no-save", action="store_true", help="set the parameters on the board but do not persist them")
 
-    sp = sub.add_parser("excite", help="PRBS on the cart reference (identification), recorded like log")
+    sp = sub.add_parser("excite", help="the firmware's PRBS on the cart force (upright identify), recorded")
     _record_args(sp)
-    sp.add_argument("--amplitude", type=A.in_range(0, 0.2, lo_open=True), default=0.02, help="m (default 0.02)")
-    sp.add_argument("--bit", type=A.in_range(0.01, 10), default=0.2, help="PRBS bit time, s (default 0.2)")
-    sp.add_argument("--order", type=A.int_range(5, 10), default=7, help="LFSR order (period 2**order - 1 bits)")
-    sp.add_argument("--arm", action="store_true", help="arm first (and disarm at the end)")
+    sp.add_argument("--amplitude", type=A.in_range(0, 10, lo_open=True), default=0.5,
+                    help="N (default 0.5; the board refuses more than half its force clamp)")
+    sp.add_argument("--div", type=A.int_range(1, 255), default=4, help="control ticks per PRBS bit (default 4)")
+    sp.add_argument("--cart-only", action="store_true",
+                    help="pendulum removed/locked: PRBS open loop, then disarm and record the coast-down")
+    sp.add_argument("--coast", type=A.in_range(0.5, 60), default=3.0, help="--cart-only: coast-down s (default 3)")
+    sp.add_argument("--arm", action="store_true", default=True, help="arm first and disarm at the end (default)")
+    sp.add_argument("--no-arm", dest="arm", action="store_false", help="the board is already balancing")
 
 
 def _record_args(sp: argparse.ArgumentParser) -> None:
@@ -334,46 +339,22 @@ def _gains(b: Any, args: argparse.Namespace) -> int:
     return 0
 
 
-def _record(b: Any, args: argparse.Namespace, excite: bool = False) -> int:
+def _record(b: Any, args: argparse.Namespace) -> int:
     from host.cli.args import RunFailed
     from host.cli.main import interrupted
     from host.operate.board import BoardError
     from host.operate.record import Recorder
 
-    extra = ("ref_cmd",) if excite else ()
-    rec = Recorder(b, args.out, extra=extra)
-    levels: list[float] = []
-    if excite:
-        from host.operate.excite import prbs_levels
-
-        lim_m = b.param_get("ref_limit_um") * 1e-6
-        if args.amplitude > lim_m:
-            raise A.UsageError(f"--amplitude {args.amplitude:g} m beyond the board's ref_limit_um ({lim_m:g} m)")
-        levels = prbs_levels(args.amplitude, int(args.seconds / args.bit) + 1, args.order)
-        rec.extra_values["ref_cmd"] = 0.0
-    armed_here = False
+    rec = Recorder(b, args.out)
     failure: str | None = None
     t0 = time.monotonic()
     last_bar = -1.0
     try:
-        if excite and args.arm:
-            st = b.state(fresh=True)
-            if st["faults"]:
-                b.clear_faults()
-            b.arm()
-            armed_here = True
-        bit = -1
         while True:
             el = time.monotonic() - t0
             if el >= args.seconds:
                 break
-            if excite:
-                k = int(el / args.bit)
-                if k != bit and k < len(levels):
-                    bit = k
-                    b.set_reference(levels[k])
-                    rec.extra_values["ref_cmd"] = levels[k]
-            if b.armed_by_us or excite:
+            if b.armed_by_us:
                 b.keepalive()
             b.poll(0.02)
             if not args.quiet and el - last_bar >= 0.25:
@@ -386,14 +367,6 @@ def _record(b: Any, args: argparse.Namespace, excite: bool = False) -> int:
     except BoardError as exc:
         failure = str(exc)
     finally:
-        if excite:
-            try:
-                b.set_reference(0.0)
-            except Exception:  # noqa: BLE001 - the board may be gone; the rows still go to disk
-                pass
-        if armed_here:
-            b.safe_disarm()
-            b.armed_by_us = False
         rec.close()
         s = rec.summary()
         msg = (f"upright board: {s['rows']} rows ({s['telemetry_frames']} telemetry frames) to {s['file']}; "
@@ -403,6 +376,31 @@ def _record(b: Any, args: argparse.Namespace, excite: bool = False) -> int:
         if interrupted():
             raise KeyboardInterrupt
         raise RunFailed(f"{failure} (kept {rec.rows} rows in {args.out})")
+    return 0
+
+
+def _excite(b: Any, args: argparse.Namespace) -> int:
+    from host.cli.args import RunFailed
+    from host.cli.main import interrupted
+    from host.operate.board import BoardError
+    from host.operate.excite import run_excite
+
+    def progress(el: float, total: float, rec: Any) -> None:
+        if not args.quiet:
+            _bar(el, total, f"{rec.rows} rows, {rec.lost} lost")
+
+    try:
+        s = run_excite(b, args.out, seconds=args.seconds, amplitude_n=args.amplitude, div=args.div,
+                       cart_only=args.cart_only, coast_s=args.coast, arm=args.arm, progress=progress)
+    except BoardError as exc:
+        if interrupted():
+            raise KeyboardInterrupt from exc
+        raise RunFailed(str(exc)) from exc
+    if not args.quiet and sys.stderr.isatty():
+        sys.stderr.write("\n")
+    _err(f"upright board: {s['rows']} rows ({s['telemetry_frames']} telemetry frames) to {s['file']}; "
+         f"{s['lost']} lost; excitation {'cart-only' if args.cart_only else 'balancing'} "
+         f"+-{args.amplitude:g} N, {args.div} ticks per bit")
     return 0
 
 
@@ -446,7 +444,7 @@ ACTIONS: dict[str, Callable[[Any, argparse.Namespace], int]] = {
     "clear": lambda b, a: (b.clear_faults(), _say("faults cleared"))[1] or 0,
     "mode": lambda b, a: (b.set_mode(a.mode), _say(f"mode {a.mode}"))[1] or 0,
     "params": _params, "gains": _gains, "log": _record,
-    "excite": lambda b, a: _record(b, a, excite=True), "calibrate": _calibrate,
+    "excite": _excite, "calibrate": _calibrate,
 }
 
 

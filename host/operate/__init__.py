@@ -4,5 +4,5 @@
   status, arm/disarm/clear with the host heartbeat kept going, parameters by name, gain upload;
 * :mod:`host.operate.record` -- every telemetry frame to CSV or Parquet, losses counted;
 * :mod:`host.operate.calibrate` -- the commissioning computations and the robot TOML;
-* :mod:`host.operate.excite` -- a bounded PRBS on the cart reference.
+* :mod:`host.operate.excite` -- identification runs: the firmware's PRBS (EXCITE), recorded.
 """

@@ -1,43 +1,145 @@
-"""Identification excitation: a bounded PRBS on the cart reference, played by the host.
+"""Identification experiments on a board: the firmware's own excitation, recorded.
 
-The firmware has no excitation generator of its own; the host sends ``set_reference`` at
-each bit of a maximum-length pseudo-random binary sequence (an LFSR), at its own pace, and
-records the telemetry like ``upright board log`` (the commanded reference in the column
-``ref_cmd``).  The amplitude is bounded by the board's ``ref_limit_um`` and by
-:data:`MAX_AMPLITUDE_M`; the reference goes back to 0 at the end, on Ctrl-C and on error.
+``upright board excite`` sends EXCITE (``firmware/excite.py``): the board plays a PRBS of
+``+-amplitude`` N on its cart force, each bit held ``div`` control ticks, and stops it by
+itself on disarm or a fault.  While it runs, the telemetry's x and phi are the sensors as
+read and its force is the force applied, and the recording (every tick: ``telem_div`` is set
+to 1 for the run and put back after) gets the column ``excite`` (the mode: 1 balancing,
+2 cart-only) plus ``exc_amp_n`` and ``exc_div`` -- what ``upright identify`` reads.
+
+- balancing run (default): arm, wait for balancing, PRBS added to the balancing force;
+- cart-only run (``cart_only``; the pendulum removed or locked upright): the PRBS alone
+  drives the cart open loop; after ``seconds`` the host disarms while the cart moves and
+  records ``coast_s`` more seconds of the coast-down (driver off), which separates the
+  cart's friction from the motor's back-EMF.
+
+The board's limits apply: the amplitude at most half the gain table's force clamp (the
+board refuses more), the sum clamped, the track and tilt faults.  The host-played
+reference PRBS of earlier versions is gone: the firmware's is exact to the tick.
 """
 
 from __future__ import annotations
 
-from typing import Iterator
+import time
+from pathlib import Path
+from typing import Any, Callable
 
-__all__ = ["MAX_AMPLITUDE_M", "prbs_bits", "prbs_levels"]
+from host.link import messages as M
+from host.operate.board import Board, BoardError, wait_state
+from host.operate.record import Recorder
 
-MAX_AMPLITUDE_M = 0.2
-"""Largest PRBS amplitude accepted (m): a tenth of the report's track would already be a lot."""
+__all__ = ["EXTRA_COLUMNS", "MODES", "run_excite"]
 
-# feedback taps (Fibonacci LFSR, bits numbered from 1) of maximum-length sequences
-_TAPS = {5: (5, 3), 6: (6, 5), 7: (7, 6), 8: (8, 6, 5, 4), 9: (9, 5), 10: (10, 7)}
-
-
-def prbs_bits(order: int = 7, seed: int = 1) -> Iterator[int]:
-    """Endless maximum-length PRBS of period ``2**order - 1`` as 0/1 bits."""
-    if order not in _TAPS:
-        raise ValueError(f"PRBS order must be one of {sorted(_TAPS)}, got {order}")
-    mask = (1 << order) - 1
-    state = (seed & mask) or 1
-    taps = _TAPS[order]
-    while True:
-        bit = 0
-        for t in taps:
-            bit ^= (state >> (t - 1)) & 1
-        yield state & 1
-        state = ((state >> 1) | (bit << (order - 1))) & mask
+MODES = {"off": 0, "balancing": 1, "cart-only": 2}
+EXTRA_COLUMNS = ("excite", "exc_amp_n", "exc_div")
 
 
-def prbs_levels(amplitude: float, n: int, order: int = 7, offset: float = 0.0) -> list[float]:
-    """The first ``n`` reference levels: ``offset +- amplitude``."""
-    if not 0 < amplitude <= MAX_AMPLITUDE_M:
-        raise ValueError(f"amplitude must be in (0, {MAX_AMPLITUDE_M}] m, got {amplitude!r}")
-    g = prbs_bits(order)
-    return [offset + (amplitude if next(g) else -amplitude) for _ in range(n)]
+def _excite_msg(mode: int, amplitude_n: float, div: int) -> Any:
+    return M.BY_NAME["excite"](mode=mode, div=div, amp_mn=int(round(amplitude_n * 1000)))
+
+
+def run_excite(b: Board, out: str | Path, *, seconds: float, amplitude_n: float, div: int = 4,
+               cart_only: bool = False, coast_s: float = 3.0, arm: bool = True,
+               progress: Callable[[float, float, Recorder], None] | None = None) -> dict[str, Any]:
+    """Run one identification experiment and record it to ``out`` (CSV or Parquet).
+
+    Parameters
+    ----------
+    b : Board
+        An open board.
+    out : str or Path
+        Recording (``.csv`` / ``.parquet``).
+    seconds : float
+        Excitation time (s).
+    amplitude_n : float
+        PRBS amplitude (N).
+    div : int
+        Control ticks per PRBS bit (1..255).
+    cart_only : bool
+        Open loop (mode 2) and a coast-down after it; else added to the balancing force.
+    coast_s : float
+        Cart-only: recording after the disarm (s).
+    arm : bool
+        Arm first (clearing faults) and disarm at the end.
+    progress : callable, optional
+        ``progress(elapsed, total, recorder)`` about 4 times a second.
+
+    Returns
+    -------
+    dict
+        The recorder's summary plus ``mode``, ``amplitude_n``, ``div``.
+
+    Raises
+    ------
+    BoardError
+        The board refused (e.g. not balancing, amplitude beyond half its force clamp),
+        did not answer, or the link was lost; every row received is on disk.
+    """
+    mode = MODES["cart-only" if cart_only else "balancing"]
+    old_div = b.param_get("telem_div")
+    if old_div != 1:
+        b.param_set("telem_div", 1)
+    rec = Recorder(b, out, extra=EXTRA_COLUMNS)
+    rec.extra_values.update(excite=0, exc_amp_n=0.0, exc_div=0)
+    armed_here = False
+    started = False
+    total = seconds + (coast_s if cart_only else 0.0)
+    try:
+        if arm:
+            if b.state(fresh=True)["faults"]:
+                b.clear_faults()
+            b.arm()
+            armed_here = True
+        st = wait_state(b, ("balancing",), 5.0)
+        if st != "balancing":
+            raise BoardError(f"{b.port}: the board is {st}, not balancing: the excitation starts only while "
+                             "balancing (pendulum upright, or locked upright for a cart-only run)")
+        # the column says the mode from the tick the board accepted it
+        rec.extra_values.update(excite=mode, exc_amp_n=float(amplitude_n), exc_div=int(div))
+        b.request(_excite_msg(mode, amplitude_n, div))
+        started = True
+        t0 = time.monotonic()
+        last = -1.0
+        disarmed = False
+        while True:
+            el = time.monotonic() - t0
+            if el >= total:
+                break
+            if cart_only and not disarmed and el >= seconds:
+                # the coast-down: driver off while the cart moves (the board's excitation
+                # stops, its telemetry keeps sending the sensors)
+                b.disarm()
+                disarmed = True
+            if not disarmed:
+                b.keepalive()
+            b.poll(0.02)
+            if progress is not None and el - last >= 0.25:
+                last = el
+                progress(el, total, rec)
+        if progress is not None:
+            progress(total, total, rec)
+    except BoardError as exc:
+        failure: BoardError | None = exc
+    else:
+        failure = None
+    finally:
+        try:
+            if started:
+                b.request(_excite_msg(0, 0.0, 1))
+        except Exception:  # noqa: BLE001 - the board may be gone; the rows still go to disk
+            pass
+        rec.extra_values.update(excite=0, exc_amp_n=0.0, exc_div=0)
+        if armed_here:
+            b.safe_disarm()
+            b.armed_by_us = False
+        try:
+            if old_div != 1:
+                b.param_set("telem_div", old_div)
+        except Exception:  # noqa: BLE001 - as above
+            pass
+        rec.close()
+    if failure is not None:
+        raise BoardError(f"{failure} (kept {rec.rows} rows in {out})") from failure
+    s = rec.summary()
+    s.update(mode=mode, amplitude_n=amplitude_n, div=div)
+    return s

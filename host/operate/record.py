@@ -3,7 +3,7 @@
 A :class:`Recorder` listens to a :class:`host.operate.board.Board` and turns each pair
 TELEM_STATE + TELEM_CTRL (one control tick) into a row, with the host time, the board's
 sequence number, the latest heartbeat's state and faults and any extra columns the caller
-sets (``excite`` adds the reference it commanded).  The board's pacer numbers its periodic
+sets (``excite`` adds the excitation's mode, amplitude and bit length).  The board's pacer numbers its periodic
 frames (heartbeats and telemetry) with one counter, so a gap in it is a lost frame
 (serial framing; CAN frames carry no sequence number and losses are not counted there).
 

@@ -1,0 +1,171 @@
+"""The firmware's identification excitation (EXCITE, firmware/excite.py; issue 15 item 4).
+
+Under CPython and the MicroPython unix port, the real App with a scripted HAL: the PRBS is
+maximum-length and balanced; EXCITE starts only while balancing and within half the force
+clamp; mode 1 adds +-amp to the controller's force (the predictor's buffer holds the sum),
+never beyond the clamp; mode 2 drives open loop; telemetry then carries the sensors and the
+applied force; disarm and faults stop it; a tick with the excitation allocates nothing
+(heap locked on the unix port).
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from firmware import msgtable as T
+from firmware.excite import Excite
+from host.boards import fwharness as H
+from host.boards.mpyrun import run_unix
+
+
+def test_prbs_is_maximum_length_and_balanced() -> None:
+    ex = Excite()
+    assert ex.start(T.EXC_ADD, 1000, 1, 0, 4) == T.OK
+    ex.amp = 1
+    seq = [ex.next() for _ in range(2 * 32767)]
+    assert seq[:32767] == seq[32767:]
+    # period exactly 32767 (not a divisor of it: 7 * 31 * 151)
+    for p in (7, 31, 151, 217, 1057, 4681):
+        assert seq[:p] != seq[p:2 * p]
+    assert abs(sum(seq[:32767])) == 1  # 16384 ones, 16383 zeros
+    ex2 = Excite()
+    ex2.start(T.EXC_OPEN, 1000, 5, 0, 4)
+    ex2.amp = 1
+    held = [ex2.next() for _ in range(50)]
+    assert all(held[i] == held[i - i % 5] for i in range(50))
+    assert held[:50:5] == seq[:10]
+
+
+def test_start_checks() -> None:
+    ex = Excite()
+    assert ex.start(3, 100, 1, 9, 1370) == T.R_OUT_OF_RANGE
+    assert ex.start(T.EXC_ADD, 100, 0, 9, 1370) == T.R_OUT_OF_RANGE
+    assert ex.start(T.EXC_ADD, 0, 1, 9, 1370) == T.R_OUT_OF_RANGE
+    # 2 N = 1024 LSB at 2**-9 N > half of a 1370 LSB clamp
+    assert ex.start(T.EXC_ADD, 2000, 1, 9, 1370) == T.R_OUT_OF_RANGE
+    assert ex.start(T.EXC_ADD, 1000, 1, 9, 1370) == T.OK and ex.amp == 512 and ex.on == 1
+    assert ex.start(T.EXC_OFF, 0, 0, 0, 0) == T.OK and ex.mode == 0 and ex.on == 0
+
+
+APP_SCRIPT = H.FAKE_HAL + """
+from firmware.app import App
+from firmware import msgtable as T
+from array import array
+try:
+    from micropython import heap_lock, heap_unlock
+except ImportError:
+    heap_lock = heap_unlock = None
+hal = Hal()
+app = App(hal, config={'watchdog_ms': 0, 'stall_ms': 0})
+c = app.ctrl
+tel = array('i', [0] * 8)
+out = []
+out.append(app.cmd_excite(1, 500, 4))          # disarmed: refused
+app.step()
+app.cmd_arm()
+for k in range(5):
+    app.step()
+out.append(app.sup.state)
+out.append(app.cmd_excite(1, 100000 // 10, 4))  # beyond half the clamp
+out.append(app.cmd_excite(1, 500, 4))
+amp = app.exc.amp
+ok = 1
+sat = 0
+for k in range(400):
+    hal.adc = 2048 + ((k * 7) % 21) - 10
+    hal.enc = k % 40 if (k // 40) % 2 == 0 else 40 - k % 40
+    if heap_lock:
+        heap_lock()
+    # the controller's own force for the same tick, then the tick with the excitation
+    app.step()
+    if heap_lock:
+        heap_unlock()
+    e = app.exc.amp if app.exc.lfsr & 1 else -app.exc.amp
+    raw = c.u_raw if -c.ulim <= c.u_raw <= c.ulim else (c.ulim if c.u_raw > 0 else -c.ulim)
+    want = raw + e
+    want = c.ulim if want > c.ulim else (-c.ulim if want < -c.ulim else want)
+    if c.u != want or c.b[c.d - 1] != want:
+        ok = 0
+    if want in (c.ulim, -c.ulim):
+        sat += 1
+    app.fill_telemetry(tel)
+    s = app.sensors
+    if tel[0] != app._tel(s.yx, 0) or tel[2] != app._tel(s.yp, 2) or tel[5] != app._tel(c.u, 4):
+        ok = 0
+out.append(ok)
+out.append(amp)
+out.append(app.sup.state)
+# open loop: the force is the excitation alone
+out.append(app.cmd_excite(2, 500, 1))
+ok2 = 1
+for k in range(50):
+    app.step()
+    e = app.exc.amp if app.exc.lfsr & 1 else -app.exc.amp
+    if c.u != e or app.duty != app.motor.duty(e, 0):
+        ok2 = 0
+out.append(ok2)
+app.cmd_disarm()
+app.step()
+out.append(app.exc.on)
+out.append(app.exc.mode)
+out.append(app.duty)
+out.append(app.cmd_excite(0, 0, 0))
+out.append(app.exc.mode)
+print(' '.join(str(v) for v in out))
+"""
+
+
+def _check(vals: list[int]) -> None:
+    refused, state, too_big, started, ok, amp, state2, started2, ok2, on, mode, duty, stopped, mode2 = vals
+    assert refused == T.R_BAD_STATE
+    assert state == 2  # balancing
+    assert too_big == T.R_OUT_OF_RANGE
+    assert started == T.OK and amp > 0
+    assert ok == 1, "force != clamp(controller + excitation), buffer or telemetry wrong"
+    assert state2 == 2, "no longer balancing after the excited ticks"
+    assert started2 == T.OK and ok2 == 1
+    assert on == 0 and mode == 2 and duty == 0  # disarm stops the signal, the telemetry mode stays
+    assert stopped == T.OK and mode2 == 0
+
+
+def test_app_excitation_cpython() -> None:
+    import contextlib
+    import io
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        exec(compile(APP_SCRIPT, "<app>", "exec"), {"__name__": "__main__"})
+    _check([int(v) for v in buf.getvalue().split()])
+
+
+def test_app_excitation_micropython_heap_locked() -> None:
+    out = run_unix(APP_SCRIPT)
+    _check([int(v) for v in out.split()])
+
+
+@pytest.mark.parametrize("mode", [1, 2])
+def test_fault_stops_excitation(mode: int) -> None:
+    ns: dict = {}
+    exec(compile(H.FAKE_HAL, "<hal>", "exec"), ns)
+    from firmware.app import App
+
+    hal = ns["Hal"]()
+    app = App(hal, config={"watchdog_ms": 0, "stall_ms": 0})
+    app.step()
+    app.cmd_arm()
+    app.step()
+    assert app.cmd_excite(mode, 300, 2) == T.OK and app.exc.on == 1
+    for _ in range(10):
+        app.step()
+    hal.adc = 2048 + 900  # far beyond the tilt limit: the supervisor latches a fault
+    app.step()
+    assert app.sup.faults & 1 and app.sup.state == 3
+    assert app.exc.on == 0 and app.duty == 0
+    # it does not restart by itself after clear_faults and a new arm
+    hal.adc = 2048
+    app.step()
+    app.cmd_clear_faults()
+    app.cmd_arm()
+    for _ in range(5):
+        app.step()
+    assert app.sup.state == 2 and app.exc.on == 0
