@@ -35,8 +35,12 @@ def test_driven_ticks_end_at_fault_or_disarm() -> None:
 
 def test_phi_error_ignores_what_happens_after_the_supervisor_cut() -> None:
     # the float design (no supervisor) runs on after the cut; the firmware's motor is off
-    run = _run([BALANCING, BALANCING, BALANCING, FAULT, FAULT], [0.1, 0.2, 0.3, 0.6, 1.2], [0.1, 0.2, 0.301, 0.4, 0.5])
+    run = _run([BALANCING, BALANCING, BALANCING, FAULT, FAULT], [0.1, 0.15, 0.19, 0.6, 1.2], [0.1, 0.15, 0.191, 0.4, 0.5])
     assert math.isclose(run.phi_error(), 0.001, abs_tol=1e-12)
+    # catch mode (|phi| >= 0.2 rad) is not in the float reference: compared up to it, nan from the start
+    caught = _run([BALANCING] * 4, [0.1, 0.12, 0.25, 0.1], [0.1, 0.121, 0.5, 1.0])
+    assert math.isclose(caught.phi_error(), 0.001, abs_tol=1e-12)
+    assert math.isnan(_run([BALANCING] * 2, [0.3, 0.2], [0.3, 0.5]).phi_error())
     disarmed = _run([BALANCING, BALANCING, DISARMED, DISARMED], [0.0, 0.0, 0.5, 1.0], [0.0, 0.002, 0.0, 0.0])
     assert math.isclose(disarmed.phi_error(), 0.002, abs_tol=1e-12)
     # while it drives, a difference counts

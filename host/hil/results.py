@@ -106,11 +106,21 @@ class HilRun:
         Compared only while the firmware drives the motor (:func:`driven_ticks`): once its
         supervisor has taken over (a fault, or the board disarmed), the float design --
         which has no supervisor -- runs on alone.
+        The float reference models the tracking row only, so the comparison also stops where
+        the firmware's |phi| first reaches the catch-mode threshold (``host.design.catch``);
+        a run that starts beyond it has no comparison (nan).
         """
         if self.reference is None:
             return math.nan
+        from host.design.catch import CATCH_DEFAULT
+
         n = min(len(self.log["phi"]), len(self.reference["phi"]))
         n = driven_ticks(self.log, n)
+        big = np.nonzero(np.abs(np.asarray(self.log["phi"][:n], dtype=float)) >= CATCH_DEFAULT.phi_on)[0]
+        if big.size:
+            if big[0] == 0:
+                return math.nan
+            n = int(big[0])
         return float(np.max(np.abs(self.log["phi"][:n] - self.reference["phi"][:n]))) if n else 0.0
 
     def summary(self, name: str | None = None) -> Any:
