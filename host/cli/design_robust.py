@@ -63,8 +63,8 @@ def run_robust(args: argparse.Namespace) -> int:
     n_v = sum(p.vertex for p in pts)
     print(f"Robust design for {params.source} over {uset.source}: {len(pts)} robots "
           f"(nominal, {n_v} vertices, {uset.random} random points), {args.candidates} candidates, seed {args.seed}")
-    print("scenarios: step +-20 cm (5 s), square-wave edges +-20 cm (2.2 s level), tilt 0.1 rad (batch, estimator "
-          f"from zero); push 0.2 N (scenario simulator, nominal + {uset.push_points} worst points)")
+    print("scenarios: step +-20 cm (5 s), square-wave edges +-20 cm (2.2 s level), tilt 0.1 rad (batch, estimator at the "
+          f"measured tilt); push 0.2 N (scenario simulator, nominal + {uset.push_points} worst points)")
     t0 = time.perf_counter()
 
     def progress(done: int, total: int, ev: Any) -> None:

@@ -5,6 +5,10 @@ Three sweeps (see :mod:`host.studies.sweep`)::
     upright sweep robustness [--n 1000]   # parameter uncertainty, delay 5-20 ms, noise, tilts
     upright sweep tune [--n 200]          # LQR weights x observer speed, scored by robustness
     upright sweep tilt                    # largest recoverable initial tilt vs atan(a_max/g)
+    upright sweep hil [--n 8] [--workers 2]  # HIL Monte Carlo: the firmware on the MicroPython unix port
+
+``--ranges FILE`` takes the Monte Carlo ranges from a TOML file (:mod:`host.studies.ranges`)
+instead of the defaults.
 
 Every sweep runs in this process, or on a Dask cluster with ``--scheduler tcp://host:port``
 (same results for the same ``--seed``).  Results go to ``--out`` as CSV and Parquet, with
@@ -29,7 +33,7 @@ from host.cli import args as A
 
 __all__ = ["add_arguments", "run", "parse_noise", "write_table", "ProgressBar"]
 
-KINDS = ("robustness", "tune", "tilt")
+KINDS = ("robustness", "tune", "tilt", "hil")
 
 
 def parse_noise(spec: str) -> Any:
@@ -93,8 +97,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="measurement noise: none | uniform:AMPLITUDE | white:POWER (default uniform:0.001)")
     parser.add_argument("--drive", choices=("motor", "force"), default="motor",
                         help="motor: duty through the DC motor model; force: ideal force actuator")
-    parser.add_argument("--tilt0", type=A.in_range(0.0, math.pi / 2, hi_open=True, unit="rad"), default=0.03,
-                        help="robustness: initial tilt range +-rad")
+    parser.add_argument("--tilt0", type=A.in_range(0.0, math.pi / 2, hi_open=True, unit="rad"), default=None,
+                        help="robustness: initial tilt range +-rad (default 0.03, or the ranges file's tilt)")
+    parser.add_argument("--ranges", metavar="TOML", default=None,
+                        help="robustness, hil: Monte Carlo ranges from a TOML file (mass, inertia, friction, motor, "
+                             "delay, tilt; e.g. sim/sweep_ranges.toml) instead of the defaults")
+    parser.add_argument("--scenario", default="tilt_0p1", metavar="NAME|TOML",
+                        help="hil: the scenario every run closes through the firmware (default tilt_0p1)")
+    parser.add_argument("--workers", type=_positive_int, default=None,
+                        help="hil: start a local Dask cluster of N worker processes (one MicroPython board each)")
     parser.add_argument("--u-max", type=A.positive, default=None, dest="u_max", help="controller force saturation (N)")
     parser.add_argument("--q-x", type=A.nonneg, default=None, dest="q_x", help="design: LQR weight on x (robustness, tilt)")
     parser.add_argument("--q-phi", type=A.nonneg, default=None, dest="q_phi", help="design: LQR weight on phi")
@@ -193,8 +204,7 @@ def run(args: argparse.Namespace) -> int:
         raise A.UsageError(f"--duration must be in (0, {A.MAX_DURATION_S:g}] s, got {args.duration}")
     if args.r is not None and not (math.isfinite(args.r) and args.r > 0):
         raise A.UsageError(f"--r: the LQR input weight must be finite with R > 0, got {args.r}")
-    if not 0 <= args.tilt0 < math.pi / 2:
-        raise A.UsageError(f"--tilt0 must be in [0, pi/2), got {args.tilt0}")
+    unc = _ranges(args)
     if args.worst < 0:
         raise A.UsageError(f"--worst must be >= 0, got {args.worst}")
     out = A.check_out_dir(args.out, "--out")
@@ -208,13 +218,22 @@ def run(args: argparse.Namespace) -> int:
         raise A.UsageError(str(exc)) from exc
     out.mkdir(parents=True, exist_ok=True)
     bar = ProgressBar(f"sweep {args.kind}", enabled=not args.quiet)
-    base = SweepConfig(params=params, design=_chosen_design(args), uncertainty=Uncertainty(tilt=args.tilt0),
+    base = SweepConfig(params=params, design=_chosen_design(args), uncertainty=unc,
                        seed=args.seed, duration=args.duration, noise=noise, drive=args.drive, plant=plant)
-    where = f"on Dask at {args.scheduler}" if args.scheduler else "in this process"
+    where = f"on Dask at {args.scheduler}" if args.scheduler else (
+        f"on {args.workers} local Dask workers" if getattr(args, "workers", None) else "in this process")
     print(f"upright sweep {args.kind}: seed {args.seed}, noise {args.noise}, drive {args.drive}, {where}")
+    if args.ranges is not None:
+        print(f"ranges from {args.ranges}: mass +-{unc.mass:g}, inertia +-{unc.inertia:g}, friction x{unc.friction[0]:g}"
+              f"..x{unc.friction[1]:g}, motor +-{unc.motor:g}, delay {unc.delay[0]:g}..{unc.delay[1]:g} s, "
+              f"tilt +-{unc.tilt:g} rad")
     from host.studies.sweep import SweepInterrupted
 
     try:
+        if args.kind == "hil":
+            from host.cli.sweep_hil import run_hil_mc
+
+            return run_hil_mc(args, params, unc, out, bar)
         if args.kind == "robustness":
             return _robustness(args, base, out, bar)
         if args.kind == "tune":
@@ -230,7 +249,7 @@ def _write_partial(args: argparse.Namespace, exc: Any, out: Path) -> None:
     from host.studies.sweep import summarise
 
     sys.stderr.write("\n")
-    stem = {"robustness": "robustness", "tune": "tune_runs", "tilt": "tilt_runs"}[args.kind]
+    stem = {"robustness": "robustness", "tune": "tune_runs", "tilt": "tilt_runs", "hil": "hil_mc"}[args.kind]
     table = exc.table
     files = write_table(table, out / stem) if table else []
     summary: dict[str, Any] = {"partial": True, "kind": args.kind, "runs_done": exc.runs_done,
@@ -242,6 +261,28 @@ def _write_partial(args: argparse.Namespace, exc: Any, out: Path) -> None:
     files.append(path)
     print(f"interrupted: {exc.runs_done} of {exc.runs_total} runs finished; partial results: "
           + ", ".join(str(f) for f in files), file=sys.stderr)
+
+
+def _ranges(args: argparse.Namespace) -> Any:
+    """The Monte Carlo ranges: the defaults, the ``--ranges`` file's keys, then ``--tilt0``."""
+    from host.studies.ranges import RangesError, load_ranges
+    from host.studies.sweep import Uncertainty
+
+    unc = Uncertainty()
+    if args.ranges is not None:
+        if args.kind not in ("robustness", "hil"):
+            raise A.UsageError(f"--ranges applies to robustness and hil, not {args.kind}")
+        try:
+            unc = load_ranges(args.ranges)
+        except RangesError as exc:
+            raise A.UsageError(f"bad ranges file: {exc}") from None
+    if args.tilt0 is not None:
+        from dataclasses import replace
+
+        if args.ranges is not None and unc.tilt != Uncertainty().tilt:
+            print(f"--tilt0 {args.tilt0:g} replaces the ranges file's tilt {unc.tilt:g}")
+        unc = replace(unc, tilt=args.tilt0)
+    return unc
 
 
 def _custom(args: argparse.Namespace) -> bool:

@@ -426,12 +426,16 @@ def concat(tables: Sequence[Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
 def run_tasks(
     tasks: Sequence[Task],
     *,
-    scheduler: str | None = None,
+    scheduler: Any = None,
     progress: Callable[[int, int], None] | None = None,
+    fn: Callable[[Any, int, int], dict[str, np.ndarray]] | None = None,
 ) -> list[dict[str, np.ndarray]]:
     """Run tasks in this process, or on the Dask cluster at ``scheduler``; tables in task order.
 
-    ``progress(runs_done, runs_total)`` is called after each task.
+    ``progress(runs_done, runs_total)`` is called after each task.  ``fn(cfg, start, stop)``
+    runs one task (default :func:`run_task`; the HIL Monte Carlo passes
+    :func:`host.studies.hil_mc.run_hil_task`).  ``scheduler`` is an address or a
+    ``distributed.Client``.
 
     Raises
     ------
@@ -440,6 +444,7 @@ def run_tasks(
     """
     total = sum(b - a for _, a, b in tasks)
     finished: dict[int, dict[str, np.ndarray]] = {}
+    fn = run_task if fn is None else fn
 
     def keep(i: int, table: dict[str, np.ndarray]) -> None:
         finished[i] = table
@@ -448,12 +453,12 @@ def run_tasks(
         if scheduler is not None:
             from .dask_run import run_on_dask
 
-            return run_on_dask(tasks, scheduler, run_task, progress=progress, on_result=keep)
+            return run_on_dask(tasks, scheduler, fn, progress=progress, on_result=keep)
         done = 0
         if progress is not None:
             progress(0, total)
         for i, (cfg, a, b) in enumerate(tasks):
-            keep(i, run_task(cfg, a, b))
+            keep(i, fn(cfg, a, b))
             done += b - a
             if progress is not None:
                 progress(done, total)
