@@ -26,6 +26,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "hil": ("host.cli.hil", "close the firmware in a hardware-in-the-loop run with the simulated plant"),
     "emulate": ("host.cli.emulate", "run the firmware on an emulated board (rp2040) with its host link on a pty"),
     "board": ("host.cli.board", "operate a board: status, arm/disarm, parameters, gains, log, calibrate, excite"),
+    "identify": ("host.cli.identify", "estimate the robot's parameters (inertia, mL, friction, motor, delay, pot "
+                                      "offset) from excite logs; write a robot TOML"),
     "sweep": ("host.cli.sweep", "batch Monte Carlo: robustness, weight tuning, largest recoverable tilt"),
     "soak": ("host.cli.soak", "long lockstep HIL run: firmware heap, timing drift, telemetry accounted for, metrics stable"),
     "dashboard": ("host.cli.dashboard", "a live web page for a board: plots, state, arm/disarm, reference, gains, recording"),

@@ -1,0 +1,278 @@
+"""Simulated identification logs, for validating ``upright identify`` (issue 15 item 4).
+
+The logs have the columns and the quantisation of a log ``upright board excite`` records
+(``host.operate.record.COLUMNS`` plus ``excite``; x and phi in the telemetry's 1e-4
+steps, as the firmware sends the sensors while an excitation runs; the integer duty):
+
+- :func:`balancing_log`: the nonlinear plant (:class:`sim.plantsim.PlantSim`, delayed and
+  quantised sensors, optional noise) closed around the float discrete controller of the
+  design, with the firmware's own PRBS (:class:`firmware.excite.Excite`, mode 1) added to
+  the force and stored for the predictor as the firmware does;
+- :func:`cart_log`: the cart alone (pendulum removed), driven open loop by the PRBS (mode 2:
+  duty from the force without back-EMF compensation), then coasting with the driver off.
+
+:func:`perturbed_plant` draws a plant from the issue's uncertainty set.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from firmware.excite import Excite
+from host.design.discrete import controller_ss
+from sim import motor as smotor
+from sim import sensors as ssens
+from sim.params import RobotParams
+from sim.plantsim import PlantSim
+from sim.scenario import Scenario
+from sim.sensors import NoiseModel
+
+__all__ = ["balancing_log", "cart_log", "perturbed_plant", "write_log", "known_params", "UNCERTAINTY"]
+
+UNCERTAINTY = {"I": (0.5, 1.2), "mass": (0.8, 1.2), "b": (0.5, 2.0), "delay": (0.0, 0.02), "kt": (0.9, 1.1),
+               "pot_offset": (-40, 40)}
+"""The issue's uncertainty set (factors; delay in s; pot offset error in counts)."""
+
+COLUMNS = ("t", "seq", "x", "xdot", "phi", "phidot", "ref", "force", "duty", "step_us", "state", "faults")
+"""host.operate.record.COLUMNS (a higher layer: tests/test_identify.py checks the two agree)."""
+TEL_X = 1e-4  # telemetry steps of x (m) and phi (rad): msgtable TELEM_STATE
+TEL_PHI = 1e-4
+
+
+def _prbs_signs(n: int, div: int) -> np.ndarray:
+    # the firmware's sequence (firmware/excite.py), +-1 per tick
+    ex = Excite()
+    ex.start(1, 1000, div, 0, 4)
+    ex.amp = 1
+    return np.array([ex.next() for _ in range(n)], dtype=float)
+
+
+def perturbed_plant(design: RobotParams, rng: np.random.Generator | None = None, **factors: float) -> RobotParams:
+    """A plant from :data:`UNCERTAINTY`: given factors, the rest drawn uniformly.
+
+    Keys: ``I`` (x the design's pivot inertia term), ``M``, ``m`` (mass factors), ``b``,
+    ``kt`` (factors), ``delay`` (s, rounded to whole ticks), ``pot_offset`` (counts added).
+    """
+    rng = rng if rng is not None else np.random.default_rng(0)
+    U = UNCERTAINTY
+
+    def pick(k: str, lo: float, hi: float) -> float:
+        return float(factors[k]) if k in factors else float(rng.uniform(lo, hi))
+
+    fI = pick("I", *U["I"])
+    fM, fm = pick("M", *U["mass"]), pick("m", *U["mass"])
+    fb, fk = pick("b", *U["b"]), pick("kt", *U["kt"])
+    d = pick("delay", *U["delay"])
+    dp = pick("pot_offset", *U["pot_offset"])
+    v = design.values
+    p = design.replace(**{"cart.M": v["cart.M"] * fM, "pendulum.m_cam": v["pendulum.m_cam"] * fm,
+                          "pendulum.m_shaft": v["pendulum.m_shaft"] * fm})
+    rate = design.rate
+    return p.replace(**{"pendulum.I": p.I * fI, "cart.b": v["cart.b"] * fb, "motor.kt": v["motor.kt"] * fk,
+                        "sensors.delay": round(d * rate) / rate,
+                        "sensors.pot_offset": int(round(v["sensors.pot_offset"] + dp))})
+
+
+def known_params(design: RobotParams, plant: RobotParams) -> RobotParams:
+    """What a user knows of ``plant``: the design's file with the weighed masses."""
+    v = plant.values
+    return design.replace(**{"cart.M": v["cart.M"], "pendulum.m_cam": v["pendulum.m_cam"],
+                             "pendulum.m_shaft": v["pendulum.m_shaft"]})
+
+
+def _rows(x: np.ndarray, phi: np.ndarray, duty: np.ndarray, force: np.ndarray, state: np.ndarray,
+          mode: int, rate: float) -> dict[str, np.ndarray]:
+    n = len(x)
+    z = np.zeros(n)
+    return {"t": np.arange(n) / rate, "seq": (np.arange(n) * 2) % 256, "x": np.round(x / TEL_X) * TEL_X,
+            "xdot": z, "phi": np.round(phi / TEL_PHI) * TEL_PHI, "phidot": z, "ref": z,
+            "force": np.round(force, 2), "duty": duty.astype(int), "step_us": z + 300, "state": state.astype(int),
+            "faults": z.astype(int), "excite": np.full(n, mode)}
+
+
+def balancing_log(plant: RobotParams, design: RobotParams, *, seconds: float = 20.0, amp: float = 0.6,
+                  div: int = 8, phi_noise: float = 5e-4, seed: int = 1) -> dict[str, np.ndarray]:
+    """A balancing run with the firmware's PRBS of ``amp`` N added to the force (mode 1).
+
+    ``phi_noise``: white noise on the tilt (rad rms per sample) on top of the quantisation.
+    """
+    Ts = 1.0 / design.rate
+    noise = NoiseModel(kind="white", power=phi_noise**2 * Ts, channels=("phi",)) if phi_noise > 0 else NoiseModel()
+    sc = Scenario(name="identify", duration=seconds, seed=seed, noise=noise)
+    sim = PlantSim(plant, sc, seed=seed)
+    ctrl = controller_ss(design)
+    Ac, Bc, Cc, Dc = (np.asarray(m_, dtype=float) for m_ in (ctrl.Ac, ctrl.Bc, ctrl.Cc, ctrl.Dc))
+    Bu = np.asarray(ctrl.Bu, dtype=float)[:, 0]
+    umax = float(ctrl.u_max)
+    from sim.plantsim import _linear_rows
+
+    Ez, Ev = _linear_rows(ctrl)
+    cpm, cpr, off = float(ssens.enc_counts_per_m(design)), float(ssens.adc_counts_per_rad(design)), design.pot_offset
+    n = sim.n_ticks
+    ex = _prbs_signs(n, div) * min(amp, umax / 2)
+    z = np.zeros(Ac.shape[0])
+    total, last = 0, sim.read()[1]
+    xs, ps, du, fo = (np.zeros(n) for _ in range(4))
+    for k in range(n):
+        adc, enc = sim.read()
+        dd = (enc - last) % ssens.ENC_MODULUS
+        total += dd - ssens.ENC_MODULUS if dd >= ssens.ENC_MODULUS // 2 else dd
+        last = enc
+        xm, phm = total / cpm, (adc - off) / cpr
+        v = np.array([xm, phm, 0.0])
+        u = float(Cc[0] @ z + Dc[0] @ v)
+        us = min(max(u + ex[k], -umax), umax)
+        xd_est = float(Ez[1] @ z + Ev[1] @ v)
+        duty = int(smotor.duty_from_force(us, xd_est, design))
+        z = Ac @ z + Bc @ v + Bu * us
+        sim.step(duty)
+        xs[k], ps[k], du[k], fo[k] = xm, phm, duty, us
+    return _rows(xs, ps, du, fo, np.full(n, 2), 1, design.rate)
+
+
+def cart_log(plant: RobotParams, design: RobotParams, *, seconds: float = 8.0, coast_s: float = 4.0,
+             amp: float = 1.2, div: int = 4, seed: int = 2) -> dict[str, np.ndarray]:
+    """A cart-only run: PRBS of ``amp`` N open loop (mode 2), then ``coast_s`` with the driver off.
+
+    The cart alone (mass ``M``): ``M xdd = F - b xd``, ``F = a duty - c_emf xd`` while driven,
+    ``F = 0`` while coasting; exact per tick (the duty is held); encoder counts delayed by
+    the plant's delay, then the telemetry's 1e-4 m steps.
+    """
+    rate = design.rate
+    Ts = 1.0 / rate
+    nd, nc = int(round(seconds * rate)), int(round(coast_s * rate))
+    n = nd + nc
+    sg = _prbs_signs(nd, div)
+    duty = np.zeros(n)
+    duty[:nd] = smotor.duty_from_force(sg * amp, 0.0, design)
+    c = smotor.motor_constants(plant)
+    fpa = c["n_motors"] * c["gear"] * c["kt"] / c["r_wheel"]
+    a_d = fpa * c["V_supply"] / (smotor.DUTY_MAX * c["R"])
+    ce = fpa * c["kt"] * c["gear"] / (c["r_wheel"] * c["R"])
+    M, b = plant.M, plant.b
+    x = np.zeros(n + 1)
+    v = 0.0
+    for k in range(n):
+        lam = (b + (ce if k < nd else 0.0)) / M
+        F = a_d * duty[k] / M if k < nd else 0.0
+        e = math.exp(-lam * Ts)
+        vinf = F / lam
+        # exact: v -> vinf + (v - vinf) e; x += vinf Ts + (v - vinf)(1 - e)/lam
+        x[k + 1] = x[k] + vinf * Ts + (v - vinf) * (1.0 - e) / lam
+        v = vinf + (v - vinf) * e
+    d = int(round(plant.delay * rate))
+    xd = np.concatenate([np.zeros(d), x[:n - d]]) if d else x[:n]
+    enc = np.rint(xd * float(ssens.enc_counts_per_m(plant)))
+    xm = enc / float(ssens.enc_counts_per_m(design))
+    state = np.where(np.arange(n) < nd, 2, 0)
+    rng = np.random.default_rng(seed)
+    phi = np.round(rng.normal(0.0, 2e-4, n), 4)  # the locked pendulum: the pot's noise only
+    force = np.zeros(n)
+    force[:nd] = sg * amp
+    return _rows(xm, phi, duty, force, state, 2, rate)
+
+
+def write_log(log: dict[str, Any], path: str | Path) -> Path:
+    """Write a simulated log as ``upright board excite`` would (CSV, same header)."""
+    p = Path(path)
+    cols = (*COLUMNS, "excite")
+    with open(p, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(cols)
+        for i in range(len(log["x"])):
+            w.writerow([_cell(log[c][i]) for c in cols])
+    return p
+
+
+def _cell(v: Any) -> str:
+    f = float(v)
+    return str(int(f)) if f.is_integer() else f"{f:.6g}"
+
+
+FW_LOOP = """
+import sys
+from array import array
+from firmware.app import App
+hal = Hal()
+app = App(hal, config=CONFIG)
+tel = array('i', [0] * 8)
+hal.adc = ADC0
+hal.enc = ENC0
+app.step()
+app.cmd_arm()
+while True:
+    line = sys.stdin.readline()
+    if not line:
+        break
+    w = line.split()
+    hal.adc = int(w[0])
+    hal.enc = int(w[1])
+    r = -1
+    if len(w) > 2:
+        r = app.cmd_excite(int(w[2]), int(w[3]), int(w[4]))
+    app.step()
+    app.fill_telemetry(tel)
+    sys.stdout.write('%d %d %d %d %d %d %d\\n' % (hal.duty, app.sup.state, tel[0], tel[2], tel[5], app.exc.mode, r))
+"""
+
+
+def firmware_balancing_log(plant: RobotParams, *, seconds: float = 30.0, amp_mn: int = 600, div: int = 8,
+                           phi_noise: float = 5e-4, seed: int = 1, start_s: float = 0.5) -> dict[str, np.ndarray]:
+    """A balancing run with the firmware in the loop: the real App (shipped gain table) under
+    the MicroPython unix port, stepped tick by tick against :class:`PlantSim`; after
+    ``start_s`` the host sends EXCITE(1, amp_mn, div) and the log takes the telemetry the
+    board would send (x, phi: the sensors in 1e-4 steps; force: 0.01 N), as ``upright board
+    excite`` records it.
+
+    Raises
+    ------
+    RuntimeError
+        The interpreter stopped, the board refused EXCITE, or it stopped balancing.
+    """
+    import os
+    import subprocess
+
+    from host.boards.fwharness import FAKE_HAL
+    from host.boards.mpyrun import ROOT, micropython_exe
+
+    rate = plant.rate
+    Ts = 1.0 / rate
+    noise = NoiseModel(kind="white", power=phi_noise**2 * Ts, channels=("phi",)) if phi_noise > 0 else NoiseModel()
+    sim = PlantSim(plant, Scenario(name="identify_fw", duration=seconds + start_s, seed=seed, noise=noise), seed=seed)
+    adc0, enc0 = sim.read()
+    cfg = {"watchdog_ms": 0, "stall_ms": 0, "arm_tilt_mrad": 150}
+    code = f"CONFIG = {cfg!r}\nADC0 = {adc0}\nENC0 = {enc0}\n" + FAKE_HAL + FW_LOOP
+    env = dict(os.environ, MICROPYPATH=f"{ROOT}:.frozen")
+    proc = subprocess.Popen([micropython_exe(), "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, bufsize=1, env=env, cwd=ROOT)
+    assert proc.stdin is not None and proc.stdout is not None
+    n0 = int(round(start_s * rate))
+    n = sim.n_ticks
+    rows = np.zeros((n - n0, 5))
+    try:
+        for k in range(n):
+            adc, enc = sim.read()
+            extra = f" 1 {amp_mn} {div}" if k == n0 else ""
+            proc.stdin.write(f"{adc} {enc}{extra}\n")
+            proc.stdin.flush()
+            line = proc.stdout.readline()
+            if not line:
+                raise RuntimeError(f"MicroPython app stopped: {proc.stderr.read() if proc.stderr else ''}")
+            duty, state, tx, tp, tf, mode, r = (int(v) for v in line.split())
+            if k == n0 and r != 0:
+                raise RuntimeError(f"EXCITE refused by the firmware (reason {r})")
+            if k >= n0:
+                if state != 2:
+                    raise RuntimeError(f"the firmware stopped balancing at tick {k} (state {state})")
+                rows[k - n0] = (tx * 1e-4, tp * 1e-4, tf * 0.01, duty, mode)
+            sim.step(duty)
+    finally:
+        proc.stdin.close()
+        proc.wait(timeout=10)
+    m = len(rows)
+    return _rows(rows[:, 0], rows[:, 1], rows[:, 3], rows[:, 2], np.full(m, 2), 1, rate)
