@@ -68,6 +68,7 @@ __all__ = [
     "worst_rows",
     "corner_scenario",
     "simulate_corner",
+    "plant_toml",
     "MeasuredStart",
 ]
 
@@ -423,3 +424,21 @@ def worst_rows(ev: Evaluation, params: RobotParams) -> list[dict[str, Any]]:
                          "fails": int(np.sum(ev.ratios(s, c) > 1.0)), "at": ev.points[i].label(rate) if i >= 0 else "",
                          "point": i})
     return rows
+
+
+def plant_toml(point: Point, params: RobotParams) -> str:
+    """A complete robot TOML of the robot at ``point`` (for ``--plant``: the design keeps ``params``)."""
+    vals = dict(params.values)
+    vals.update(point.overrides(params))
+    vals["sensors.delay"] = point.delay_ticks / float(params.rate)
+    sections: dict[str, list[str]] = {}
+    for k, v in vals.items():
+        if isinstance(v, float) and math.isnan(v):
+            continue  # derived from the geometry
+        sec, key = k.split(".", 1)
+        sections.setdefault(sec, []).append(f"{key} = {int(v) if float(v).is_integer() and key in _INTS else repr(float(v))}")
+    head = f"# robust design corner: {point.label(float(params.rate))} (of {params.source})\n"
+    return head + "\n".join(f"\n[{sec}]\n" + "\n".join(lines) for sec, lines in sections.items()) + "\n"
+
+
+_INTS = ("n_motors", "adc_bits", "pot_offset", "enc_cpr", "rate")
