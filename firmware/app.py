@@ -94,6 +94,7 @@ _WARMUP = const(16)
 _SAVE_WDT_MS = const(5000)
 _I16 = const(32767)
 _U16 = const(65535)
+_TICKS_MASK = const(0x3FFFFFFF)  # tick/uptime counters wrap to 0 after this (fixmath)
 
 
 def _epoch0(cfg, boot):
@@ -140,12 +141,19 @@ class App:
             self._tel_fast = telem_viper
         self.table = array("i", flat)
         self.rate = flat[off["RATE"]]
-        self.sensors = Sensors(flat, off, cfg.get("adc_sign", 1), cfg.get("enc_sign", 1), cfg.get("pot_offset"))
-        self.motor = Motor(flat, off, cfg.get("deadband"), cfg.get("backemf", True))
-        self.sup = Supervisor()
+        Sn, Mo, Su, Tm = Sensors, Motor, Supervisor, Timing
+        if em == "viper":
+            # their per-tick methods in viper too (firmware/fasttick.py: same attributes)
+            from .fasttick import MotorV as Mo, SensorsV as Sn, SupervisorV as Su, TimingV as Tm
+        self.sensors = Sn(flat, off, cfg.get("adc_sign", 1), cfg.get("enc_sign", 1), cfg.get("pot_offset"))
+        self.motor = Mo(flat, off, cfg.get("deadband"), cfg.get("backemf", True))
+        self.sup = Su()
         # identification excitation (EXCITE; firmware/excite.py)
         self.exc = Excite()
-        self.timing = Timing(1000000 // self.rate)
+        # tick arithmetic: the HAL's own where it has it (HalPico: time.ticks_diff/add, C)
+        self._tdiff = getattr(hal, "ticks_diff_fast", None) or fixmath.ticks_diff
+        self._tadd = getattr(hal, "ticks_add_fast", None) or fixmath.ticks_add
+        self.timing = Tm(1000000 // self.rate, self._tdiff)
         self.boot = cfg.get("boot", 0) & 0xFF
         self.ref = 0
         self.ref_um = 0
@@ -314,11 +322,16 @@ class App:
             self.exc.on = 0
         self.duty = duty
         # counters wrap at 2**30 without computing it (not a small int on 32 bits)
-        self.tick = fixmath.ticks_next(self.tick)
+        # (fixmath.ticks_next inlined: a call costs more than this on a board)
+        k = self.tick
+        self.tick = k + 1 if k < _TICKS_MASK else 0
         f = self._us_frac + self.period_us
-        while f >= 1000:
-            f -= 1000
-            self.uptime_ms = fixmath.ticks_next(self.uptime_ms)
+        if f >= 1000:
+            k = self.uptime_ms
+            while f >= 1000:
+                f -= 1000
+                k = k + 1 if k < _TICKS_MASK else 0
+            self.uptime_ms = k
         self._us_frac = f
         self.step_us = tm.end(t0, self._ticks())
         return duty
@@ -373,8 +386,8 @@ class App:
         # real-time mode: one step (and the link's poll) every period_us, busy-waiting on
         # the HAL clock; a late tick starts the next period from now (no catch-up burst)
         ticks = self._ticks
-        diff = fixmath.ticks_diff
-        add = fixmath.ticks_add
+        diff = self._tdiff
+        add = self._tadd
         step = self._step
         poll = self._poll
         locked = lock and _heap_lock is not None

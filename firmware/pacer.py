@@ -7,8 +7,11 @@
 # frames by it).  The first tick sends both, so a host sees a (re)started board at
 # once.  Allocation-free.
 #
-#   pacer = Pacer(app, disp)   app: param_get(index), period_us; disp: commands.Dispatcher
+#   pacer = Pacer(app, disp)   app: param_get(index), period_us (and, read directly when it
+#                              has one, its params array); disp: commands.Dispatcher
 #   pacer.tick()               after every control step
+#   pacer.telemetry / .heartbeat  the senders (seq) -> disp.send_telemetry/send_heartbeat;
+#                              a link may put faster ones of the same bytes there
 #   pacer.elapse(us)           board time passing without control ticks (a HIL
 #                              lockstep link waiting for the host): heartbeats only
 
@@ -31,17 +34,39 @@ class Pacer:
         self.seq = 0
         self._telem_left = 0
         self._hb_us = _HB_DUE_US
+        self.telemetry = disp.send_telemetry
+        self.heartbeat = disp.send_heartbeat
+        # the app's parameter array, indexed in tick() (no method call per tick); None: param_get
+        p = getattr(app, "params", None)
+        self._p = p if p is not None and len(p) == T.N_PARAMS else None
 
     def tick(self):
+        # every control tick; the same as elapse(app.period_us) after the telemetry, in one
+        # call (a call costs more than this body on a board)
         app = self.app
-        div = app.param_get(T.P_TELEM_DIV)
+        p = self._p
+        if p is not None:
+            div = p[T.P_TELEM_DIV]
+            hb = p[T.P_HEARTBEAT_MS]
+        else:
+            div = app.param_get(T.P_TELEM_DIV)
+            hb = app.param_get(T.P_HEARTBEAT_MS)
         if div > 0:
-            self._telem_left -= 1
-            if self._telem_left <= 0:
-                self._telem_left = div
+            n = self._telem_left - 1
+            if n <= 0:
+                n = div
                 self.seq = (self.seq + 1) & 0xFF
-                self.disp.send_telemetry(self.seq)
-        self.elapse(app.period_us)
+                self.telemetry(self.seq)
+            self._telem_left = n
+        if hb <= 0:
+            return
+        t = self._hb_us + app.period_us
+        if t < hb * 1000:
+            self._hb_us = t
+            return
+        self._hb_us = 0
+        self.seq = (self.seq + 1) & 0xFF
+        self.heartbeat(self.seq)
 
     def elapse(self, us):
         # us: 0 .. 2**20 per call (a period or an idle wait); the sum stays below 2**25
@@ -54,4 +79,4 @@ class Pacer:
             return
         self._hb_us = 0
         self.seq = (self.seq + 1) & 0xFF
-        self.disp.send_heartbeat(self.seq)
+        self.heartbeat(self.seq)

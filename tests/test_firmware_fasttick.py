@@ -1,0 +1,234 @@
+"""The viper builds of the per-tick methods (firmware/fasttick.py) equal the plain ones.
+
+SensorsV.update, SupervisorV.update, MotorV.duty and TimingV.begin/end against
+Sensors/Supervisor/Motor/Timing on the same pseudo-random and extreme inputs (rails, encoder
+wraps, every supervisor state, watchdog/stall/tilt/track limits, supply scaling, tick-clock
+wraps): every result and every attribute after every call.  Under the MicroPython unix port
+(real viper code) and under CPython (the decorator a no-op).  A whole App with the viper
+emitter builds these classes and steps allocation-free.
+"""
+
+from __future__ import annotations
+
+from host.boards import fwharness as H
+from host.boards.mpyrun import run_unix
+
+SCRIPT = r"""
+from firmware import gains as G
+from firmware.controller import Controller
+from firmware.sensors import Sensors
+from firmware.supervisor import Supervisor
+from firmware.motor import Motor
+from firmware.timing import Timing
+from firmware import fasttick as F
+from firmware import supervisor as SV
+
+seed = [12345]
+def rnd(n):
+    # deterministic LCG (the same sequence on both interpreters): 0 .. n-1
+    seed[0] = (seed[0] * 1103515245 + 12345) & 0x7FFFFFFF
+    return (seed[0] >> 8) % n
+
+def pick(a):
+    return a[rnd(len(a))]
+
+flat = G.FLAT
+off = Controller(G.LAYOUT, flat).off
+bad = {}
+def chk(name, a, b, attrs):
+    for k in attrs:
+        if getattr(a, k) != getattr(b, k):
+            bad[name] = bad.get(name, 0) + 1
+            if bad[name] < 4:
+                print('diff', name, k, getattr(a, k), getattr(b, k))
+
+cbad = 0
+for k in F.CONSTS:
+    if getattr(SV, k) != F.CONSTS[k]:
+        cbad += 1
+print('consts_bad', cbad)
+
+# sensors
+SA = ('rail', 'counts', 'yp', 'last', 'primed', 'delta', 'jump', 'pos', 'yx')
+n = 0
+for cfg in ((1, 1), (-1, 1), (1, -1), (-1, -1)):
+    a = Sensors(flat, off, cfg[0], cfg[1])
+    b = F.SensorsV(flat, off, cfg[0], cfg[1])
+    enc = 65000
+    for i in range(1500):
+        r = rnd(20)
+        if r == 0:
+            adc = pick((-5, 0, 1, 4094, 4095, 4096, 5000))
+        else:
+            adc = a.pot_offset + rnd(1601) - 800
+        if r == 1:
+            enc = rnd(65536)
+        elif r == 2:
+            enc = enc + pick((40000, -40000, 32767, -32768, 100000))
+        else:
+            enc = enc + rnd(61) - 30
+        if r == 3:
+            a.zero()
+            b.zero()
+        a.update(adc, enc)
+        b.update(adc, enc)
+        chk('sensors', a, b, SA)
+        n += 1
+    # pos saturation
+    a.pos = b.pos = 0x3FFFF0
+    for i in range(40):
+        enc += 30000
+        a.update(2048, enc)
+        b.update(2048, enc)
+        chk('sensors', a, b, SA)
+print('sensors_n', n)
+
+# supervisor
+UA = ('state', 'faults', 'last', 'wd_count', 'stall_count')
+n = 0
+a = Supervisor()
+b = F.SupervisorV()
+for s in (a, b):
+    s.tilt_counts = 300
+    s.arm_counts = 40
+    s.track_counts = 5000
+    s.wd_ticks = 50
+    s.stall_ticks = 30
+    s.stall_duty = 800
+for i in range(20000):
+    r = rnd(40)
+    if r == 0:
+        st = rnd(4)
+        a.state = st
+        b.state = st
+    elif r == 1:
+        a.faults = 0
+        b.faults = 0
+    elif r == 2:
+        v = pick((True, False))
+        a.ready = v
+        b.ready = v
+    elif r == 3:
+        v = pick((True, False))
+        a.timing_ok = v
+        b.timing_ok = v
+    elif r == 4:
+        a.feed()
+        b.feed()
+    elif r == 5:
+        v = pick((0, 5, 50))
+        a.wd_ticks = b.wd_ticks = v
+        v = pick((0, 3, 30))
+        a.stall_ticks = b.stall_ticks = v
+    counts = pick((0, 39, 40, -40, -39, 299, 300, 301, -300, -301)) if rnd(3) == 0 else rnd(701) - 350
+    pos = pick((0, 4999, 5000, 5001, -5000, -5001)) if rnd(3) == 0 else rnd(12001) - 6000
+    rail = rnd(30) == 0
+    jump = rnd(30) == 0
+    delta = 0 if rnd(2) else rnd(21) - 10
+    duty = pick((0, 799, 800, -800, -799, 32767, -32767))
+    ext = pick((0, 0, 0, 0, 2048, 4096, 8192))
+    ra = a.update(counts, pos, rail, jump, delta, duty, ext)
+    rb = b.update(counts, pos, rail, jump, delta, duty, ext)
+    if ra != rb:
+        bad['sup_ret'] = bad.get('sup_ret', 0) + 1
+    chk('supervisor', a, b, UA)
+    n += 1
+print('sup_n', n)
+
+# motor
+n = 0
+for backemf in (True, False):
+    a = Motor(flat, off, None, backemf)
+    b = F.MotorV(flat, off, None, backemf)
+    for i in range(4000):
+        if rnd(50) == 0:
+            mv = pick((0, -1, 3000, 9000, 12000, 12001, 15000, 60000))
+            a.set_supply(mv, 12000)
+            b.set_supply(mv, 12000)
+        if rnd(50) == 0:
+            m = pick((32767, 20000, 100))
+            a.max_duty = b.max_duty = m
+        u = pick((0, 1, -1, 2000, -2000)) if rnd(4) == 0 else rnd(4001) - 2000
+        vh = rnd(20001) - 10000
+        if a.duty(u, vh) != b.duty(u, vh):
+            bad['motor'] = bad.get('motor', 0) + 1
+        n += 1
+print('motor_n', n)
+
+# timing: the clock wraps at 2**30 (step and period across the wrap)
+TA = ('period_max', 'jitter_max', 'overruns', 'last_us', 'step_min', 'step_max', 'steps', 'mean_us', 'worst', 'misses')
+n = 0
+a = Timing(2000)
+b = F.TimingV(2000)
+t = 0x3FFFFFFF - 300000
+for i in range(6000):
+    r = rnd(200)
+    t = (t + pick((2000, 2000, 1999, 2001, 2500, 3001, 3500, 40000))) & 0x3FFFFFFF
+    ex = pick((300, 700, 1200, 1999, 2000, 2001, 2600, 70000)) if rnd(5) == 0 else 500 + rnd(200)
+    t1 = (t + ex) & 0x3FFFFFFF
+    if r == 0:
+        t1 = (t - 5) & 0x3FFFFFFF  # a clock read out of order
+    a.begin(t)
+    b.begin(t)
+    if a.end(t, t1) != b.end(t, t1):
+        bad['timing_ret'] = bad.get('timing_ret', 0) + 1
+    if r == 1:
+        a.reset()
+        b.reset()
+    chk('timing', a, b, TA)
+    n += 1
+print('timing_n', n)
+print('bad', sum(bad.values()), bad)
+"""
+
+APP = H.FAKE_HAL + r"""
+import micropython
+from firmware.app import App
+from firmware import fasttick as F
+hal = Hal()
+app = App(hal, config={'watchdog_ms': 0, 'emitter': 'viper'})
+print('classes', int(isinstance(app.sensors, F.SensorsV)) + int(isinstance(app.sup, F.SupervisorV))
+      + int(isinstance(app.motor, F.MotorV)) + int(isinstance(app.timing, F.TimingV)))
+hal.adc = 2048
+app.step()
+app.cmd_arm()
+app.step()
+k = 0
+ok = 0  # globals made before the lock (a new global may grow the module's dict)
+micropython.heap_lock()
+try:
+    for k in range(2000):
+        hal.adc = 2048 + (k % 11) - 5
+        hal.enc = (65530 + (k % 9)) & 0xFFFF
+        app.step()
+    ok = 1
+except MemoryError:
+    ok = 0
+micropython.heap_unlock()
+print('alloc_free', ok)
+print('state', app.sup.state)
+"""
+
+
+def _check(out: str) -> None:
+    lines = dict(line.split(" ", 1) for line in out.splitlines() if line.strip() and not line.startswith("diff"))
+    assert int(lines["consts_bad"]) == 0
+    assert int(lines["sensors_n"]) == 6000 and int(lines["sup_n"]) == 20000
+    assert int(lines["motor_n"]) == 8000 and int(lines["timing_n"]) == 6000
+    assert int(lines["bad"].split()[0]) == 0, out
+
+
+def test_viper_methods_equal_the_plain_ones_on_the_unix_port() -> None:
+    _check(run_unix(SCRIPT, timeout=240))
+
+
+def test_cpython_fallback_equals_the_plain_ones(capsys) -> None:
+    exec(compile(SCRIPT, "fasttick_script", "exec"), {})
+    _check(capsys.readouterr().out)
+
+
+def test_app_with_viper_builds_them_and_steps_allocation_free() -> None:
+    out = dict(line.split() for line in run_unix(APP, timeout=120).splitlines() if line.strip())
+    assert out["classes"] == "4"
+    assert out["alloc_free"] == "1"
+    assert out["state"] == "2"
