@@ -17,7 +17,7 @@ import pytest
 
 from host.bench.catch import run_tilt
 from host.boards import fwharness as H
-from host.boards.mpyrun import run_unix
+from host.boards.mpyrun import run_unix, run_wasm, wasm_available
 from host.design.catch import CATCH_DEFAULT, physical_bound
 from host.design.export import export
 from host.hil.runs import run_scenarios
@@ -78,7 +78,6 @@ def test_catch_without_hysteresis_would_chatter_guard() -> None:
 
 
 ALLOC = H.INTS_SRC + H.FAKE_HAL + """
-import micropython
 from firmware.app import App
 class G:
     pass
@@ -92,42 +91,100 @@ c = app.ctrl
 app.step()
 app.cmd_arm()
 ADC = (2048 + 300, 2048 + 250, 2048 - 280, 2048 + 5, 2048 - 3, 2048)
-def run(n):
+def ticks(n):
     for k in range(n):
         hal.adc = ADC[(k // 40) %% 6]
         hal.enc = (k * 3) & 0xFFFF
         app.step()
         if k %% 97 == 0:
-            # force the hand-back test and the reference ramp with a settled estimate
+            # a settled estimate: the hand-back test, then the reference ramp
             c.p[2] = 0
             c.p[3] = 0
             app.cmd_clear_faults()
             app.cmd_arm()
-run(200)
+def extremes(rounds):
+    # schedule() at the proof's bounds: estimate and stored forces at their limits, every
+    # sign pattern, both modes, the reference at its limits
+    lim = c.lim
+    ub = c.ucmax if c.ucmax > c.ulim_t else c.ulim_t
+    for rnd in range(rounds):
+        for pat in range(64):
+            for i in range(4):
+                c.p[i] = lim[i] if (pat >> i) & 1 else -lim[i]
+            if pat & 32:
+                c.p[2] = 0
+                c.p[3] = 0
+            for i in range(c.d):
+                c.b[i] = ub if (pat + i) & 16 else -ub
+            c.integ = c.ilim if pat & 1 else -c.ilim
+            c._use(pat & 2 == 0)
+            c.rr = c.rlim if pat & 4 else -c.rlim
+            c.ramp = True
+            r = c.rlim if pat & 8 else -c.rlim
+            c.step(c.p[0], c.p[2], c.schedule(r))
+            c.step(c.p[0], c.p[2], c.schedule(r))
+def control(n):
+    for k in range(n):
+        y = [k]
+"""
+
+UNIX_RUN = """
+import micropython
+def run(name, fn):
+    micropython.heap_lock()
+    try:
+        fn()
+        ok = 0
+    except MemoryError:
+        ok = 1
+    micropython.heap_unlock()
+    print(name, ok)
+"""
+
+WASM_RUN = """
+import gc
+def run(name, fn):
+    gc.collect()
+    gc.disable()
+    a = gc.mem_alloc()
+    fn()
+    b = gc.mem_alloc()
+    gc.enable()
+    print(name, b - a)
+"""
+
+PHASES = """
+ticks(200)
 n0 = c.n_catch
-micropython.heap_lock()
-try:
-    run(3000)
-    print('OK', c.n_catch - n0, int(c.ramp), c.catching)
-except MemoryError:
-    print('ALLOC')
-micropython.heap_unlock()
-# the check is real: an allocation under the lock raises
-micropython.heap_lock()
-try:
-    x = [0] * 8
-    print('NOCHECK')
-except MemoryError:
-    print('CHECKED')
-micropython.heap_unlock()
+run('ticks', lambda: ticks(3000))
+print('entries', c.n_catch - n0)
+run('extremes', lambda: extremes(2))
+run('control', lambda: control(200))
 """
 
 
-def test_no_allocation_with_catch_mode_active_unix() -> None:
+def _alloc_code(run: str) -> str:
     fd = export(P)
     layout = tuple(H.layout_of(fd))
-    code = ALLOC % (fd.tables["HDR"][0], fd.crc(), layout, " ".join(map(str, fd.flat())))
-    out = run_unix(code, timeout=120).split()
-    assert out[0] == "OK", out
-    assert int(out[1]) >= 5  # catch mode entered (and left) many times under the lock
-    assert out[-1] == "CHECKED"
+    return ALLOC % (fd.tables["HDR"][0], fd.crc(), layout, " ".join(map(str, fd.flat()))) + run + PHASES
+
+
+def _parse(out: str) -> dict[str, int]:
+    return {a: int(b) for a, b in (ln.split() for ln in out.splitlines() if len(ln.split()) == 2)}
+
+
+def test_no_allocation_with_catch_mode_active_unix() -> None:
+    res = _parse(run_unix(_alloc_code(UNIX_RUN), timeout=120))
+    assert res["control"] == 1  # the lock is real: a list allocation raised
+    assert res["entries"] >= 5  # catch mode entered (and left) many times under the lock
+    assert res["ticks"] == 0 and res["extremes"] == 0, res
+
+
+@pytest.mark.wasm
+@pytest.mark.skipif(not wasm_available(), reason="node / MicroPython WebAssembly port not installed")
+def test_no_allocation_with_catch_mode_32bit_wasm_small_ints() -> None:
+    # 32-bit small ints: an intermediate of schedule() outside +-2**30 would be a heap big int
+    res = _parse(run_wasm(_alloc_code(WASM_RUN), timeout=300))
+    assert res["control"] > 0
+    assert res["entries"] >= 5
+    assert res["ticks"] == 0 and res["extremes"] == 0, res

@@ -18,7 +18,9 @@ from sim.params import load_params
 
 P = load_params()
 FD = export(P)
-FD_KI = export(P, ki=40.0, deadband=500)
+# the integral/deadband table without catch mode: its random-tilt phase then stays on the
+# tracking row (FD, with catch mode, covers the catch row's clamps in the same phase)
+FD_KI = export(P, ki=40.0, deadband=500, catch=None)
 
 
 def _gains_src(name, fd) -> str:
@@ -87,6 +89,8 @@ for aw in (1, 0):
     c.reset(0, 0)
     c.aw = aw == 1
     c.ulim = 50
+    c.uhi = 50  # the live clamp (tracking row: +-ulim)
+    c.ulo = -50
     sat = 0
     for k in range(2000):
         u = c.step(0, 0, r)
@@ -96,6 +100,8 @@ for aw in (1, 0):
     chk('aw%d_integ_after' % aw, c.integ)
     # the cause goes away: full force range back, measurement at the reference
     c.ulim = ulim
+    c.uhi = ulim
+    c.ulo = -ulim
     rec = -1
     for k in range(1000):
         u = c.step(0, 0, 0)
