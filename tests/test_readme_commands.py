@@ -67,6 +67,7 @@ SKIP: dict[str, str] = {
 # command prefix -> arguments added to keep the test short (the reason in the comment)
 SHORTEN: dict[str, list[str]] = {
     "upright design": ["--no-search"],  # the LQR weight search alone is ~20 s
+    "upright design --robust": ["--candidates", "1"],  # 24 candidates by default: minutes
     "upright dashboard --virtual": ["--seconds", "3", "--http-port", "0"],  # serves until Ctrl-C
     "upright hil --virtual": ["--scenario", "tilt_0p1", "--no-gif"],  # all eight scenarios: a minute
     "upright hil --emulate rp2040": ["--scenario", "tilt_0p1", "--no-gif"],  # one scenario: ~40 s wall
@@ -75,6 +76,7 @@ SHORTEN: dict[str, list[str]] = {
     "upright sweep robustness": ["--n", "4", "--duration", "0.5", "--no-plots"],
     "upright sweep tune": ["--search", "random", "--designs", "2", "--n", "2", "--duration", "0.5", "--no-plots"],
     "upright sweep tilt": ["--step", "0.2", "--duration", "0.5", "--no-plots"],
+    "upright sweep hil": ["--n", "1"],  # 8 runs of 5 s through the firmware by default
 }
 
 # placeholders in the README's command lines -> what the test gives
