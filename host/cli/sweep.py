@@ -233,7 +233,7 @@ def run(args: argparse.Namespace) -> int:
         if args.kind == "hil":
             from host.cli.sweep_hil import run_hil_mc
 
-            return run_hil_mc(args, params, unc, out, bar)
+            return run_hil_mc(args, params, unc, out, bar, write_table, _fmt_table)
         if args.kind == "robustness":
             return _robustness(args, base, out, bar)
         if args.kind == "tune":

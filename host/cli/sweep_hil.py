@@ -13,7 +13,7 @@ import argparse
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -22,9 +22,10 @@ from host.cli import args as A
 __all__ = ["run_hil_mc"]
 
 
-def run_hil_mc(args: argparse.Namespace, params: Any, unc: Any, out: Path, bar: Any) -> int:
-    """Run the HIL Monte Carlo and print/write its table."""
-    from host.cli.sweep import _fmt_table, write_table
+def run_hil_mc(args: argparse.Namespace, params: Any, unc: Any, out: Path, bar: Any,
+               write_table: Callable[[Any, Path], list[Path]], fmt_table: Callable[..., str]) -> int:
+    """Run the HIL Monte Carlo and print/write its table (``write_table``, ``fmt_table``: the sweep
+    command's writers, passed in so this module does not import it back)."""
     from host.hil.runs import resolve_scenarios
     from host.studies.hil_mc import HilMcConfig, close_session, hil_tasks, run_hil_task
     from host.studies.sweep import concat, run_tasks
@@ -73,7 +74,7 @@ def run_hil_mc(args: argparse.Namespace, params: Any, unc: Any, out: Path, bar: 
     order = np.argsort(-np.asarray(table["phi_max"]), kind="stable")[:5]
     rows = [{k: (float(table[k][i]) if k != "run" else int(table[k][i])) for k in
              ("run", "delay", "I", "b", "phi_max", "settle", "xddot_max")} | {"passed": bool(passed[i])} for i in order]
-    print(_fmt_table(rows, ("run", "delay", "I", "b", "phi_max", "settle", "xddot_max", "passed")))
+    print(fmt_table(rows, ("run", "delay", "I", "b", "phi_max", "settle", "xddot_max", "passed")))
     files = write_table(table, out / "hil_mc")
     path = out / "hil_summary.json"
     path.write_text(json.dumps(summary, indent=2))
