@@ -64,7 +64,9 @@ def test_handback_is_bumpless() -> None:
     ordinary = float(np.max(np.abs(np.diff(us[k - 50:k - 1]))))
     assert step <= max(0.05, 2.0 * ordinary), (step, ordinary)
     # after the hand-back the pendulum stays upright and the cart returns to the reference
-    assert np.max(np.abs(log["phi"][k:])) < 0.1
+    # (the true tilt, 10 ms ahead of the estimate the switch uses, within a count of phi_off)
+    assert np.max(np.abs(log["phi"][k:])) < CATCH_DEFAULT.phi_off + 0.01
+    assert abs(float(log["phi"][-1])) < 0.01
     assert not log["catch"][k:].any()
 
 

@@ -218,7 +218,7 @@ def bench() -> dict[str, Any]:
             f"{len(runs) + len(runs_off)} runs in {dt:.1f} s",
             f"0.30 rad: |a|max {r30.a_max:.2f} m/s^2, cart {r30.x_max:.2f} m, hand-back at {r30.handback_s:.2f} s, "
             f"force step there {r30.bump_n:.3f} N",
-            "beyond ~0.32 rad the cart leaves the track (1.25 m: F_TRACK) or the drive runs out of speed",
+            "beyond the largest tilt the cart leaves the track (1.25 m: F_TRACK) or the drive runs out of speed",
         ],
         "bound_rad": bound,
         "drive_bound_rad": dbound,
