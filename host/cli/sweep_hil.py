@@ -61,6 +61,10 @@ def run_hil_mc(args: argparse.Namespace, params: Any, unc: Any, out: Path, bar: 
     finally:
         close_session()
         if client is not None:
+            try:
+                client.run(close_session)  # each worker's board, before the cluster goes
+            except Exception:  # noqa: BLE001 - a worker already gone has no board left
+                pass
             client.close()
         if cluster is not None:
             cluster.close()
