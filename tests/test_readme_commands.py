@@ -51,8 +51,13 @@ SKIP: dict[str, str] = {
                                             "::test_ctrl_c_disarms_and_exits_130",
     "upright board --port /dev/ttyUSB0 log --seconds 10 --out run.parquet":
         "needs a board on /dev/ttyUSB0; tests/test_board_cli.py::test_log_csv_rows_match_telemetry",
-    "upright board --port /dev/ttyUSB0 excite --arm --seconds 20 --out prbs.csv":
+    "upright board --port /dev/ttyUSB0 excite --seconds 30 --amplitude 0.5 --out bal.csv":
         "needs a board on /dev/ttyUSB0; tests/test_board_cli.py::test_excite_recorded",
+    "upright board --port /dev/ttyUSB0 excite --cart-only --seconds 15 --amplitude 1 --out cart.csv":
+        "needs a board on /dev/ttyUSB0 (the pendulum off); tests/test_board_cli.py::test_excite_recorded, "
+        "tests/test_excite.py (open-loop mode)",
+    "upright identify bal.csv cart.csv --params robot.toml --out robot_id.toml":
+        "needs the two logs of a board; tests/test_identify.py identifies simulated ones (and the firmware's)",
     "upright dashboard --port /dev/ttyUSB0": "needs a board; serves until Ctrl-C: the same page and hub on the "
                                              "virtual board in tests/test_dashboard_browser.py (--virtual)",
     "upright hil --port /dev/ttyUSB0": "needs a board on /dev/ttyUSB0; tests/test_rp2040_modes.py::"

@@ -28,6 +28,7 @@ BENCHES: dict[str, str] = {
     "rp2040": "host.bench.rp2040:bench",
     "fuzz_states": "host.bench.fuzz_states:bench",
     "catch": "host.bench.catch:bench",
+    "identify": "host.bench.identify:bench",
 }
 
 
