@@ -141,6 +141,9 @@ def test_bad_logs_one_line_exit_2(cli_logs, tmp_path: Path, capsys) -> None:
     _one_line_exit_2(["identify", str(bad)], capsys, str(bad), "'phi'", "line 6")
     _one_line_exit_2(["identify", str(cart)], capsys, "no balancing run")
     _one_line_exit_2(["identify", str(tmp_path / "missing.csv")], capsys, "missing.csv")
+    gap = tmp_path / "gap.csv"
+    gap.write_text("\n".join([*text[:100], *text[101:]]) + "\n")  # one tick lost
+    _one_line_exit_2(["identify", str(gap)], capsys, str(gap), "'seq'", "lost")
     short = tmp_path / "short.csv"
     short.write_text("\n".join(text[:50]) + "\n")
     _one_line_exit_2(["identify", str(short)], capsys, str(short), "rows")

@@ -174,6 +174,16 @@ def read_log(path: str | Path, cart_only: bool | None = None, min_rows: int = 50
             raise LogError(name, c, f"line {bad}: missing or non-finite value")
     if len(idx) < min_rows:
         raise LogError(name, "", f"{len(idx)} excitation rows, at least {min_rows} needed")
+    seq = cols.get("seq")
+    if seq is not None and np.all(np.isfinite(seq[idx])) and np.all(seq[idx] >= 0):
+        # one sequence number per tick's telemetry pair, one more per heartbeat in between:
+        # any other step is a lost tick, and the fit needs every tick
+        gap = (np.diff(seq[idx].astype(np.int64)) % 256)
+        bad = np.flatnonzero((gap != 1) & (gap != 2))
+        if len(bad):
+            raise LogError(name, "seq", f"line {int(idx[bad[0]]) + 3}: telemetry frames lost (sequence "
+                                        f"jumps by {int(gap[bad[0]])}): record again (upright board excite "
+                                        "counts the losses)")
     x, phi, duty = cols["x"][idx], cols["phi"][idx], cols["duty"][idx]
     coast = np.zeros(len(idx), dtype=bool)
     if cart_only:
