@@ -97,6 +97,21 @@ def test_filters_pass_only_this_nodes_ids_and_both_buffers_fill_in_order(repl) -
     assert out.split() == ["35", "128", "0", "0"]
 
 
+def test_int_stays_low_through_a_pad_write(repl) -> None:
+    # HalPico's open-wiper test writes the ADC pin's pad (pull-up on, off) every
+    # ADC_OPEN_TEST_TICKS; the harness then refreshes every undriven pin from its pad pulls.  The
+    # chip drives INT: a frame waiting in RXB0 keeps it low through that write (it was pulled back
+    # high once -- the link then saw INT idle with RX0IF set and never read its buffers again)
+    b, br = repl
+    _init(repl)
+    br.inject([_frame(T.DISARM)], source="t")
+    br.run(2000)
+    pad = 0x4001C000 + 4 + 4 * 26  # PADS_BANK0 GPIO26 (the angle ADC), as hal_pico
+    out = b.exec(f"a = d.pending(); machine.mem32[{pad + 0x2000}] = 8; machine.mem32[{pad + 0x3000}] = 8\n"
+                 "b = d.pending(); d.read_rx(0); print(a, b, d.pending())")
+    assert out.split() == ["True", "True", "False"]
+
+
 def test_tx_priority_and_bit_time_on_the_bus(repl) -> None:
     b, br = repl
     _init(repl)
@@ -193,7 +208,8 @@ def test_board_serves_the_host_over_python_can_and_cantools_decodes_every_frame(
             link.send(msg)
             cb.run(2000)
         # a wrong length and an unknown id for this node: dropped and counted
-        cb.bridge.inject([_frame(T.DISARM, b"\x00"), _frame(9)], source="host2")
+        free = next(i for i in range(1, 32) if i not in M.MESSAGES)  # an id the table leaves free
+        cb.bridge.inject([_frame(T.DISARM, b"\x00"), _frame(free)], source="host2")
         for _ in range(20):
             cb.run(2000)
         while (m := link.recv(0)) is not None:

@@ -92,6 +92,13 @@ export class Mcp2515 {
     this.busOff = false;
     this.quietSince = 0; // start of the undisturbed stretch counting towards bus-off recovery
     this.intLevel = null;
+    // The chip drives its INT line: the harness's refresh of undriven pins from their pad pulls
+    // (on every write to the pads) must not pull it back high while a flag is pending -- the
+    // firmware then saw INT idle with RX0IF/RX1IF set and never read its buffers again.
+    const pinObj = mcu.gpio[this.intPin];
+    const setPin = pinObj.setInputValue.bind(pinObj);
+    this.driveInt = setPin;
+    pinObj.setInputValue = (v) => setPin(this.intLevel === null ? v : this.intLevel);
     this.byteAlarm = clock.createAlarm(() => this.byteDone());
     this.busAlarm = clock.createAlarm(() => this.busDone());
     this.recoverAlarm = clock.createAlarm(() => this.recover());
@@ -193,7 +200,7 @@ export class Mcp2515 {
     const level = !low;
     if (level !== this.intLevel) {
       this.intLevel = level;
-      this.mcu.gpio[this.intPin].setInputValue(level);
+      this.driveInt(level);
     }
   }
   status() {
