@@ -208,3 +208,24 @@ def test_log_csv_rows(port, tmp_path):
     assert all(r["state"] == "0" and r["faults"] == "0" for r in known)
     # held upright and still
     assert all(abs(float(r["phi"])) < 0.05 and r["duty"] == "0" for r in rows)
+
+
+def test_excite_every_tick_without_a_deadline_miss(port, tmp_path):
+    # the firmware's own PRBS (issue 15 item 4) with telemetry every tick (telem_div 1) on the
+    # board's real timing: every row recorded, the force +-0.5 N around the balancing force,
+    # no fault (deadline included), at most a few late ticks (commands answered in a tick that
+    # also sends telemetry), telem_div put back
+    out = tmp_path / "exc.csv"
+    p = board(port, "excite", "--seconds", "4", "--amplitude", "0.5", "--out", str(out), "--quiet", timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert p.stderr.strip().splitlines()[-1].split("; ")[1] == "0 lost", p.stderr
+    rows = [r for r in csv.DictReader(out.open()) if r["excite"] == "1"]
+    assert len(rows) > 50
+    f = [float(r["force"]) for r in rows[5:]]
+    assert max(f) - min(f) > 0.9
+    assert max(int(r["step_us"]) for r in rows) < 2000  # inside the 500 Hz period
+    st = status(port)
+    assert st["state"] == "disarmed" and st["faults"] == 0, st
+    assert st["board_stats"]["loop"]["overruns"] <= 4
+    p = board(port, "params", "get", "telem_div", "--json")
+    assert json.loads(p.stdout) == {"telem_div": 10}
