@@ -70,13 +70,29 @@ def test_handback_is_bumpless() -> None:
     assert not log["catch"][k:].any()
 
 
-def test_catch_without_hysteresis_would_chatter_guard() -> None:
-    # the thresholds the table carries: hysteresis and a bump bound, in range
+def test_catch_table_entries_and_the_firmware_recheck() -> None:
+    from firmware.controller import Controller
+    from firmware.msgtable import OK, R_UNSTABLE
+
     fd = export(P)
     on, off, du, ulc, cphi, sphi, ucmax, rstep, woff = fd.tables["CATCH"]
-    assert 0 < off < on and du > 0 and ulc > fd.tables["ULIM"][0] * 0 and ucmax >= ulc
-    assert rstep >= 1 and woff > 0 and cphi > 0
+    assert 0 < off < on and du > 0 and 0 < ulc < ucmax and cphi > 0
+    assert rstep >= 1 and woff > 0
+    assert export(P, catch=None).tables["CATCH"][0] == 0  # switched off
     assert physical_bound(P) == pytest.approx(math.atan(5.0 / 9.8))
+    layout = H.layout_of(fd)
+    flat = fd.flat()
+    c = Controller(layout, flat)
+    o = c.off["CATCH"]
+    assert c.validate(flat, len(flat), fd.tables["HDR"][0]) == OK
+    # an uploaded table is refused when its catch entries break the rule or the proof
+    for j, v in ((1, on + 1), (0, fd.tables["LIM"][2] + 1), (6, ulc - 1), (4, 1 << 22), (8, -1)):
+        bad = list(flat)
+        bad[o + j] = v
+        assert c.validate(bad, len(bad), fd.tables["HDR"][0]) == R_UNSTABLE, (j, v)
+    bad = list(flat)
+    bad[c.off["KFC"] + 2] = 1 << 21  # a catch gain over the headroom budget
+    assert c.validate(bad, len(bad), fd.tables["HDR"][0]) == R_UNSTABLE
 
 
 ALLOC = H.INTS_SRC + H.FAKE_HAL + """
