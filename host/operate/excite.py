@@ -94,10 +94,11 @@ def run_excite(b: Board, out: str | Path, *, seconds: float, amplitude_n: float,
         if st != "balancing":
             raise BoardError(f"{b.port}: the board is {st}, not balancing: the excitation starts only while "
                              "balancing (pendulum upright, or locked upright for a cart-only run)")
-        # the column says the mode from the tick the board accepted it
-        rec.extra_values.update(excite=mode, exc_amp_n=float(amplitude_n), exc_div=int(div))
         b.request(_excite_msg(mode, amplitude_n, div))
         started = True
+        # the column says the mode from the first row received after the board's ACK (rows
+        # before it still carry the estimate, not the sensors)
+        rec.extra_values.update(excite=mode, exc_amp_n=float(amplitude_n), exc_div=int(div))
         t0 = time.monotonic()
         last = -1.0
         disarmed = False
