@@ -1,4 +1,4 @@
-# The per-tick methods of Sensors, Supervisor, Motor and Timing compiled by MicroPython's
+# The per-tick methods of Sensors, Supervisor, Motor, Timing and Pacer compiled by MicroPython's
 # viper emitter: App(config={"emitter": "viper"}) builds these subclasses instead of the
 # plain ones (firmware/board.py EMITTER: the board's default).  Same attributes, same
 # results (tests/test_firmware_fasttick.py compares them with the plain methods on random
@@ -25,7 +25,11 @@ except ImportError:  # CPython
     def const(x):
         return x
 
+    def ptr32(a):
+        return a
+
 from .motor import Motor
+from .pacer import Pacer
 from .sensors import Sensors
 from .supervisor import Supervisor
 from .timing import Timing
@@ -44,6 +48,10 @@ _F_STALL = const(64)
 CONSTS = {"ARMED": _ARMED, "BALANCING": _BALANCING, "FAULT": _FAULT, "F_TILT": _F_TILT, "F_WATCHDOG": _F_WATCHDOG,
           "F_ADC_RAIL": _F_ADC_RAIL, "F_ENC_JUMP": _F_ENC_JUMP, "F_TRACK": _F_TRACK, "F_GAINS": _F_GAINS,
           "F_STALL": _F_STALL}
+# msgtable parameter indices (== msgtable's; the test checks)
+_P_TELEM_DIV = const(5)
+_P_HEARTBEAT_MS = const(6)
+PARAMS = {"P_TELEM_DIV": _P_TELEM_DIV, "P_HEARTBEAT_MS": _P_HEARTBEAT_MS}
 _POS_MAX = const(0x3FFFFF)  # sensors.py
 _VS_ONE = const(4096)  # motor.py
 _D_PRE = const(65535)
@@ -238,3 +246,34 @@ class TimingV(Timing):
         self._sum = s
         self._n = n
         return ex
+
+
+class PacerV(Pacer):
+    # Pacer.tick on the app's int32 params array (link_serial.SerialLink builds this for an
+    # app with the viper emitter and a params array: Pacer._p set)
+    @micropython.viper
+    def tick(self):
+        p = ptr32(self._p)
+        div = p[_P_TELEM_DIV]
+        hb = p[_P_HEARTBEAT_MS]
+        sent = 0
+        if div > 0:
+            n = int(self._telem_left) - 1
+            if n <= 0:
+                n = div
+                q = (int(self.seq) + 1) & 0xFF
+                self.seq = q
+                self.telemetry(q)
+                if div > 1:
+                    sent = 1
+            self._telem_left = n
+        if hb <= 0:
+            return
+        t = int(self._hb_us) + int(self.app.period_us)
+        if t < hb * 1000 or sent:
+            self._hb_us = t
+            return
+        self._hb_us = 0
+        q = (int(self.seq) + 1) & 0xFF
+        self.seq = q
+        self.heartbeat(q)

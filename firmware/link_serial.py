@@ -18,6 +18,8 @@ except ImportError:
     def const(x):
         return x
 
+from array import array
+
 from . import codec
 from . import commands
 from . import crc16
@@ -50,6 +52,10 @@ class SerialLink:
         self.disp = commands.Dispatcher(app, layout, self.tx, table)
         self.disp.dec = self.dec
         self.pacer = Pacer(app, self.disp)
+        if getattr(app, "emitter", "") == "viper" and type(self.pacer._p) is array:
+            # its tick in viper too (firmware/fasttick.py)
+            from .fasttick import PacerV
+            self.pacer = PacerV(app, self.disp)
         self._tick = self.pacer.tick
         # MODE: the mode asked for (-1: stay in robot mode); the exception made now (the
         # heap is locked when it is raised)

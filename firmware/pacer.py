@@ -4,8 +4,10 @@
 # are counted in the board's own time -- control ticks of period_us at the loop rate,
 # the clock of uptime_ms -- not in the wall clock of whatever runs the loop.  One
 # sequence counter numbers telemetry and heartbeats (the host counts lost periodic
-# frames by it).  The first tick sends both, so a host sees a (re)started board at
-# once.  Allocation-free.
+# frames by it).  The first ticks send both, so a host sees a (re)started board at
+# once.  A heartbeat due on a tick that sends telemetry goes on the next tick instead
+# (when telem_div > 1): no tick carries both, which bounds the longest tick on a board.
+# Allocation-free.
 #
 #   pacer = Pacer(app, disp)   app: param_get(index), period_us (and, read directly when it
 #                              has one, its params array); disp: commands.Dispatcher
@@ -51,17 +53,20 @@ class Pacer:
         else:
             div = app.param_get(T.P_TELEM_DIV)
             hb = app.param_get(T.P_HEARTBEAT_MS)
+        sent = False
         if div > 0:
             n = self._telem_left - 1
             if n <= 0:
                 n = div
                 self.seq = (self.seq + 1) & 0xFF
                 self.telemetry(self.seq)
+                sent = div > 1
             self._telem_left = n
         if hb <= 0:
             return
         t = self._hb_us + app.period_us
-        if t < hb * 1000:
+        if t < hb * 1000 or sent:
+            # (due but telemetry went this tick: next tick; t then exceeds by a period at most)
             self._hb_us = t
             return
         self._hb_us = 0

@@ -1,7 +1,7 @@
 """The viper builds of the per-tick methods (firmware/fasttick.py) equal the plain ones.
 
-SensorsV.update, SupervisorV.update, MotorV.duty and TimingV.begin/end against
-Sensors/Supervisor/Motor/Timing on the same pseudo-random and extreme inputs (rails, encoder
+SensorsV.update, SupervisorV.update, MotorV.duty, TimingV.begin/end and PacerV.tick against
+Sensors/Supervisor/Motor/Timing/Pacer on the same pseudo-random and extreme inputs (rails, encoder
 wraps, every supervisor state, watchdog/stall/tilt/track limits, supply scaling, tick-clock
 wraps): every result and every attribute after every call.  Under the MicroPython unix port
 (real viper code) and under CPython (the decorator a no-op).  A whole App with the viper
@@ -178,6 +178,41 @@ for i in range(6000):
     chk('timing', a, b, TA)
     n += 1
 print('timing_n', n)
+
+# pacer: telemetry and heartbeat ticks and sequence numbers over every divider/heartbeat
+from array import array
+from firmware.pacer import Pacer
+from firmware import msgtable as MT
+for k in F.PARAMS:
+    if getattr(MT, k) != F.PARAMS[k]:
+        cbad += 1
+print('consts_bad2', cbad)
+class Rec:
+    def __init__(self):
+        self.sent = []
+    def send_telemetry(self, seq):
+        self.sent.append(seq)
+    def send_heartbeat(self, seq):
+        self.sent.append(-seq)
+class App1:
+    def __init__(self):
+        self.params = array('i', [0] * MT.N_PARAMS)
+        self.period_us = 2000
+n = 0
+for div, hb, per in ((10, 100, 2000), (1, 100, 2000), (0, 100, 1000), (7, 0, 2000), (3, 20, 20000), (0, 0, 2000)):
+    ap = App1()
+    ap.params[MT.P_TELEM_DIV] = div
+    ap.params[MT.P_HEARTBEAT_MS] = hb
+    ap.period_us = per
+    ra, rb = Rec(), Rec()
+    a, b = Pacer(ap, ra), F.PacerV(ap, rb)
+    for i in range(700):
+        a.tick()
+        b.tick()
+        n += 1
+    if ra.sent != rb.sent or a.seq != b.seq or a._hb_us != b._hb_us or a._telem_left != b._telem_left:
+        bad['pacer'] = bad.get('pacer', 0) + 1
+print('pacer_n', n)
 print('bad', sum(bad.values()), bad)
 """
 
@@ -214,7 +249,8 @@ def _check(out: str) -> None:
     lines = dict(line.split(" ", 1) for line in out.splitlines() if line.strip() and not line.startswith("diff"))
     assert int(lines["consts_bad"]) == 0
     assert int(lines["sensors_n"]) == 6000 and int(lines["sup_n"]) == 20000
-    assert int(lines["motor_n"]) == 8000 and int(lines["timing_n"]) == 6000
+    assert int(lines["motor_n"]) == 8000 and int(lines["timing_n"]) == 6000 and int(lines["pacer_n"]) == 4200
+    assert int(lines["consts_bad2"]) == 0
     assert int(lines["bad"].split()[0]) == 0, out
 
 

@@ -1,8 +1,9 @@
 """What only the board runs, measured on the emulated RP2040: the paced loop (App.run with the
 serial link on machine.UART and the real HalPico) allocates nothing per tick; the heap-locked
 loop does not latch its allocation fault; the encoder read returns in bounded time while the
-PIO pushes continuously; the whole loop iteration within a generous per-tick bound (the
-<= 500 us target is a `make bench` figure, host/bench/rp2040.py, not a test).
+PIO pushes continuously; the whole loop iteration within a generous per-tick bound (mean
+< 60 % of the period, none over one period; the <= 500 us and <= 70 % targets are `make
+bench` figures, host/bench/rp2040.py, not tests).
 
 One board (REPL, bundle importable) shared by the module; about 30-40 s of wall time.
 """
@@ -123,15 +124,24 @@ def test_encoder_read_is_bounded_while_the_pio_pushes(board: EmulatedBoard) -> N
 
 
 def test_whole_loop_iteration_within_a_generous_budget(board: EmulatedBoard) -> None:
-    # generous: with main.py's telemetry rate (every 10th tick) the loop keeps its 2 ms period
-    # on average and no iteration takes more than 2.5 periods
+    # with main.py's telemetry rate (every 10th tick), arming and balancing: measured about
+    # 520 us a tick disarmed, 750 us balancing, 1170 us with the telemetry pair (the viper
+    # emitter, issue 12; `make bench` prints the figures and the <= 500 us / <= 70 % targets).
+    # Generous for code added later: the mean within 60 % of the 2 ms period, no iteration
+    # over one period (emulated cycles: the host's load does not change them), and the
+    # firmware's own clock saw no late tick and no overrun
     board.exec("mk(10)", timeout=2.0)
     board.uart_write(_frames(M.BY_NAME["arm"](epoch=0)))
     board.loop_probe(gap_us=50.0)
     board.loop_iters.clear()
-    out = board.exec("app.run(n=250)\nprint(app.sup.state, app.timing.overruns)", timeout=3.0)
+    out = board.exec("app.run(n=250)\nprint(app.sup.state, app.timing.overruns, app.n_late, app.period_us)", timeout=3.0)
     board.loop_probe(False)
-    it = np.array([(e - s) / 125.0 for s, e in board.loop_iters])
+    state, overruns, late, period = (int(v) for v in out.split())
+    # the probe's first iterations run from the exec's start (the REPL compiling the code),
+    # not from a wait of the loop: dropped, as host/bench/rp2040.py does
+    it = np.array([(e - s) / 125.0 for s, e in board.loop_iters])[2:]
     assert it.size >= 200, out
-    assert 100.0 < it.mean() < 2000.0, f"mean loop iteration {it.mean():.0f} us"
-    assert it.max() < 5000.0, f"longest loop iteration {it.max():.0f} us"
+    assert state == 2 and period == 2000, out
+    assert 100.0 < it.mean() < 0.6 * period, f"mean loop iteration {it.mean():.0f} us"
+    assert it.max() < period, f"longest loop iteration {it.max():.0f} us"
+    assert overruns == 0 and late == 0, out
