@@ -40,7 +40,7 @@ def test_hil_cli_exits_0_when_the_verdicts_match_a_falling_scenario(tmp_path: Pa
 @pytest.mark.parametrize("args, needle", [
     (("--port", "/dev/does-not-exist-upright"), "/dev/does-not-exist-upright"),
     (("--port", "/dev/does-not-exist-upright", "--link", "can", "--can-interface", "serial"), "CAN channel"),
-    (("--port", "can9", "--link", "can", "--can-interface", "no-such-interface"), "CAN channel"),
+    (("--port", "can9", "--link", "can", "--can-interface", "no-such-interface"), "not a python-can interface"),
     (("--scenario", "no_such_scenario"), "no_such_scenario"),
 ])
 def test_hil_cli_bad_port_or_scenario_is_one_line(args, needle, tmp_path: Path) -> None:
