@@ -144,6 +144,12 @@ def test_bad_logs_one_line_exit_2(cli_logs, tmp_path: Path, capsys) -> None:
     gap = tmp_path / "gap.csv"
     gap.write_text("\n".join([*text[:100], *text[101:]]) + "\n")  # one tick lost
     _one_line_exit_2(["identify", str(gap)], capsys, str(gap), "'seq'", "lost")
+    slow = tmp_path / "slow.csv"  # recorded at telem_div 10: rows 20 ms apart
+    j = head.index("t")
+    slow.write_text("\n".join([text[0], *(",".join([f"{0.02 * i:g}" if k == j else v for k, v in
+                                                     enumerate(line.split(","))])
+                                           for i, line in enumerate(text[1:]))]) + "\n")
+    _one_line_exit_2(["identify", str(slow)], capsys, str(slow), "'t'", "telem_div 1")
     short = tmp_path / "short.csv"
     short.write_text("\n".join(text[:50]) + "\n")
     _one_line_exit_2(["identify", str(short)], capsys, str(short), "rows")

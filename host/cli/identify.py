@@ -62,6 +62,8 @@ def run(args: argparse.Namespace) -> int:
         raise A.UsageError("no balancing run among the logs (excite column 1): identify needs one")
     try:
         res = identify(logs, params, fc=args.fc, max_delay=args.max_delay, n_boot=args.boot)
+    except LogError as exc:
+        raise A.UsageError(str(exc)) from exc
     except (ValueError, FloatingPointError, ArithmeticError) as exc:
         raise A.RunFailed(f"the fit failed: {exc}") from exc
     e, ci = res["estimates"], res["ci"]

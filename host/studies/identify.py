@@ -42,13 +42,12 @@ They cover noise, not the method's own bias (a few % on ``I`` and ``mL`` in the 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 from scipy import signal
 
+from host.studies.identify_log import LogError, RunLog, read_log
 from sim import sensors as ssens
 from sim.motor import DUTY_MAX
 from sim.params import SCHEMA, RobotParams
@@ -61,144 +60,6 @@ and back-EMF constants (N m/A, V s/rad), sensor delay (s), pot offset (ADC count
 
 UNITS = {"I": "kg*m^2", "mL": "kg*m", "b": "N*s/m", "kt": "N*m/A", "ke": "V*s/rad", "delay": "s",
          "pot_offset": "count"}
-
-REQUIRED = ("x", "phi", "duty")
-
-
-class LogError(ValueError):
-    """A log cannot be used: names the file and, where it applies, the column."""
-
-    def __init__(self, path: str, column: str, message: str) -> None:
-        self.path, self.column = path, column
-        where = f"{path}: column {column!r}: " if column else f"{path}: "
-        super().__init__(where + message)
-
-
-@dataclass
-class RunLog:
-    """One experiment: the rows it uses, as arrays (SI units, duty in counts).
-
-    ``coast`` marks the coast-down rows of a cart-only run (driver off after the excitation).
-    """
-
-    name: str
-    x: np.ndarray
-    phi: np.ndarray
-    duty: np.ndarray
-    cart_only: bool
-    coast: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
-
-
-def _table(path: Path) -> dict[str, np.ndarray]:
-    name = str(path)
-    suf = path.suffix.lower()
-    try:
-        if suf in (".parquet", ".pq"):
-            import pyarrow.parquet as pq
-
-            t = pq.read_table(str(path))
-            return {c: np.asarray(t.column(c).to_numpy(zero_copy_only=False)) for c in t.column_names}
-        import csv
-
-        with open(path, newline="") as fh:
-            rows = list(csv.reader(fh))
-    except OSError as exc:
-        raise LogError(name, "", f"cannot read: {exc.strerror or exc}") from exc
-    except Exception as exc:  # noqa: BLE001 - a corrupt Parquet file, one line
-        raise LogError(name, "", f"not a readable log: {exc}") from exc
-    if not rows:
-        raise LogError(name, "", "empty file (no header)")
-    head = [h.strip() for h in rows[0]]
-    out: dict[str, np.ndarray] = {}
-    for j, col in enumerate(head):
-        vals = []
-        for i, r in enumerate(rows[1:], start=2):
-            cell = r[j].strip() if j < len(r) else ""
-            try:
-                vals.append(float(cell) if cell not in ("", "None") else math.nan)
-            except ValueError:
-                if col in REQUIRED or col == "excite":
-                    raise LogError(name, col, f"line {i}: not a number: {cell!r}") from None
-                vals.append(math.nan)
-        out[col] = np.asarray(vals, dtype=float)
-    return out
-
-
-def read_log(path: str | Path, cart_only: bool | None = None, min_rows: int = 500) -> RunLog:
-    """Read a log of ``upright board excite`` (CSV or Parquet) into a :class:`RunLog`.
-
-    Parameters
-    ----------
-    path : str or Path
-        The file.
-    cart_only : bool, optional
-        Force the kind of run; default: from the ``excite`` column (2 = cart-only).
-    min_rows : int
-        Fewest excitation rows accepted.
-
-    Raises
-    ------
-    LogError
-        Unreadable file, missing or non-numeric column, too few rows, no excitation.
-    """
-    p = Path(path)
-    name = str(p)
-    cols = _table(p)
-    for c in REQUIRED:
-        if c not in cols:
-            raise LogError(name, c, f"missing (a log of `upright board excite` has {', '.join(REQUIRED)}, excite)")
-    exc = cols.get("excite")
-    if exc is not None:
-        modes = set(np.unique(exc[np.isfinite(exc)]).astype(int).tolist()) - {0}
-        if not modes:
-            raise LogError(name, "excite", "no row with an excitation (all 0): record with `upright board excite`")
-        if len(modes) > 1:
-            raise LogError(name, "excite", f"more than one excitation mode in one log: {sorted(modes)}")
-        mode = modes.pop()
-        if mode not in (1, 2):
-            raise LogError(name, "excite", f"unknown excitation mode {mode} (1 balancing, 2 cart-only)")
-        keep = exc == mode
-        if cart_only is None:
-            cart_only = mode == 2
-    else:
-        keep = np.ones(len(cols["x"]), dtype=bool)
-        if cart_only is None:
-            cart_only = False
-    idx = np.flatnonzero(keep)
-    if len(idx) and np.any(np.diff(idx) != 1):
-        idx = idx[: int(np.flatnonzero(np.diff(idx) != 1)[0]) + 1]  # the first contiguous run
-    for c in REQUIRED:
-        v = cols[c][idx]
-        if not np.all(np.isfinite(v)):
-            bad = int(idx[np.flatnonzero(~np.isfinite(v))[0]]) + 2
-            raise LogError(name, c, f"line {bad}: missing or non-finite value")
-    if len(idx) < min_rows:
-        raise LogError(name, "", f"{len(idx)} excitation rows, at least {min_rows} needed")
-    seq = cols.get("seq")
-    if seq is not None and np.all(np.isfinite(seq[idx])) and np.all(seq[idx] >= 0):
-        # one sequence number per tick's telemetry pair, one more per heartbeat in between:
-        # any other step is a lost tick, and the fit needs every tick
-        gap = (np.diff(seq[idx].astype(np.int64)) % 256)
-        bad = np.flatnonzero((gap != 1) & (gap != 2))
-        if len(bad):
-            raise LogError(name, "seq", f"line {int(idx[bad[0]]) + 3}: telemetry frames lost (sequence "
-                                        f"jumps by {int(gap[bad[0]])}): record again (upright board excite "
-                                        "counts the losses)")
-    x, phi, duty = cols["x"][idx], cols["phi"][idx], cols["duty"][idx]
-    coast = np.zeros(len(idx), dtype=bool)
-    if cart_only:
-        # the coast-down: the rows after the last powered one (driver off, duty 0)
-        on = np.flatnonzero(duty != 0)
-        if len(on) == 0:
-            raise LogError(name, "duty", "cart-only run with the motor never driven")
-        coast[on[-1] + 1:] = True
-    else:
-        if np.max(np.abs(phi)) > 0.5:
-            raise LogError(name, "phi", f"|phi| reaches {np.max(np.abs(phi)):.2f} rad: the pendulum fell during "
-                                        "the balancing run (use a smaller amplitude)")
-    return RunLog(name=name, x=x.astype(float), phi=phi.astype(float), duty=duty.astype(float),
-                  cart_only=bool(cart_only), coast=coast)
-
 
 # ---------------------------------------------------------------- regressions
 
@@ -409,6 +270,11 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float = 10.0, m
     if not any(not lg.cart_only for lg in logs):
         raise ValueError("identify needs a balancing run (excite mode 1) among the logs")
     dt = 1.0 / float(params.rate)
+    for lg in logs:
+        if lg.dt_mean > 2.0 * dt:
+            raise LogError(lg.name, "t", f"rows {1e3 * lg.dt_mean:.1f} ms apart, the loop runs at "
+                                         f"{params.rate:g} Hz: record every tick (telem_div 1, as upright board "
+                                         "excite does) with the loop rate of --params")
     M, m, g = params.M, params.m, params.g
     sos = signal.butter(4, fc, fs=1.0 / dt, output="sos")
     edge = int(math.ceil(3.0 / (fc * dt)))
