@@ -143,7 +143,30 @@ def _targets(rows: list[dict[str, Any]], st: dict[str, Any]) -> list[dict[str, A
     worst = st["tick_us_max"] / st["period_us"]
     out.append({"target": f"worst tick of the scenario <= {100 * WORST_TARGET:.0f} % of the {st['period_us']:.0f} us period",
                 "value": f"{100 * worst:.1f} % ({st['tick_us_max']:.0f} us)", "met": bool(worst <= WORST_TARGET)})
+    # the default rate: the fastest whose period holds this worst tick with the margin, among
+    # the rates that make the design's sensor delay a whole number of ticks
+    rate = round(1e6 / st["period_us"])
+    held = _fastest_rate(st["tick_us_max"])
+    out.append({"target": "default loop rate = the fastest held with that margin (sensor delay a whole number of ticks)",
+                "value": f"{rate} Hz default, fastest held {held} Hz", "met": bool(held == rate)})
     return out
+
+
+def _fastest_rate(worst_us: float) -> int:
+    """The fastest loop rate (Hz) whose period holds ``worst_us`` within WORST_TARGET and whose
+    period divides the design's sensor delay (``sim/robot.toml`` sensors.delay); 0 if none."""
+    import tomllib
+
+    from host.boards.rp2040.board import ROOT as root
+
+    delay_us = round(tomllib.loads((root / "sim" / "robot.toml").read_text())["sensors"]["delay"] * 1e6)
+    for rate in range(2000, 0, -1):
+        per = 1e6 / rate
+        if per != int(per) or delay_us % int(per):
+            continue
+        if worst_us <= WORST_TARGET * per:
+            return rate
+    return 0
 
 
 def bench() -> dict[str, Any]:
