@@ -196,6 +196,10 @@ class App:
         self.vsup_min = cfg.get("vsup_min_mv", 0)
         self.vsup_mv = self.vsup_nom
         self._vsup_acc = -1
+        if em == "viper" and self._read_vsup is not None:
+            # _supply in viper (firmware/fasttick.py: a helper's bound method, same state)
+            from .fasttick import SupplyV
+            self._supply = SupplyV(self).update
         self._frames = -1
         self._has_frames = hasattr(hal, "n_sensor")
         # parameters: defaults from msgtable, then config overrides by name

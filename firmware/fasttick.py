@@ -1,13 +1,15 @@
-# The per-tick methods of Sensors, Supervisor, Motor, Timing and Pacer compiled by MicroPython's
-# viper emitter: App(config={"emitter": "viper"}) builds these subclasses instead of the
-# plain ones (firmware/board.py EMITTER: the board's default).  Same attributes, same
-# results (tests/test_firmware_fasttick.py compares them with the plain methods on random
-# and extreme inputs under the unix port's viper and under CPython); only the hot method
-# is replaced.  On a 125 MHz M0+ a bytecode attribute access or arithmetic op costs about
-# 1-2 us; in viper the arithmetic is a few cycles and only the attribute traffic remains,
-# so each update costs about half.  Under CPython the decorator is a no-op (the bodies are
-# plain Python with int() casts).  The WebAssembly port has no native emitter: import
-# this module only when selected (as fastpath.py / fastframe.py).
+# The per-tick methods of Sensors, Supervisor, Motor, Timing, Pacer (and App._supply)
+# compiled by MicroPython's viper emitter: App(config={"emitter": "viper"}) builds these
+# subclasses instead of the plain ones (firmware/board.py EMITTER: the board's default; the
+# serial link builds PacerV).  Same attributes, same results (tests/test_firmware_fasttick.py
+# compares them with the plain methods on random and extreme inputs under the unix port's
+# viper and under CPython); only the hot method is replaced.  On a 125 MHz M0+ a bytecode
+# attribute access or arithmetic op costs about 1-2 us; in viper the arithmetic is a few
+# cycles and only the attribute traffic remains, so each update costs about half.  Under
+# CPython the decorator is a no-op (the bodies are plain Python with int() casts).  The
+# WebAssembly port has no native emitter: import this module only when selected (as
+# fastpath.py / fastframe.py).  Viper has no default arguments: SupervisorV.update takes
+# all seven.
 #
 # Viper rules kept here: module constants are local const()s (a plain global is an
 # object: no native arithmetic with it), big literals never take part in arithmetic, every
@@ -45,9 +47,10 @@ _F_ENC_JUMP = const(8)
 _F_TRACK = const(16)
 _F_GAINS = const(32)
 _F_STALL = const(64)
+_F_UNDERVOLT = const(4096)
 CONSTS = {"ARMED": _ARMED, "BALANCING": _BALANCING, "FAULT": _FAULT, "F_TILT": _F_TILT, "F_WATCHDOG": _F_WATCHDOG,
           "F_ADC_RAIL": _F_ADC_RAIL, "F_ENC_JUMP": _F_ENC_JUMP, "F_TRACK": _F_TRACK, "F_GAINS": _F_GAINS,
-          "F_STALL": _F_STALL}
+          "F_STALL": _F_STALL, "F_UNDERVOLT": _F_UNDERVOLT}
 # msgtable parameter indices (== msgtable's; the test checks)
 _P_TELEM_DIV = const(5)
 _P_HEARTBEAT_MS = const(6)
@@ -277,3 +280,30 @@ class PacerV(Pacer):
         q = (int(self.seq) + 1) & 0xFF
         self.seq = q
         self.heartbeat(q)
+
+
+class SupplyV:
+    # App._supply in viper: App(config={"emitter": "viper"}) with a HAL that measures the
+    # supply calls SupplyV(app).update in its place (the same state, kept on the app)
+    def __init__(self, app):
+        self.app = app
+        self.read = app._read_vsup
+        self.motor = app.motor
+
+    @micropython.viper
+    def update(self, st: int) -> int:
+        app = self.app
+        v = int(self.read())
+        a = int(app._vsup_acc)
+        if a < 0:
+            a = v << 3
+        else:
+            a += v - (a >> 3)
+        app._vsup_acc = a
+        v = a >> 3
+        if v != int(app.vsup_mv):
+            app.vsup_mv = v
+            self.motor.set_supply(v, app.vsup_nom)
+        if v < int(app.vsup_min) and (st == _ARMED or st == _BALANCING):
+            return _F_UNDERVOLT
+        return 0

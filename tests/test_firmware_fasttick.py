@@ -1,11 +1,12 @@
 """The viper builds of the per-tick methods (firmware/fasttick.py) equal the plain ones.
 
-SensorsV.update, SupervisorV.update, MotorV.duty, TimingV.begin/end and PacerV.tick against
-Sensors/Supervisor/Motor/Timing/Pacer on the same pseudo-random and extreme inputs (rails, encoder
-wraps, every supervisor state, watchdog/stall/tilt/track limits, supply scaling, tick-clock
-wraps): every result and every attribute after every call.  Under the MicroPython unix port
-(real viper code) and under CPython (the decorator a no-op).  A whole App with the viper
-emitter builds these classes and steps allocation-free.
+SensorsV.update, SupervisorV.update, MotorV.duty, TimingV.begin/end, PacerV.tick and
+SupplyV.update against Sensors/Supervisor/Motor/Timing/Pacer and App._supply on the same
+pseudo-random and extreme inputs (rails, encoder wraps, every supervisor state,
+watchdog/stall/tilt/track limits, supply scaling and undervoltage, tick-clock wraps, telemetry
+dividers and heartbeats): every result and every attribute after every call.  Under the
+MicroPython unix port (real viper code) and under CPython (the decorator a no-op).  A whole
+App with the viper emitter builds these classes and steps allocation-free.
 """
 
 from __future__ import annotations
@@ -213,6 +214,43 @@ for div, hb, per in ((10, 100, 2000), (1, 100, 2000), (0, 100, 1000), (7, 0, 200
     if ra.sent != rb.sent or a.seq != b.seq or a._hb_us != b._hb_us or a._telem_left != b._telem_left:
         bad['pacer'] = bad.get('pacer', 0) + 1
 print('pacer_n', n)
+
+# supply: App._supply against SupplyV(app).update on two apps fed the same readings
+from firmware.app import App
+class VHal:
+    def __init__(self):
+        self.mv = 12000
+        self.t = 0
+    def read_angle_raw(self):
+        return 2048
+    def read_encoder(self):
+        return 0
+    def set_motor(self, d):
+        pass
+    def ticks_us(self):
+        self.t = (self.t + 250) & 0x3FFFFFFF
+        return self.t
+    def read_supply_mv(self):
+        return self.mv
+h0, h1 = VHal(), VHal()
+cfg = {'watchdog_ms': 0, 'vsup_nom_mv': 12000, 'vsup_min_mv': 9000}
+a0 = App(h0, config=cfg)
+a1 = App(h1, config=cfg)
+s1 = F.SupplyV(a1)
+n = 0
+for i in range(3000):
+    mv = pick((12000, 11990, 8000, 9000, 8999, 0, 30000)) if rnd(20) == 0 else 9000 + rnd(6000)
+    h0.mv = h1.mv = mv
+    st = rnd(4)
+    if a0._supply(st) != s1.update(st):
+        bad['supply'] = bad.get('supply', 0) + 1
+    for k in ('_vsup_acc', 'vsup_mv'):
+        if getattr(a0, k) != getattr(a1, k):
+            bad['supply'] = bad.get('supply', 0) + 1
+    if a0.motor.vscale != a1.motor.vscale:
+        bad['supply'] = bad.get('supply', 0) + 1
+    n += 1
+print('supply_n', n)
 print('bad', sum(bad.values()), bad)
 """
 
@@ -250,7 +288,7 @@ def _check(out: str) -> None:
     assert int(lines["consts_bad"]) == 0
     assert int(lines["sensors_n"]) == 6000 and int(lines["sup_n"]) == 20000
     assert int(lines["motor_n"]) == 8000 and int(lines["timing_n"]) == 6000 and int(lines["pacer_n"]) == 4200
-    assert int(lines["consts_bad2"]) == 0
+    assert int(lines["consts_bad2"]) == 0 and int(lines["supply_n"]) == 3000
     assert int(lines["bad"].split()[0]) == 0, out
 
 
