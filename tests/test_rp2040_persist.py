@@ -101,7 +101,7 @@ def bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
 # cut images are judged by the board's own load code after a power-up, below.
 
 
-@pytest.mark.parametrize("n_cuts", [pytest.param(12, id="12"), pytest.param(200, id="200", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("n_cuts", [pytest.param(12, id="12"), pytest.param(200, id="200", marks=pytest.mark.long)])
 def test_power_cut_mid_save_then_the_board_loads_old_or_new(bundle: Path, n_cuts: int) -> None:
     """The real thing: the power goes inside a flash operation of a save on the board, the board
     powers up again from that flash and its own load code finds the old or the new set."""
