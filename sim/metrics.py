@@ -313,8 +313,12 @@ def compute_metrics(log: Mapping[str, np.ndarray], scenario: Scenario, params: R
     )
 
 
-def check_constraints(metrics: Metrics, params: RobotParams, scenario: Scenario | None = None) -> tuple[Check, ...]:
+def check_constraints(metrics: Metrics, params: RobotParams, scenario: Scenario | None = None,
+                      model: str = "firmware") -> tuple[Check, ...]:
     """PASS/FAIL/N/A of the report's three constraints, with the scenario's expectations.
+
+    ``model`` is ``"firmware"`` or ``"float"``: the float simulation is judged against the
+    scenario's ``[expect.float]`` overrides (see :meth:`sim.scenario.Expectation.of`).
 
     Returns
     -------
@@ -325,7 +329,7 @@ def check_constraints(metrics: Metrics, params: RobotParams, scenario: Scenario 
     exp = scenario.expect if scenario is not None else None
 
     def expected(name: str) -> str:
-        return exp.of(name) if exp is not None else "pass"
+        return exp.of(name, model) if exp is not None else "pass"
 
     def st(ok: bool) -> str:
         return "PASS" if ok else "FAIL"
@@ -346,11 +350,12 @@ def check_constraints(metrics: Metrics, params: RobotParams, scenario: Scenario 
     return tuple(checks[c] for c in CONSTRAINTS)
 
 
-def evaluate(log: Mapping[str, np.ndarray], scenario: Scenario, params: RobotParams, name: str | None = None) -> RunSummary:
-    """Metrics and constraint checks of a run in one call."""
+def evaluate(log: Mapping[str, np.ndarray], scenario: Scenario, params: RobotParams, name: str | None = None,
+             model: str = "firmware") -> RunSummary:
+    """Metrics and constraint checks of a run in one call (``model`` as in :func:`check_constraints`)."""
     p = scenario.apply(params)
     m = compute_metrics(log, scenario, p)
-    return RunSummary(name or scenario.name, m, check_constraints(m, p, scenario), scenario.expect.note)
+    return RunSummary(name or scenario.name, m, check_constraints(m, p, scenario, model), scenario.expect.note)
 
 
 def _f(v: float, fmt: str) -> str:

@@ -53,6 +53,10 @@ A scenario file (``sim/scenarios/<name>.toml``) has these keys; everything but `
     settle_on = ["phi", "x"]         # signals whose settling is measured (default phi, + x with a reference)
     note = "why a constraint is expected to fail"
 
+    [expect.float]                   # overrides for the float simulation only (`upright simulate`,
+    settle = "fail"                  # the float reference of `upright hil`): it models the tracking
+                                     # controller, not the firmware's catch mode
+
 Any unknown key, wrong type or out-of-range value raises :class:`ScenarioError` naming the
 offending key (``force[1].amplitude``); a bad ``[params]`` entry raises it with the key
 ``params.<name>``.
@@ -224,9 +228,22 @@ class Expectation:
     a_max: str = "pass"
     settle_on: tuple[str, ...] | None = None
     note: str = ""
+    float_overrides: Mapping[str, str] = field(default_factory=dict, hash=False)
 
-    def of(self, constraint: str) -> str:
-        """Expected outcome of ``constraint`` (one of :data:`CONSTRAINTS`)."""
+    def of(self, constraint: str, model: str = "firmware") -> str:
+        """Expected outcome of ``constraint`` (one of :data:`CONSTRAINTS`).
+
+        Parameters
+        ----------
+        constraint : str
+            One of :data:`CONSTRAINTS`.
+        model : str
+            ``"firmware"`` (the firmware in HIL, on any board) or ``"float"`` (the float
+            simulation of the tracking controller, which has no catch mode); ``[expect.float]``
+            overrides apply to the latter only.
+        """
+        if model == "float" and constraint in self.float_overrides:
+            return str(self.float_overrides[constraint])
         return str(getattr(self, constraint))
 
 
@@ -452,13 +469,18 @@ def _param_overrides(d: Mapping[str, Any]) -> dict[str, float]:
 
 def _expect(d: Mapping[str, Any]) -> Expectation:
     w = "expect"
-    _only(d, (*CONSTRAINTS, "settle_on", "note"), w)
+    _only(d, (*CONSTRAINTS, "settle_on", "note", "float"), w)
     vals = {c: _choice(d, c, w, _EXPECT_VALUES, "pass") for c in CONSTRAINTS}
+    fl = d.get("float", {})
+    if not isinstance(fl, Mapping):
+        raise ScenarioError("expect.float", "expected a table")
+    _only(fl, CONSTRAINTS, "expect.float")
+    float_overrides = {c: _choice(fl, c, "expect.float", _EXPECT_VALUES) for c in CONSTRAINTS if c in fl}
     settle_on = _strings(d["settle_on"], "expect.settle_on", CHANNELS) if "settle_on" in d else None
     note = d.get("note", "")
     if not isinstance(note, str):
         raise ScenarioError("expect.note", "expected a string")
-    return Expectation(settle_on=settle_on, note=note, **vals)
+    return Expectation(settle_on=settle_on, note=note, float_overrides=float_overrides, **vals)
 
 
 _TOP = ("name", "description", "duration", "seed", "initial", "force", "reference", "noise", "sensors", "params", "expect")
@@ -625,4 +647,6 @@ def dump_scenario(s: Scenario) -> str:
         lines.append(f"settle_on = {_fmt(e.settle_on)}")
     if e.note:
         lines.append(f"note = {_fmt(e.note)}")
+    if e.float_overrides:
+        lines += ["", "[expect.float]"] + [f"{c} = {_fmt(v)}" for c, v in e.float_overrides.items()]
     return "\n".join(lines) + "\n"

@@ -154,7 +154,7 @@ def float_runs(p):
         ctrl = host_discrete.controller_for(sc, sc.apply(p))
         for init in ("zero", "measured"):
             log = run_scenario_float(sc, p, ctrl, init=init)
-            out[name, init] = (sc, log, evaluate(log, sc, p, name=f"{name} ({init})"))
+            out[name, init] = (sc, log, evaluate(log, sc, p, name=f"{name} ({init})", model="float"))
     return out
 
 

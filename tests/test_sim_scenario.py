@@ -48,6 +48,14 @@ def test_report_setups() -> None:
     assert step.events() == [0.0, 0.5, 5.5] and step.settle_on == ("phi", "x")
 
 
+def test_float_expectations_override_for_the_float_model_only() -> None:
+    e = load_scenario("tilt_0p3").expect
+    # the firmware (catch mode) recovers from 0.3 rad; the float tracking design does not
+    assert (e.of("settle"), e.of("a_max")) == ("pass", "pass")
+    assert (e.of("settle", "float"), e.of("a_max", "float")) == ("fail", "fail")
+    assert e.of("phi_max", "float") == e.of("phi_max") == "fail"
+
+
 @pytest.mark.parametrize("name", REPORT_SCENARIOS)
 def test_dump_round_trip(name: str) -> None:
     s = load_scenario(name)
@@ -82,6 +90,9 @@ def test_dump_round_trip(name: str) -> None:
         ({"params": {"mass": 1.0}}, "params.mass"),
         ({"expect": {"a_max": "maybe"}}, "expect.a_max"),
         ({"expect": {"settle_on": ["theta"]}}, "expect.settle_on"),
+        ({"expect": {"float": {"settle": "maybe"}}}, "expect.float.settle"),
+        ({"expect": {"float": {"note": "x"}}}, "expect.float.note"),
+        ({"expect": {"float": "fail"}}, "expect.float"),
     ],
 )
 def test_bad_scenario_names_the_key(patch: dict, key: str) -> None:

@@ -138,7 +138,7 @@ def run_scenario(args: argparse.Namespace) -> int:
     states = [log[k] for k in ("x", "xdot", "phi", "phidot")]
     if not all(np.all(np.isfinite(v)) for v in states):
         check_run(log["t"], log["phi"], states, fall_expected=True)
-    summary = evaluate(log, scenario, params if plant is None else plant, name=scenario.name)
+    summary = evaluate(log, scenario, params if plant is None else plant, name=scenario.name, model="float")
     print(summary_table([summary], title="Float simulation of the firmware's discrete controller"), file=sys.stderr)
     if args.plot:
         from sim.plots import plot_run
