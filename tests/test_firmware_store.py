@@ -199,9 +199,14 @@ print(st, s.seq, 1 if p is not None and (p, t) == content(s.seq) else 0, s.valid
 """
 
 
-@pytest.mark.slow
-def test_unix_port_killed_mid_save_keeps_old_or_new(tmp_path: Path) -> None:
-    """200 MicroPython processes saving in a loop, each SIGKILLed at a random moment: the copy
+@pytest.mark.parametrize("n_kills", [
+    # 60 in make test (~6 s; measured: 409 saves, 17 kills landed inside a save); the 200 of the first
+    # version (~21 s) with `pytest -m long`
+    pytest.param(60, marks=pytest.mark.slow),
+    pytest.param(200, marks=pytest.mark.long),
+])
+def test_unix_port_killed_mid_save_keeps_old_or_new(tmp_path: Path, n_kills: int) -> None:
+    """MicroPython processes saving in a loop, each SIGKILLed at a random moment: the copy
     loaded next is always a whole set (content matches its sequence number), the last save the
     process reported complete or the one after it."""
     exe = micropython_exe()
@@ -215,7 +220,7 @@ def test_unix_port_killed_mid_save_keeps_old_or_new(tmp_path: Path) -> None:
     kills = 0
     mid_save = 0  # kills after which the newest copy is not the last save reported complete
     prev = 0
-    for _ in range(200):
+    for _ in range(n_kills):
         proc = subprocess.Popen([exe, str(saver)], stdout=subprocess.PIPE, env=env, cwd=ROOT)
         assert proc.stdout is not None and proc.stdout.readline() == b"ready\n"
         time.sleep(rng.uniform(0.0, 0.01))
@@ -231,5 +236,6 @@ def test_unix_port_killed_mid_save_keeps_old_or_new(tmp_path: Path) -> None:
         mid_save += seq != last
         prev = seq
     # the kills landed across many saves (about one save per 2 ms)
-    assert kills == 200 and prev > 100
-    print(f"200 kills over {prev} saves; {mid_save} loaded a save the process had not reported")
+    assert kills == n_kills and prev > n_kills // 2
+    assert mid_save > 0  # some kills did land inside a save
+    print(f"{n_kills} kills over {prev} saves; {mid_save} loaded a save the process had not reported")
