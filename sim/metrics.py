@@ -48,7 +48,7 @@ import numpy as np
 
 from .motor import DUTY_MAX
 from .params import RobotParams
-from .scenario import CONSTRAINTS, Scenario
+from .scenario import CONSTRAINTS, Model, Scenario
 
 __all__ = [
     "Metrics",
@@ -314,7 +314,7 @@ def compute_metrics(log: Mapping[str, np.ndarray], scenario: Scenario, params: R
 
 
 def check_constraints(metrics: Metrics, params: RobotParams, scenario: Scenario | None = None,
-                      model: str = "firmware") -> tuple[Check, ...]:
+                      model: Model = "firmware") -> tuple[Check, ...]:
     """PASS/FAIL/N/A of the report's three constraints, with the scenario's expectations.
 
     ``model`` is ``"firmware"`` or ``"float"``: the float simulation is judged against the
@@ -351,7 +351,7 @@ def check_constraints(metrics: Metrics, params: RobotParams, scenario: Scenario 
 
 
 def evaluate(log: Mapping[str, np.ndarray], scenario: Scenario, params: RobotParams, name: str | None = None,
-             model: str = "firmware") -> RunSummary:
+             model: Model = "firmware") -> RunSummary:
     """Metrics and constraint checks of a run in one call (``model`` as in :func:`check_constraints`)."""
     p = scenario.apply(params)
     m = compute_metrics(log, scenario, p)

@@ -53,9 +53,8 @@ A scenario file (``sim/scenarios/<name>.toml``) has these keys; everything but `
     settle_on = ["phi", "x"]         # signals whose settling is measured (default phi, + x with a reference)
     note = "why a constraint is expected to fail"
 
-    [expect.float]                   # overrides for the float simulation only (`upright simulate`,
-    settle = "fail"                  # the float reference of `upright hil`): it models the tracking
-                                     # controller, not the firmware's catch mode
+    [expect.float]                   # overrides for the float simulation only (`upright simulate`):
+    settle = "fail"                  # it models the tracking controller, not the firmware's catch mode
 
 Any unknown key, wrong type or out-of-range value raises :class:`ScenarioError` naming the
 offending key (``force[1].amplitude``); a bad ``[params]`` entry raises it with the key
@@ -69,7 +68,7 @@ import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Literal, Mapping
 
 import numpy as np
 
@@ -80,6 +79,8 @@ __all__ = [
     "SCENARIO_DIR",
     "REPORT_SCENARIOS",
     "CONSTRAINTS",
+    "MODELS",
+    "Model",
     "ScenarioError",
     "ForceEvent",
     "Reference",
@@ -112,6 +113,9 @@ CONSTRAINTS = ("phi_max", "settle", "a_max")
 
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 _EXPECT_VALUES = ("pass", "fail", "any")
+# what ran: the firmware (HIL on any board) or the float simulation (``[expect.float]``)
+Model = Literal["firmware", "float"]
+MODELS: tuple[Model, ...] = ("firmware", "float")
 
 
 class ScenarioError(ValueError):
@@ -230,7 +234,7 @@ class Expectation:
     note: str = ""
     float_overrides: Mapping[str, str] = field(default_factory=dict, hash=False)
 
-    def of(self, constraint: str, model: str = "firmware") -> str:
+    def of(self, constraint: str, model: Model = "firmware") -> str:
         """Expected outcome of ``constraint`` (one of :data:`CONSTRAINTS`).
 
         Parameters
@@ -242,6 +246,8 @@ class Expectation:
             simulation of the tracking controller, which has no catch mode); ``[expect.float]``
             overrides apply to the latter only.
         """
+        if model not in MODELS:
+            raise ValueError(f"model must be one of {', '.join(MODELS)}, got {model!r}")
         if model == "float" and constraint in self.float_overrides:
             return str(self.float_overrides[constraint])
         return str(getattr(self, constraint))
@@ -383,10 +389,10 @@ def _only(d: Mapping[str, Any], allowed: tuple[str, ...], where: str) -> None:
             raise ScenarioError(name, f"unknown key (expected one of {', '.join(allowed)})")
 
 
-def _table(data: Mapping[str, Any], key: str) -> Mapping[str, Any]:
+def _table(data: Mapping[str, Any], key: str, where: str = "") -> Mapping[str, Any]:
     v = data.get(key, {})
     if not isinstance(v, Mapping):
-        raise ScenarioError(key, "expected a table")
+        raise ScenarioError(f"{where}.{key}" if where else key, "expected a table")
     return v
 
 
@@ -471,9 +477,7 @@ def _expect(d: Mapping[str, Any]) -> Expectation:
     w = "expect"
     _only(d, (*CONSTRAINTS, "settle_on", "note", "float"), w)
     vals = {c: _choice(d, c, w, _EXPECT_VALUES, "pass") for c in CONSTRAINTS}
-    fl = d.get("float", {})
-    if not isinstance(fl, Mapping):
-        raise ScenarioError("expect.float", "expected a table")
+    fl = _table(d, "float", w)
     _only(fl, CONSTRAINTS, "expect.float")
     float_overrides = {c: _choice(fl, c, "expect.float", _EXPECT_VALUES) for c in CONSTRAINTS if c in fl}
     settle_on = _strings(d["settle_on"], "expect.settle_on", CHANNELS) if "settle_on" in d else None

@@ -54,6 +54,8 @@ def test_float_expectations_override_for_the_float_model_only() -> None:
     assert (e.of("settle"), e.of("a_max")) == ("pass", "pass")
     assert (e.of("settle", "float"), e.of("a_max", "float")) == ("fail", "fail")
     assert e.of("phi_max", "float") == e.of("phi_max") == "fail"
+    with pytest.raises(ValueError, match="model"):
+        e.of("settle", "hil")  # a misspelt model is an error, not the firmware's expectation
 
 
 @pytest.mark.parametrize("name", REPORT_SCENARIOS)
