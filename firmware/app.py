@@ -230,6 +230,11 @@ class App:
             self.sup.faults |= F_RESET
             self.sup.state = FAULT
         # bound methods cached for the loop
+        if em == "viper":
+            # the whole step in viper (firmware/fasttick.py StepV: the same statements on the
+            # slot arrays of the viper classes; this instance attribute hides App.step)
+            from .fasttick import StepV
+            self.step = StepV(self).step
         self._step = self.step
         self._period_m = self._period
         self._read_adc = hal.read_angle_raw

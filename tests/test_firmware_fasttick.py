@@ -306,3 +306,190 @@ def test_app_with_viper_builds_them_and_steps_allocation_free() -> None:
     assert out["classes"] == "4"
     assert out["alloc_free"] == "1"
     assert out["state"] == "2"
+
+
+# Whole apps: App.step (bytecode) against StepV.step (App(config={"emitter": "viper"})), tick by
+# tick on the same readings and commands: arming, balancing and its start, catch mode, faults
+# of every kind the step raises (tilt, rail, jump, track, stall, watchdog, e-stop, undervoltage,
+# open wiper, pending deadline), clear, excitation, the driver enable, the motor sign, the
+# clock wrap; every returned duty, what each HAL saw and every attribute the step touches
+APP_EQ = H.FAKE_HAL + r"""
+from firmware.app import App
+from firmware import msgtable as T
+seed = [2026]
+def rnd(n):
+    seed[0] = (seed[0] * 1103515245 + 12345) & 0x7FFFFFFF
+    return (seed[0] >> 8) % n
+
+class Hal2(Hal):
+    def __init__(s):
+        Hal.__init__(s)
+        s.stop = False
+        s.mv = 12000
+        s.adc_open = False
+        s.frames = 0
+        s.n_sensor = 0
+        s.en = []
+    def estop(s):
+        return s.stop
+    def read_supply_mv(s):
+        return s.mv
+    def set_enable(s, on):
+        s.en.append(on)
+
+APPA = ('duty', 'tick', 'uptime_ms', '_us_frac', 'step_us', 'epoch', '_st', '_ext', '_en', '_frames', '_vsup_acc',
+        'vsup_mv')
+SUPA = ('state', 'faults', 'last', 'wd_count', 'stall_count')
+SENA = ('counts', 'pos', 'yx', 'yp', 'delta', 'rail', 'jump', 'last', 'primed')
+TMA = ('step_min', 'step_max', 'overruns', 'steps', 'mean_us', 'period_max', 'jitter_max', 'last_us')
+CTA = ('u', 'vh', 'catching', 'n_catch')
+bad = [0]
+def cmp(name, a, b, attrs):
+    for k in attrs:
+        x, y = getattr(a, k), getattr(b, k)
+        if x != y:
+            bad[0] += 1
+            if bad[0] < 6:
+                print('diff', name, k, x, y)
+
+ticks = 0
+catches = 0
+flags = 0
+nbal = 0
+nexc = 0
+seen = set()
+for full in (0, 1):
+    H0 = Hal2() if full else Hal()
+    H1 = Hal2() if full else Hal()
+    cfg = {'watchdog_ms': 100, 'stall_ms': 20, 'stall_duty': 400, 'epoch': 7}
+    if full:
+        cfg['vsup_nom_mv'] = 12000
+        cfg['vsup_min_mv'] = 9000
+    a = App(H0, config=dict(cfg))
+    cfg['emitter'] = 'viper'
+    b = App(H1, config=cfg)
+    H0.t = H1.t = 0x3FFFFFFF - 200000  # the clock wraps during the run
+    adc = a.sensors.pot_offset
+    enc = 0
+    hold = 0
+    still = 0
+    for k in range(6000):
+        r = rnd(400)
+        # commands between ticks, the same on both
+        if r < 6:
+            a.cmd_arm(); b.cmd_arm()
+        elif r == 6:
+            a.cmd_disarm(); b.cmd_disarm()
+        elif r < 10:
+            a.cmd_clear_faults(); b.cmd_clear_faults()
+            adc = a.sensors.pot_offset + rnd(21) - 10
+        elif r == 10:
+            um = (rnd(401) - 200) * 1000
+            a.cmd_set_reference(um); b.cmd_set_reference(um)
+        elif r == 11:
+            m, amp, dv = rnd(3), 200 + rnd(800), 1 + rnd(4)
+            a.cmd_excite(m, amp, dv); b.cmd_excite(m, amp, dv)
+        elif r == 12:
+            v = 1 - 2 * rnd(2)
+            a.param_set(T.P_MOTOR_SIGN, v); b.param_set(T.P_MOTOR_SIGN, v)
+        elif r == 13:
+            a._ext |= 256; b._ext |= 256  # a deadline the paced loop found
+        elif r == 14:
+            v = rnd(5) != 0  # the paced loop found its period (not yet)
+            a.sup.timing_ok = v; b.sup.timing_ok = v
+        elif r == 15 and full:
+            H0.stop = H1.stop = rnd(8) == 0
+        elif r == 16 and full:
+            H0.mv = H1.mv = 8000 + rnd(5000)
+        elif r == 17 and full:
+            H0.adc_open = H1.adc_open = rnd(8) == 0
+        elif r == 18 and full:
+            H0.n_sensor += 1; H1.n_sensor += 1
+        elif r < 40:
+            a.feed_watchdog(); b.feed_watchdog()
+        elif r < 48:
+            a.cmd_clear_faults(); b.cmd_clear_faults()
+        # readings: near upright, now and then a large tilt (catch mode), a rail, a jump
+        q = rnd(400)
+        if hold > 0:
+            hold -= 1
+            q = 99
+        elif q == 0 or q == 5:
+            # a large tilt held for a while: 40-110 % of the tilt limit (catch mode above
+            # 0.2 rad, F_TILT beyond the limit), the cart held still half the time (F_STALL)
+            adc = a.sensors.pot_offset + (rnd(2) * 2 - 1) * (a.sup.tilt_counts * (40 + rnd(71)) // 100)
+            hold = 10 + rnd(30)
+            still = rnd(2)
+        elif q == 4:
+            hold = 10 + rnd(30)  # a quiet pendulum
+            still = 0
+        elif q == 1:
+            adc = (0, 4095, 5000, -3)[rnd(4)]
+        elif q == 2:
+            adc = a.sensors.pot_offset + rnd(41) - 20
+        elif q != 99:
+            adc += rnd(7) - 3
+            if adc > a.sensors.pot_offset:
+                adc -= rnd(3)
+            else:
+                adc += rnd(3)
+        if q == 3:
+            enc = (enc + 9000) & 0xFFFF
+        elif q < 40 or (q == 99 and still):
+            pass  # the cart does not move (stall check)
+        else:
+            enc = (enc + rnd(41) - 20) & 0xFFFF
+        H0.adc = H1.adc = adc
+        H0.enc = H1.enc = enc
+        H0.inc = H1.inc = (250, 250, 250, 700, 1200, 30000)[rnd(6)]
+        da = a.step()
+        db = b.step()
+        ticks += 1
+        seen.add(a.sup.state)
+        flags |= a.sup.last
+        nbal += a.sup.state == 2
+        nexc += a.exc.on
+        if da != db or H0.duty != H1.duty or H0.n_set != H1.n_set:
+            bad[0] += 1
+            if bad[0] < 6:
+                print('diff duty', k, da, db, H0.duty, H1.duty)
+        if full and H0.en != H1.en:
+            bad[0] += 1
+        cmp('app', a, b, APPA)
+        cmp('sup', a.sup, b.sup, SUPA)
+        cmp('sensors', a.sensors, b.sensors, SENA)
+        cmp('timing', a.timing, b.timing, TMA)
+        cmp('ctrl', a.ctrl, b.ctrl, CTA)
+        if list(a.ctrl.xf) != list(b.ctrl.xf) or a.exc.on != b.exc.on or a.motor.vscale != b.motor.vscale:
+            bad[0] += 1
+    catches += a.ctrl.n_catch
+    print('faults', a.sup.faults | 0)
+print('app_ticks', ticks)
+print('states', len(seen))
+print('catches', catches)
+print('flags', flags)
+print('balancing', nbal)
+print('excited', nexc)
+print('app_bad', bad[0])
+"""
+
+
+def _check_app(out: str) -> None:
+    lines = dict(line.split(" ", 1) for line in out.splitlines() if line.strip() and not line.startswith(("diff", "faults")))
+    assert int(lines["app_ticks"]) == 12000
+    assert int(lines["states"]) == 4  # disarmed, armed, balancing and fault all reached
+    assert int(lines["catches"]) > 0  # the catch row was switched in
+    # tilt, watchdog, rail, jump, track, stall, deadline, e-stop, open wiper raised
+    need = 1 | 2 | 4 | 8 | 16 | 64 | 256 | 512 | 8192
+    assert int(lines["flags"]) & need == need, out
+    assert int(lines["balancing"]) > 1000 and int(lines["excited"]) > 0, out
+    assert int(lines["app_bad"]) == 0, out
+
+
+def test_viper_step_equals_app_step_on_the_unix_port() -> None:
+    _check_app(run_unix(APP_EQ, timeout=240))
+
+
+def test_viper_step_equals_app_step_under_cpython(capsys) -> None:
+    exec(compile(APP_EQ, "fasttick_app", "exec"), {})
+    _check_app(capsys.readouterr().out)

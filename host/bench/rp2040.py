@@ -8,16 +8,17 @@ slower), one call at a time with a pause between calls (the UART drains), the he
 in the paced loop (no collection lands in a measurement; large call frames on the C stack),
 the measuring overhead subtracted:
 
-sensors      ``HalPico.read_angle_raw`` + ``read_encoder`` + ``Sensors.update``
-supervisor   ``Supervisor.update``
+sensors      ``HalPico.read_angle_raw`` + ``read_encoder`` + ``Sensors.update`` (viper:
+             ``fasttick.sensors_update`` on the slot array, as ``StepV.step`` calls it)
+supervisor   ``Supervisor.update`` (viper: ``fasttick.supervisor_update``)
 controller   the controller step of the emitter (``Controller.step`` / ``fastpath.step_native`` /
              ``step_viper``: ``App(config={"emitter": ...})``)
-motor        ``Motor.duty`` + ``HalPico.set_motor``
+motor        ``Motor.duty`` (viper: ``fasttick.motor_duty``) + ``HalPico.set_motor``
 link poll    ``SerialLink.poll`` with nothing received and no telemetry due
 telemetry    one TELEM_STATE + TELEM_CTRL pair encoded and written to the UART (the paced
              loop's sender: ``pacer.telemetry``, one write for the pair)
 heartbeat    one HEARTBEAT frame likewise (``pacer.heartbeat``)
-app.step     the whole control step (``App.step``, balancing)
+app.step     the whole control step (``App.step``; viper: ``fasttick.StepV.step``), balancing
 loop tick    the whole paced-loop iteration (``App.run``: step + link poll, telemetry every
              10th tick as ``main.py`` runs it), found from the outside by the harness's loop
              probe; mean and max over 250 ticks
@@ -99,10 +100,21 @@ def parts(em, n):
     L = a.link
     e = per(lambda: None, n)
     r = {}
-    r['sensors'] = per(lambda: s.update(hal.read_angle_raw(), hal.read_encoder()), n) - e
-    r['supervisor'] = per(lambda: sup.update(s.counts, s.pos, s.rail, s.jump, s.delta, a.duty, 0), n) - e
-    r['controller'] = per(lambda: cs(c, s.yx, s.yp, a.ref), n) - e
-    r['motor'] = per(lambda: hal.set_motor(m.duty(c.u, c.vh)), n) - e
+    # the arguments read once (the viper classes' attributes are properties on their slot
+    # arrays: cold-path readers, not what the step does)
+    cn, ps, rl, jp, dl, yx, yp, ref, u, vh = s.counts, s.pos, s.rail, s.jump, s.delta, s.yx, s.yp, a.ref, c.u, c.vh
+    if em == 'viper':
+        # what StepV.step calls: the functions on the slot arrays
+        import firmware.fasttick as F
+        SS, SU, MO = s._S, sup._S, m._S
+        r['sensors'] = per(lambda: F.sensors_update(SS, hal.read_angle_raw(), hal.read_encoder()), n) - e
+        r['supervisor'] = per(lambda: F.supervisor_update(SU, cn, ps, rl, jp, dl, 0, 0, 1), n) - e
+        r['motor'] = per(lambda: hal.set_motor(F.motor_duty(MO, u, vh)), n) - e
+    else:
+        r['sensors'] = per(lambda: s.update(hal.read_angle_raw(), hal.read_encoder()), n) - e
+        r['supervisor'] = per(lambda: sup.update(cn, ps, rl, jp, dl, 0, 0), n) - e
+        r['motor'] = per(lambda: hal.set_motor(m.duty(u, vh)), n) - e
+    r['controller'] = per(lambda: cs(c, yx, yp, ref), n) - e
     r['link poll'] = per(L.poll, n) - e
     r['telemetry'] = per(lambda: L.pacer.telemetry(1), n) - e
     r['heartbeat'] = per(lambda: L.pacer.heartbeat(1), n) - e
