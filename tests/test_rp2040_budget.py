@@ -2,7 +2,7 @@
 serial link on machine.UART and the real HalPico) allocates nothing per tick; the heap-locked
 loop does not latch its allocation fault; the encoder read returns in bounded time while the
 PIO pushes continuously; the whole loop iteration within a generous per-tick bound (mean
-< 60 % of the period, none over one period; the <= 500 us and <= 70 % targets are `make
+< 30 % of the period, none over 70 %; the <= 500 us and <= 70 % targets are `make
 bench` figures, host/bench/rp2040.py, not tests).
 
 One board (REPL, bundle importable) shared by the module; about 30-40 s of wall time.
@@ -124,11 +124,12 @@ def test_encoder_read_is_bounded_while_the_pio_pushes(board: EmulatedBoard) -> N
 
 
 def test_whole_loop_iteration_within_a_generous_budget(board: EmulatedBoard) -> None:
-    # with main.py's telemetry rate (every 10th tick), arming and balancing: measured about
-    # 520 us a tick disarmed, 750 us balancing, 1170 us with the telemetry pair (the viper
-    # emitter, issue 12; `make bench` prints the figures and the <= 500 us / <= 70 % targets).
-    # Generous for code added later: the mean within 60 % of the 2 ms period, no iteration
-    # over one period (emulated cycles: the host's load does not change them), and the
+    # with main.py's telemetry rate (every 10th tick), arming and balancing: measured 436 us
+    # mean, 893 us max with the telemetry pair (the viper emitter's fused step, issue 12; it
+    # was 768 / 1252 us before the slot arrays; `make bench` prints the figures and the
+    # <= 500 us / <= 70 % targets).  Generous for code added later, tight enough to catch
+    # the step losing its slot arrays: the mean within 30 % of the 2 ms period (600 us), no
+    # iteration over 70 % (emulated cycles: the host's load does not change them), and the
     # firmware's own clock saw no late tick and no overrun
     board.exec("mk(10)", timeout=2.0)
     board.uart_write(_frames(M.BY_NAME["arm"](epoch=0)))
@@ -142,6 +143,6 @@ def test_whole_loop_iteration_within_a_generous_budget(board: EmulatedBoard) -> 
     it = np.array([(e - s) / 125.0 for s, e in board.loop_iters])[2:]
     assert it.size >= 200, out
     assert state == 2 and period == 2000, out
-    assert 100.0 < it.mean() < 0.6 * period, f"mean loop iteration {it.mean():.0f} us"
-    assert it.max() < period, f"longest loop iteration {it.max():.0f} us"
+    assert 100.0 < it.mean() < 0.3 * period, f"mean loop iteration {it.mean():.0f} us"
+    assert it.max() < 0.7 * period, f"longest loop iteration {it.max():.0f} us"
     assert overruns == 0 and late == 0, out

@@ -101,7 +101,9 @@ def parts(em, n):
     e = per(lambda: None, n)
     r = {}
     # the arguments read once (the viper classes' attributes are properties on their slot
-    # arrays: cold-path readers, not what the step does)
+    # arrays: cold-path readers, not what the step does), as globals: a lambda closing over
+    # more than a few variables allocates its call's arguments
+    global cn, ps, rl, jp, dl, yx, yp, ref, u, vh, F, SS, SU, MO
     cn, ps, rl, jp, dl, yx, yp, ref, u, vh = s.counts, s.pos, s.rail, s.jump, s.delta, s.yx, s.yp, a.ref, c.u, c.vh
     if em == 'viper':
         # what StepV.step calls: the functions on the slot arrays
