@@ -7,8 +7,11 @@ under CPython: the integer arithmetic is the same as MicroPython's, and the HIL 
 same code on the MicroPython unix port and the emulated RP2040.  A run from ``phi0`` at rest
 *recovers* when no fault latches, the pendulum ends within ``END_BAND`` of upright and
 the cart acceleration never exceeds the report's ``a_max`` (5 m/s^2).  Bisection over
-``phi0`` gives the largest recoverable tilt, printed next to the physical bound
-``atan(a_max/g)`` = 0.47 rad (a cart limited to a_max cannot even hold a larger tilt).
+``phi0`` gives the largest recoverable tilt, printed next to two bounds: what *any*
+controller can right on this robot (:func:`host.design.catch.drive_bound`: the drive's
+back-EMF speed limit, the track and ``a_max``, with no delay and the exact state; also with
+the track or the drive's limits dropped, to show which binds), and ``atan(a_max/g)`` = 0.47
+rad (a cart limited to a_max cannot even hold a larger tilt).
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from host.design.catch import physical_bound
+from host.design.catch import drive_bound, physical_bound
 from host.design.export import FixedDesign, export
 from sim.params import RobotParams, load_params
 from sim.plantsim import PlantSim
@@ -155,46 +158,6 @@ def largest_tilt(*, fd: FixedDesign | None = None, params: RobotParams | None = 
     return lo, runs
 
 
-def _ideal_rights(params: RobotParams, phi0: float, t_end: float = 2.0) -> bool:
-    # an ideal controller (exact state, no delay): the cart accelerates at a_max against the
-    # fall, the drive permitting (F <= stall force - back-EMF * speed), until phi reaches 0
-    from host.design.discrete import force_limit
-    from sim.plant import dynamics
-
-    fmax = force_limit(params)
-    c_emf = fmax / (params.V_supply * params.r_wheel / (params.kt * params.gear))
-    ph = params.physical
-    M, m, L, I, g = ph["M"], ph["m"], ph["L"], ph["I"], ph["g"]
-    J, mL, A = I + m * L * L, m * L, float(params.a_max)
-    x = np.array([0.0, 0.0, float(phi0), 0.0])
-    h = 1e-4
-    for _ in range(int(t_end / h)):
-        s, c = math.sin(x[2]), math.cos(x[2])
-        det = (M + m) * J - (mL * c) ** 2
-        f = (-A * det - mL * c * mL * g * s) / J + ph["b"] * x[1] + mL * x[3] ** 2 * s
-        f = max(f, -(fmax - c_emf * abs(x[1])))
-        x = x + h * dynamics(0.0, x, np.array([f]), params)
-        if x[2] <= 0.0:
-            return True
-        if x[2] > 1.0:
-            return False
-    return False
-
-
-def drive_bound(params: RobotParams, tol: float = 0.002) -> float:
-    """Largest tilt (rad) an ideal controller rights within ``a_max`` *and the drive's speed*.
-
-    Full ``a_max`` against the fall until upright, with the force the motors can still give
-    at the cart's speed (stall force minus back-EMF: the report's drive tops out at
-    ``V r / (kt gear)`` = 1.8 m/s).  A necessary bound, tighter than ``atan(a_max / g)``.
-    """
-    lo, hi = 0.0, physical_bound(params)
-    while hi - lo > tol:
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if _ideal_rights(params, mid) else (lo, mid)
-    return lo
-
-
 def bench() -> dict[str, Any]:
     """``make bench``: largest recoverable tilt with and without catch mode, next to the bounds."""
     p = load_params()
@@ -203,11 +166,17 @@ def bench() -> dict[str, Any]:
     best_off, runs_off = largest_tilt(fd=export(p, catch=None), params=p, lo=0.05, hi=0.3)
     dt = time.perf_counter() - t0
     r30 = run_tilt(0.30, params=p)
-    bound, dbound = physical_bound(p), drive_bound(p)
+    t1 = time.perf_counter()
+    db = drive_bound(p)
+    dt_bound = time.perf_counter() - t1
+    bound = physical_bound(p)
     rows = [
         {"case": "firmware + catch mode (shipped)", "largest tilt rad": round(best, 4)},
         {"case": "firmware, tracking row only", "largest tilt rad": round(best_off, 4)},
-        {"case": "bound: ideal control, a_max and the drive's speed", "largest tilt rad": round(dbound, 4)},
+        {"case": f"bound: any controller, a_max, drive (<= {db.v_max:.2f} m/s), track +-{db.x_lim:g} m",
+         "largest tilt rad": round(db.phi_max, 4)},
+        {"case": "  the same on an endless track", "largest tilt rad": round(db.phi_max_no_track, 4)},
+        {"case": "  the same without the drive's limits", "largest tilt rad": round(db.phi_max_no_speed_limit, 4)},
         {"case": "bound: atan(a_max / g) (hold at rest)", "largest tilt rad": round(bound, 4)},
     ]
     return {
@@ -219,9 +188,15 @@ def bench() -> dict[str, Any]:
             f"0.30 rad: |a|max {r30.a_max:.2f} m/s^2, cart {r30.x_max:.2f} m, hand-back at {r30.handback_s:.2f} s, "
             f"force step there {r30.bump_n:.3f} N",
             "beyond the largest tilt the cart leaves the track (1.25 m: F_TRACK) or the drive runs out of speed",
+            f"bound (host.design.catch.drive_bound, {dt_bound:.1f} s): push as hard as allowed, then brake so the cart "
+            f"stops on the separatrix into upright; no delay, exact state, continuous time; at the bound it brakes at "
+            f"{db.t_brake:.2f} s from {db.v_peak:.2f} m/s and stops at {db.x_stop:.2f} m, {db.t_stop:.2f} s",
         ],
         "bound_rad": bound,
-        "drive_bound_rad": dbound,
+        "drive_bound_rad": db.phi_max,
+        "drive_bound_no_track_rad": db.phi_max_no_track,
+        "drive_bound_no_speed_limit_rad": db.phi_max_no_speed_limit,
+        "v_max_m_s": db.v_max,
         "largest_rad": best,
         "largest_rad_no_catch": best_off,
     }
