@@ -20,9 +20,9 @@ them (``firmware/controller.py``, ``Controller.schedule``):
 The catch row is an LQR on the same discrete plant with ``Q_CATCH``/``R_CATCH`` and a
 clamp ``A_CATCH`` m/s^2 from upright (:func:`host.design.discrete.force_clamp`): the cart
 acceleration the report allows is 5 m/s^2 and ``atan(5/g)`` = 0.47 rad is the largest tilt
-that can be held at all, so the clamp sits just under it.  :func:`catch_tables` gives the
-firmware's integer entries (``CATCH``, ``KFC``, ``KBC``, ``KRC``, ``KIC``, ``SKC``) for
-:func:`host.design.export.export`.
+that can be held at all, so the clamp sits just under it.  :func:`catch_rows` and
+:func:`catch_clamp` give the row and its clamp that :func:`host.design.export.export` turns into
+the firmware's integer entries (``CATCH``, ``KFC``, ``KBC``, ``KRC``, ``KIC``, ``SKC``).
 
 ``atan(5/g)`` ignores the drive, though: its back-EMF leaves no force at 1.8 m/s, and the
 track ends at 1.25 m.  :func:`drive_bound` computes the largest tilt at rest that *any*
