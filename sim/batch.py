@@ -43,6 +43,7 @@ trajectory; ``make bench`` times both.
 from __future__ import annotations
 
 import math
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
@@ -351,8 +352,35 @@ def default_engine() -> str:
     return "numba" if batch_kernel.AVAILABLE else "numpy"
 
 
-KERNEL_CHUNK = 2048
-"""Runs per compiled-kernel call (the noise of a chunk is drawn before the call: ~2048 x T x 16 bytes)."""
+KERNEL_CHUNK: int | None = None
+"""Runs per compiled-kernel call; None: :func:`kernel_chunk` (sized to the kernel's threads)."""
+
+
+def kernel_chunk(n_runs: int, threads: int, lanes: int, noise_in_memory: bool) -> int:
+    """Runs per call of the compiled kernel for a batch of ``n_runs`` on ``threads`` threads.
+
+    The kernel spreads a call's groups of ``lanes`` runs over the threads, so a call gives
+    each thread at least :data:`_GROUPS_PER_THREAD` groups (the threads finish together).
+    With the noise drawn in the kernel a batch takes :data:`_PROGRESS_CALLS` calls (progress
+    reports; the generators of the next call are created while the kernel runs); when the
+    noise is drawn beforehand (``noise_in_memory``: numpy without the C draw functions) a
+    call holds ``runs x ticks x 16`` bytes of noise, so calls stay near
+    :data:`_NOISE_CHUNK_RUNS` runs.  The calls are equal, in whole lane groups.
+    """
+    per_call = lanes * max(1, threads) * _GROUPS_PER_THREAD
+    if noise_in_memory:
+        per_call = max(per_call, _NOISE_CHUNK_RUNS)
+    else:
+        per_call = max(per_call, -(-n_runs // _PROGRESS_CALLS))
+    # equal calls, each a whole number of lane groups (no short group but the last)
+    calls = max(1, -(-n_runs // per_call))
+    size = -(-n_runs // calls)
+    return max(1, min(n_runs, -(-size // lanes) * lanes))
+
+
+_GROUPS_PER_THREAD = 8
+_NOISE_CHUNK_RUNS = 2048
+_PROGRESS_CALLS = 4
 
 
 def simulate_batch(
@@ -669,6 +697,8 @@ def _per_run(v: Any, n: int) -> np.ndarray:
 
 def _loop_numba(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray] | None]:
     """The compiled kernel (:mod:`sim.batch_kernel`), chunk of runs by chunk of runs."""
+    import numba
+
     from . import batch_kernel as bk
     from .motor import _force_per_amp
 
@@ -688,31 +718,58 @@ def _loop_numba(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
     cpm_p, cpr_p = float(enc_counts_per_m(sp)), float(2.0 ** sp["adc_bits"] / sp["pot_range"])
     full_p = float(2 ** int(sp["adc_bits"]) - 1)
     cpm_f, cpr_f = float(enc_counts_per_m(sf)), float(2.0 ** sf["adc_bits"] / sf["pot_range"])
-    G = np.ascontiguousarray(s.Gs.transpose(1, 2, 0))  # (nz+2, nz+3, NG)
+    G = np.ascontiguousarray(s.Gs.transpose(0, 2, 1))  # (NG, nz+3, nz+2): a column contiguous
     Bu = np.ascontiguousarray(s.Bus.T)  # (nz, NG)
     u_max = np.ascontiguousarray(s.u_maxes, dtype=float)
     accel = s.accel_limit is not None
     al = float(s.accel_limit) if accel else 0.0
-    noisy = s.noise.kind != "none"
+    model = s.noise
+    fns = bk.draw_functions() if model.kind != "none" else None
+    if model.kind == "none":
+        nmode = bk.NOISE_NONE
+    elif fns is not None:
+        nmode = bk.NOISE_DRAW  # each run's generator drawn in the kernel, value for value
+    else:  # numpy without the exported draw functions: drawn beforehand, chunk by chunk
+        nmode = bk.NOISE_ARRAY
+    draw_fn = fns[model.kind] if nmode == bk.NOISE_DRAW else 0
+    hold = model.hold_ticks(s.Ts) if model.kind != "none" else 1
+    # _NoiseStream's transform: uniform lo + (hi - lo) * u, white u * std, then the channel mask
+    n_affine = model.kind == "uniform"
+    n_off = -model.amplitude
+    n_scl = (model.amplitude - (-model.amplitude)) if n_affine else (model.std(s.Ts) if model.kind == "white" else 0.0)
+    mask_x, mask_phi = (float(c in model.channels) for c in ("x", "phi"))
     acc = {k: np.zeros(N) for k in ("phi_max", "x_max", "xddot_max", "force_max", "phi_sq", "f_sq")}
     acc["last_out"] = np.zeros(N, dtype=np.int64)
     tr: dict[str, np.ndarray] | None = None
     trace = np.zeros((9, T, N)) if s.record else np.zeros((9, 1, 1))
-    chunk = max(1, min(KERNEL_CHUNK, N))
-    for a in range(0, N, chunk):
-        z = slice(a, min(a + chunk, N))
+    threads = bk.threads()
+    chunk = KERNEL_CHUNK or kernel_chunk(N, threads, bk.LANES, nmode == bk.NOISE_ARRAY)
+    chunk = max(1, min(chunk, N))
+    no_noise = np.zeros((1, 1, 2))
+    no_gens = np.zeros(1, dtype=np.int64)
+
+    def prepare(z: slice) -> tuple[list[np.random.Generator], np.ndarray, np.ndarray]:
+        # the chunk's noise source: the generators _NoiseStream would create (they must
+        # live until the kernel returns), or the noise drawn beforehand
+        if nmode == bk.NOISE_DRAW:
+            gens = [np.random.default_rng(int(v)) for v in runs.noise_seed[z]]
+            return gens, no_noise, np.array([bk.bitgen_address(gen) for gen in gens], dtype=np.int64)
+        if nmode == bk.NOISE_ARRAY:
+            return [], _NoiseStream(model, s.Ts, runs.noise_seed[z]).take_runs(T), no_gens  # (n, T, 2)
+        return [], no_noise, no_gens
+
+    def call(z: slice, noise_arr: np.ndarray, bitgens: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
         n = z.stop - z.start
-        if noisy:
-            nz_ = _NoiseStream(s.noise, s.Ts, runs.noise_seed[z]).take_runs(T)  # (n, T, 2)
-        else:
-            nz_ = np.zeros((n, 1, 2))
         out = {k: np.zeros(n) for k in ("phi_max", "x_max", "xddot_max", "force_max", "phi_sq", "f_sq")}
         lo = np.zeros(n, dtype=np.int64)
         tr_c = np.zeros((9, T, n)) if s.record else trace
+        # numba's thread count is per Python thread: this one may be the pipeline's worker
+        numba.set_num_threads(threads)
         bk.run_chunk(
             n_ticks, s.sub, s.h, s.w0, s.settle_band,
             np.ascontiguousarray(runs.x0[z]), np.ascontiguousarray(runs.x_ref[z]),
-            np.ascontiguousarray(runs.delay_ticks[z]), nz_, noisy,
+            np.ascontiguousarray(runs.delay_ticks[z]),
+            nmode, noise_arr, bitgens, draw_fn, hold, n_affine, n_off, n_scl, mask_x, mask_phi,
             Mm[z], J[z], mL[z], b[z], g[z],
             fpa[z], Vs[z], R[z], kt[z], gear[z], rw[z],
             s.drive == "motor", fpa_n, float(mn["V_supply"]), float(mn["R"]), float(mn["kt"]), float(mn["gear"]),
@@ -723,6 +780,10 @@ def _loop_numba(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
             out["phi_max"], out["x_max"], out["xddot_max"], out["force_max"], lo, out["phi_sq"], out["f_sq"],
             s.record, tr_c,
         )
+        return out, lo, tr_c
+
+    def store(z: slice, res: tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]) -> None:
+        out, lo, tr_c = res
         for k, v in out.items():
             acc[k][z] = v
         acc["last_out"][z] = lo
@@ -730,6 +791,19 @@ def _loop_numba(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
             trace[:, :, z] = tr_c
         if s.progress is not None:
             s.progress(int(n_ticks * z.stop / N), n_ticks)
+
+    chunks = [slice(a, min(a + chunk, N)) for a in range(0, N, chunk)]
+    # a pipeline: the kernel runs a chunk in a worker thread (it releases the GIL) while this
+    # thread creates the next chunk's generators (Python, ~30 us each)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        running: tuple[slice, Future, list[np.random.Generator]] | None = None
+        for z in chunks:
+            gens, noise_arr, bitgens = prepare(z)
+            if running is not None:
+                store(running[0], running[1].result())
+            running = (z, pool.submit(call, z, noise_arr, bitgens), gens)
+        if running is not None:
+            store(running[0], running[1].result())
     if s.record:
         tr = {k: np.ascontiguousarray(trace[i]) for i, k in enumerate(_TRACES)}
         tr["t"] = np.arange(T) * s.Ts

@@ -96,3 +96,65 @@ def test_engine_option(p) -> None:
     assert default_engine() == "numba"
     with pytest.raises(BatchError, match="engine"):
         simulate_batch(p, controller_ss(p), _runs(p, 2), engine="fortran")
+
+
+def test_kernel_trig_is_numpys_on_a_large_sample() -> None:
+    # the kernel's sine and cosine of one angle compile to one glibc sincos call: bit for bit
+    # numpy's np.sin/np.cos on 10 x 1e6 values from 1e-9 to 1e9 rad
+    assert batch_kernel.kernel_trig_is_numpys(n=1_000_000)
+
+
+def test_rms_window_inside_the_run(p) -> None:
+    # runs longer than the RMS window: phi_rms/force_rms sum only the window's samples
+    runs = _runs(p, 40, seed=4)
+    kw = dict(duration=1.2, window=0.5, noise=NoiseModel("uniform", amplitude=0.002))
+    a = simulate_batch(p, controller_ss(p), runs, engine="numpy", **kw)
+    b = simulate_batch(p, controller_ss(p), runs, engine="numba", **kw)
+    _same(a, b)
+    whole = simulate_batch(p, controller_ss(p), runs, engine="numba", **{**kw, "window": 1.2})
+    assert not np.array_equal(whole.metrics["phi_rms"], b.metrics["phi_rms"])
+
+
+@pytest.mark.parametrize("noise", [NoiseModel("uniform", amplitude=0.003),
+                                   NoiseModel("white", power=2e-9, sample_time=0.006)], ids=["uniform", "white-held"])
+def test_noise_drawn_in_the_kernel_or_beforehand(p, noise, monkeypatch) -> None:
+    # in the kernel, each run's generator through numpy's C draw functions; without them,
+    # drawn beforehand into an array: the same numbers either way, the reference's
+    assert batch_kernel.draw_functions() is not None
+    runs = _runs(p, 37, seed=5)
+    kw = dict(duration=0.5, noise=noise, record=True)
+    ref = simulate_batch(p, controller_ss(p), runs, engine="numpy", **kw)
+    _same(ref, simulate_batch(p, controller_ss(p), runs, engine="numba", **kw))
+    monkeypatch.setattr(batch_kernel, "draw_functions", lambda: None)
+    _same(ref, simulate_batch(p, controller_ss(p), runs, engine="numba", **kw))
+
+
+def test_draw_functions_draw_what_the_generator_draws() -> None:
+    import ctypes
+
+    fns = batch_kernel.draw_functions()
+    assert fns is not None and set(fns) == {"uniform", "white"}
+    for kind, addr in fns.items():
+        call = ctypes.CFUNCTYPE(ctypes.c_double, ctypes.c_void_p)(addr)
+        ref_gen, gen = np.random.default_rng(99), np.random.default_rng(99)
+        ref = ref_gen.random(5000) if kind == "uniform" else ref_gen.standard_normal(5000)
+        state = batch_kernel.bitgen_address(gen)
+        assert np.array_equal(ref, [call(state) for _ in range(5000)]), kind
+
+
+@pytest.mark.parametrize("n, threads, in_memory", [(10_000, 2, False), (10_000, 8, False), (150, 2, False),
+                                                    (7, 1, False), (10_000, 2, True), (1, 4, True)])
+def test_kernel_chunk_is_sized_to_the_workers(n, threads, in_memory) -> None:
+    from sim.batch import kernel_chunk
+
+    lanes = batch_kernel.LANES
+    c = kernel_chunk(n, threads, lanes, in_memory)
+    assert 1 <= c <= n
+    calls = -(-n // c)
+    assert c == n or c % lanes == 0  # whole lane groups: only the batch's last group is short
+    if c < n:
+        assert c >= lanes * threads * 8  # every thread gets several groups per call
+    if in_memory:
+        assert c <= max(2048, lanes * threads * 8)  # the noise array of a call stays bounded
+    else:
+        assert calls <= 4
