@@ -276,6 +276,18 @@ def draw_noise(model: NoiseModel, Ts: float, seeds: np.ndarray, start: int, tick
     return s.take(ticks)
 
 
+def _noise_scale(model: NoiseModel, Ts: float) -> tuple[float, float]:
+    """``(offset, scale)`` that turn a generator's draw into the noise value.
+
+    ``uniform``: ``lo + (hi - lo) * next_double`` (numpy's own ``uniform``), ``white``:
+    ``standard_normal * std``; the numpy streams and the compiled kernel both use these.
+    """
+    if model.kind == "uniform":
+        lo, hi = -model.amplitude, model.amplitude
+        return lo, hi - lo
+    return 0.0, (model.std(Ts) if model.kind == "white" else 0.0)
+
+
 class _NoiseStream:
     """Per-run noise generators, read in blocks of ticks."""
 
@@ -283,7 +295,7 @@ class _NoiseStream:
         self.model = model
         self.n = len(seeds)
         self.hold = model.hold_ticks(Ts)
-        self.std = model.std(Ts) if model.kind == "white" else 0.0
+        self.off, self.scale = _noise_scale(model, Ts)
         self.mask = np.array([[c in model.channels] for c in ("x", "phi")], dtype=float)  # (2, 1)
         self.rngs = [np.random.default_rng(int(s)) for s in seeds] if model.kind != "none" else []
         self.pos = 0
@@ -303,12 +315,11 @@ class _NoiseStream:
         if m.kind == "white":
             for i, g in enumerate(self.rngs):
                 g.standard_normal(out=raw[i])
-            raw *= self.std
+            raw *= self.scale
         else:
             for i, g in enumerate(self.rngs):
                 g.random(out=raw[i])
-            lo, hi = -m.amplitude, m.amplitude
-            raw = lo + (hi - lo) * raw
+            raw = self.off + self.scale * raw
         out = np.ascontiguousarray(raw.transpose(1, 2, 0)) * self.mask
         if self.hold > 1:
             out = np.repeat(out, self.hold, axis=0)[:ticks]
@@ -328,12 +339,11 @@ class _NoiseStream:
         if m.kind == "white":
             for i, g in enumerate(self.rngs):
                 g.standard_normal(out=raw[i])
-            raw *= self.std
+            raw *= self.scale
         else:
             for i, g in enumerate(self.rngs):
                 g.random(out=raw[i])
-            lo, hi = -m.amplitude, m.amplitude
-            raw = lo + (hi - lo) * raw
+            raw = self.off + self.scale * raw
         out = raw * self.mask[:, 0]
         if self.hold > 1:
             out = np.repeat(out, self.hold, axis=1)[:, :ticks]
@@ -733,10 +743,9 @@ def _loop_numba(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
         nmode = bk.NOISE_ARRAY
     draw_fn = fns[model.kind] if nmode == bk.NOISE_DRAW else 0
     hold = model.hold_ticks(s.Ts) if model.kind != "none" else 1
-    # _NoiseStream's transform: uniform lo + (hi - lo) * u, white u * std, then the channel mask
+    # _NoiseStream's transform (uniform: off + scale * u, white: u * scale), then the channel mask
     n_affine = model.kind == "uniform"
-    n_off = -model.amplitude
-    n_scl = (model.amplitude - (-model.amplitude)) if n_affine else (model.std(s.Ts) if model.kind == "white" else 0.0)
+    n_off, n_scl = _noise_scale(model, s.Ts)
     mask_x, mask_phi = (float(c in model.channels) for c in ("x", "phi"))
     acc = {k: np.zeros(N) for k in ("phi_max", "x_max", "xddot_max", "force_max", "phi_sq", "f_sq")}
     acc["last_out"] = np.zeros(N, dtype=np.int64)

@@ -264,6 +264,15 @@ if AVAILABLE:
             S[kr + 3, l] = (mLc * rhs1 + S[_MM, l] * rhs2) / det
             S[kr + 4, l] = F
 
+    @njit(cache=True, inline="always")
+    def _stage_input(S, kr, step):  # noqa: ANN001, ANN202
+        # the next RK4 stage's input for every lane: state + step x the derivatives in rows
+        # kr+1 .. kr+3 (x itself is not an input of rhs())
+        for l in range(LANES):
+            S[_Y1, l] = S[_X1, l] + step * S[kr + 1, l]
+            S[_Y2, l] = S[_X2, l] + step * S[kr + 2, l]
+            S[_Y3, l] = S[_X3, l] + step * S[kr + 3, l]
+
     @njit(cache=True, parallel=True, nogil=True)
     def run_chunk(  # noqa: PLR0913, PLR0915
         n_ticks, sub, h, w0, band,
@@ -446,20 +455,11 @@ if AVAILABLE:
                     for l in range(K):
                         S[_Y1, l], S[_Y2, l], S[_Y3, l] = S[_X1, l], S[_X2, l], S[_X3, l]
                     _stage(S, _K1, motor, accel, al)
-                    for l in range(K):
-                        S[_Y1, l] = S[_X1, l] + hh * S[_K1 + 1, l]
-                        S[_Y2, l] = S[_X2, l] + hh * S[_K1 + 2, l]
-                        S[_Y3, l] = S[_X3, l] + hh * S[_K1 + 3, l]
+                    _stage_input(S, _K1, hh)
                     _stage(S, _K2, motor, accel, al)
-                    for l in range(K):
-                        S[_Y1, l] = S[_X1, l] + hh * S[_K2 + 1, l]
-                        S[_Y2, l] = S[_X2, l] + hh * S[_K2 + 2, l]
-                        S[_Y3, l] = S[_X3, l] + hh * S[_K2 + 3, l]
+                    _stage_input(S, _K2, hh)
                     _stage(S, _K3, motor, accel, al)
-                    for l in range(K):
-                        S[_Y1, l] = S[_X1, l] + h * S[_K3 + 1, l]
-                        S[_Y2, l] = S[_X2, l] + h * S[_K3 + 2, l]
-                        S[_Y3, l] = S[_X3, l] + h * S[_K3 + 3, l]
+                    _stage_input(S, _K3, h)
                     _stage(S, _K4, motor, accel, al)
                     for l in range(K):
                         F = S[_K1 + 4, l]  # the force of the first stage (at the sub-step's start)
