@@ -410,6 +410,7 @@ def simulate_batch(
     ctrl_index: np.ndarray | None = None,
     plant: RobotParams | None = None,
     engine: str | None = None,
+    supply_measured: bool = False,
 ) -> BatchResult:
     """Simulate every run of ``runs`` in closed loop with the discrete controller.
 
@@ -459,6 +460,12 @@ def simulate_batch(
         ``"numpy"``: the reference, vectorised over the batch.  ``"numba"``: the compiled
         kernel (:mod:`sim.batch_kernel`), bit-identical per run, run by run on all of
         numba's threads.  Default: numba when importable.
+    supply_measured : bool
+        The firmware measures the motor supply and inverts the motor with it instead of the
+        nominal ``V_supply`` (``firmware/motor.py`` ``Motor.set_supply``: the default board's
+        divider, ``firmware/board.py`` ``VSUP_ADC_PIN``), modelled as an exact measurement of
+        each run's true supply (the firmware's Q12 scale and 9 mV ADC step are below 0.05 %).
+        Default ``False``: a board without the divider, the duty for the nominal supply.
 
     Returns
     -------
@@ -518,7 +525,8 @@ def simulate_batch(
         Gs=np.stack(Gs), Bus=np.stack(Bus), u_maxes=u_maxes,
         phys={k: true[k] for k in PLANT_KEYS},
         motor_true={k: true[k] for k in MOTOR_KEYS},
-        motor_nom={k: getattr(params, k) for k in MOTOR_KEYS},
+        motor_nom={k: true[k] if supply_measured and k == "V_supply" else getattr(params, k) for k in MOTOR_KEYS},
+        supply_measured=bool(supply_measured),
         sens_plant={k: getattr(base, k) for k in _SENSOR_KEYS},
         sens_fw={k: getattr(params, k) for k in _SENSOR_KEYS},
         drive=drive, noise=noise, accel_limit=accel_limit, settle_band=settle_band,
@@ -565,7 +573,8 @@ class _Setup:
     u_maxes: np.ndarray  # (NG,)
     phys: dict[str, Any]
     motor_true: dict[str, Any]
-    motor_nom: dict[str, Any]
+    motor_nom: dict[str, Any]  # V_supply per run when supply_measured
+    supply_measured: bool
     sens_plant: dict[str, Any]
     sens_fw: dict[str, Any]
     drive: str
@@ -781,7 +790,8 @@ def _loop_numba(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
             nmode, noise_arr, bitgens, draw_fn, hold, n_affine, n_off, n_scl, mask_x, mask_phi,
             Mm[z], J[z], mL[z], b[z], g[z],
             fpa[z], Vs[z], R[z], kt[z], gear[z], rw[z],
-            s.drive == "motor", fpa_n, float(mn["V_supply"]), float(mn["R"]), float(mn["kt"]), float(mn["gear"]),
+            s.drive == "motor", s.supply_measured, fpa_n,
+            0.0 if s.supply_measured else float(mn["V_supply"]), float(mn["R"]), float(mn["kt"]), float(mn["gear"]),
             float(mn["r_wheel"]),
             cpm_p, cpr_p, float(sp["pot_offset"]), full_p, cpm_f, cpr_f, float(sf["pot_offset"]),
             G, Bu, u_max, np.ascontiguousarray(s.idx[z]),

@@ -280,7 +280,7 @@ if AVAILABLE:
         nmode, noise, bitgens, draw_fn, hold, n_affine, n_off, n_scl, mask_x, mask_phi,
         Mm, J, mL, b, g,
         fpa, Vs, R, kt, gear, rw,
-        motor, fpa_n, Vs_n, R_n, kt_n, gear_n, rw_n,
+        motor, vmeas, fpa_n, Vs_n, R_n, kt_n, gear_n, rw_n,
         cpm_p, cpr_p, off_p, full_p, cpm_f, cpr_f, off_f,
         G, Bu, u_max, gidx,
         accel, al,
@@ -297,7 +297,8 @@ if AVAILABLE:
         :func:`bitgen_address`) and scales it as :class:`sim.batch._NoiseStream` does
         (``n_off + n_scl * u`` if ``n_affine`` else ``u * n_scl``, times the channel's mask).
         Outputs: the metric accumulators (N,) and, with ``record``, ``tr`` (9, T, N) = x, xdot,
-        phi, phidot, u_sat, force, duty, x_meas, phi_meas.
+        phi, phidot, u_sat, force, duty, x_meas, phi_meas.  ``vmeas``: the firmware inverts the
+        motor with the run's true supply (measured) instead of ``Vs_n``.
 
         The runs go in groups of ``LANES``, advanced together stage by stage: each run is a
         long chain of dependent operations (sin -> det -> division -> next RK4 stage), and
@@ -430,7 +431,9 @@ if AVAILABLE:
                         ii = u / fpa_n
                         w = gear_n * out[1, l] / rw_n
                         V = ii * R_n + kt_n * w
-                        S[_DUTY, l] = float(np.int64(_clip(np.rint(V / Vs_n * DUTY_MAX), -DUTY_MAX, DUTY_MAX)))
+                        # the firmware's supply: nominal, or measured (the lane's true supply)
+                        vf = S[_VS, l] if vmeas else Vs_n
+                        S[_DUTY, l] = float(np.int64(_clip(np.rint(V / vf * DUTY_MAX), -DUTY_MAX, DUTY_MAX)))
                         # the true motor's voltage, held over the tick (sim.motor.current_from_duty)
                         S[_VM, l] = _clip(S[_DUTY, l], -DUTY_MAX, DUTY_MAX) / DUTY_MAX * S[_VS, l]
                 if record:

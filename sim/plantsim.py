@@ -313,6 +313,7 @@ def run_scenario_float(
     seed: int | None = None,
     progress: Callable[[int, int], None] | None = None,
     plant: RobotParams | None = None,
+    supply_measured: bool = False,
 ) -> dict[str, np.ndarray]:
     """Close the loop in pure simulation with the float discrete controller.
 
@@ -350,6 +351,10 @@ def run_scenario_float(
     plant : RobotParams, optional
         The simulated robot when it differs from the design (``--plant``); the scenario's
         ``[params]`` and delay are applied on top of it (:data:`sim.scenario.PRECEDENCE`).
+    supply_measured : bool
+        The firmware inverts the motor with the simulated robot's supply, as measured by the
+        default board's divider (``firmware/motor.py`` ``Motor.set_supply``), instead of the
+        design's ``V_supply`` (:func:`sim.batch.simulate_batch`, same option).
 
     Returns
     -------
@@ -362,6 +367,7 @@ def run_scenario_float(
         raise ValueError(f"init must be 'zero' or 'measured', got {init!r}")
     sim = PlantSim(params if plant is None else plant, scenario, seed=seed)
     p = params  # the firmware's side: decoding and motor inversion with the design's values
+    p_drive = p.replace(V_supply=sim.params.V_supply) if supply_measured else p
     Ac, Bc, Cc, Dc = (np.asarray(m, dtype=float) for m in (controller.Ac, controller.Bc, controller.Cc, controller.Dc))
     Bu = np.asarray(controller.Bu, dtype=float)[:, 0]
     umax = float(controller.u_max)
@@ -391,7 +397,7 @@ def run_scenario_float(
         u = float(Cc[0] @ z + Dc[0] @ v)
         us = min(max(u, -umax), umax)
         xd_est = float(Ez_v[0][1] @ z + Ez_v[1][1] @ v) if Ez_v is not None else 0.0
-        duty = int(motor.duty_from_force(us, xd_est, p))
+        duty = int(motor.duty_from_force(us, xd_est, p_drive))
         z = Ac @ z + Bc @ v + Bu * us
         sim.step(duty, u_cmd=u, u_sat=us)
         extra["x_meas"].append(xm)

@@ -81,6 +81,21 @@ def test_kernel_bit_identical_with_stacked_designs_and_a_plant(p) -> None:
     assert not np.array_equal(m0["phi_max"], m1["phi_max"])
 
 
+def test_kernel_bit_identical_with_the_supply_measured(p) -> None:
+    # the firmware inverts the motor with each run's measured (true) supply: supply_measured
+    runs = _runs(p, 100, seed=4)
+    kw = dict(duration=0.6, noise=NoiseModel("uniform", amplitude=0.002), record=True, supply_measured=True)
+    a = simulate_batch(p, controller_ss(p), runs, engine="numpy", **kw)
+    _same(a, simulate_batch(p, controller_ss(p), runs, engine="numba", **kw))
+    # and it is what it says: the duty is V / V_true, not V / V_nominal
+    b = simulate_batch(p, controller_ss(p), runs, engine="numba", **{**kw, "supply_measured": False})
+    assert not np.array_equal(a.traces["duty"], b.traces["duty"])
+    ratio = runs.values["V_supply"] / p.V_supply
+    k = np.argmax(np.abs(ratio - 1.0))  # the run whose supply is furthest from nominal
+    t = 0  # the first tick: same state, same command in both
+    assert a.traces["duty"][t, k] == pytest.approx(b.traces["duty"][t, k] / ratio[k], abs=1.0)
+
+
 def test_a_run_does_not_depend_on_its_chunk(p, monkeypatch) -> None:
     import sim.batch
 

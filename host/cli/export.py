@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from host.cli import args as A
-from host.design.discrete import controller_ss
+from host.design.discrete import A_CMD_DEFAULT, OBSERVER_DEFAULT, controller_ss
 from host.design.export import V_LIMIT, W_LIMIT, export, render
 from sim.params import load_params
 
@@ -29,10 +29,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--Q", type=A.nonneg, nargs=4, default=None, metavar="q", help="LQR state weights (diagonal)")
     parser.add_argument("--R", type=A.positive, default=None, help="LQR input weight")
     parser.add_argument("--u-max", type=A.positive, default=None,
-                        help="force clamp of the controller, N (default: 4.4 m/s^2 of cart acceleration from upright)")
+                        help=f"force clamp of the controller, N (default: {A_CMD_DEFAULT:g} m/s^2 of cart acceleration "
+                             "from upright)")
     parser.add_argument("--noise", type=A.positive, nargs=2, default=None, metavar=("X_M", "PHI_RAD"),
-                        help="measurement noise (std, m and rad) the Kalman filter is designed for "
-                             "(default: one encoder count, two ADC counts)")
+                        help="measurement noise of the sensors (std, m and rad) (default: one encoder count, two ADC "
+                             "counts); the Kalman filter is designed for it divided by --observer")
+    parser.add_argument("--observer", type=A.positive, default=None,
+                        help=f"estimator speed factor (> 1 trusts the sensors more; default {OBSERVER_DEFAULT:g}, "
+                             "the shipped design's)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -47,7 +51,9 @@ def run(args: argparse.Namespace) -> int:
                                f"{ticks:.4g} ticks; choose a rate at which it is a whole number of ticks")
     if args.design != "lqr" and (args.Q is not None or args.R is not None):
         raise A.UsageError(f"--Q/--R are LQR weights: they do not apply to --design {args.design}")
-    kw = {} if args.noise is None else {"sigma_meas": tuple(args.noise)}
+    kw: dict[str, object] = {} if args.noise is None else {"sigma_meas": tuple(args.noise)}
+    if args.observer is not None:
+        kw["observer"] = args.observer
     c = controller_ss(p, rate=args.rate, design=args.design, Q=args.Q, R=args.R, u_max=args.u_max, **kw)
     fd = export(p, c, ki=args.ki, deadband=args.deadband, v_limit=args.v_limit, w_limit=args.w_limit)
     text = render(fd)

@@ -110,7 +110,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--q-x", type=A.nonneg, default=None, dest="q_x", help="design: LQR weight on x (robustness, tilt)")
     parser.add_argument("--q-phi", type=A.nonneg, default=None, dest="q_phi", help="design: LQR weight on phi")
     parser.add_argument("--r", type=float, default=None, help="design: LQR input weight R")
-    parser.add_argument("--observer", type=float, default=1.0, help="design: observer speed factor (>1 faster)")
+    parser.add_argument("--observer", type=float, default=None,
+                        help="design: observer speed factor (>1 faster; default the shipped design's)")
     parser.add_argument("--worst", type=A.nonneg_int, default=5, help="robustness: worst runs exported as scenarios")
     parser.add_argument("--search", choices=("grid", "random"), default="grid", help="tune: grid or random search")
     parser.add_argument("--designs", type=_positive_int, default=20, help="tune --search random: number of designs")
@@ -286,7 +287,7 @@ def _ranges(args: argparse.Namespace) -> Any:
 
 
 def _custom(args: argparse.Namespace) -> bool:
-    return args.q_x is not None or args.q_phi is not None or args.r is not None or args.observer != 1.0
+    return args.q_x is not None or args.q_phi is not None or args.r is not None or args.observer is not None
 
 
 def _chosen_design(args: argparse.Namespace) -> Any:
@@ -295,18 +296,19 @@ def _chosen_design(args: argparse.Namespace) -> Any:
     Unchanged weights keep the shipped design's values (``host.design.discrete.Q_DEFAULT``,
     including its speed weights).
     """
-    from host.design.discrete import Q_DEFAULT, R_DEFAULT
+    from host.design.discrete import OBSERVER_DEFAULT, Q_DEFAULT, R_DEFAULT
     from host.studies.sweep import Design
 
-    if not args.observer > 0:
+    if args.observer is not None and not args.observer > 0:
         raise A.UsageError(f"--observer must be > 0, got {args.observer}")
     if not _custom(args):
         return Design("lqr", u_max=args.u_max)
     qx = Q_DEFAULT[0] if args.q_x is None else args.q_x
     qphi = Q_DEFAULT[2] if args.q_phi is None else args.q_phi
     r = R_DEFAULT if args.r is None else args.r
-    return Design(f"qx{qx:g}_qphi{qphi:g}_r{r:g}_obs{args.observer:g}", Q=(qx, Q_DEFAULT[1], qphi, Q_DEFAULT[3]), R=r,
-                  observer=args.observer, u_max=args.u_max)
+    obs = OBSERVER_DEFAULT if args.observer is None else args.observer
+    return Design(f"qx{qx:g}_qphi{qphi:g}_r{r:g}_obs{obs:g}", Q=(qx, Q_DEFAULT[1], qphi, Q_DEFAULT[3]), R=r,
+                  observer=obs, u_max=args.u_max)
 
 
 def _robustness(args: argparse.Namespace, cfg: Any, out: Path, bar: ProgressBar) -> int:

@@ -19,14 +19,18 @@ sensors' quantisation, the true motor (supply, back-EMF) and the delayed, discre
 * ``square`` -- the 20 cm square wave, each level held 2.2 s (``square_wave_20cm_2p2s``): its
   edges from rest, +-20 cm, each to settle within its 2.2 s level;
 * ``tilt`` -- released at rest with 0.1 rad (``tilt_0p1``), 5 s;
-* ``push`` -- 0.2 N on the cart for 5 s (``push_0p2N_5s``, 8 s).
+* ``push`` -- 0.2 N on the cart for 5 s (``push_0p2N_5s``, 8 s);
+* ``kick`` -- the 1 N s kick on the cart (``impulse_kick``, 5 s): tilt and settling only --
+  its acceleration is not a constraint, since the drive's back-EMF brakes the kicked cart at
+  ~100 m/s^2 whatever the controller does (the scenario's ``[expect]``).
 
 ``step``, ``square`` and ``tilt`` run in the batch simulator (:func:`sim.batch.simulate_batch`,
 traces recorded), one run per point and edge; the metrics are the scenario metrics of
 :func:`sim.metrics.compute_metrics` on those traces (settling of phi and, with a reference,
 of x) with the batch's own peak |xddot|.  The batch cannot apply a force profile, so ``push``
-runs in the scenario simulator (:func:`sim.plantsim.run_scenario_float`) at the nominal point
-and the ``push_points`` points worst for the batch scenarios.
+and ``kick`` run in the scenario simulator (:func:`sim.plantsim.run_scenario_float`) at the
+nominal point and the ``push_points`` points worst for the batch scenarios (during the search,
+at the nominal point only: :attr:`Evaluation.nominal_ok`).
 
 Constraints (the report's, from the robot file): ``|phi| < phi_max`` (0.3 rad), ``|xddot| <=
 a_max`` (5 m/s^2), settling ``<= t_settle`` (2.5 s; the square wave's level is 2.2 s, so
@@ -72,7 +76,9 @@ __all__ = [
     "MeasuredStart",
 ]
 
-SCENARIOS = ("step", "square", "push", "tilt")
+SCENARIOS = ("step", "square", "push", "kick", "tilt")
+FORCE_SCENARIOS = {"push": "push_0p2N_5s", "kick": "impulse_kick"}
+"""The scenarios with a force on the cart: run in the scenario simulator, not the batch."""
 CONSTRAINTS = ("phi_max", "a_max", "settle")
 STEP = 0.2  # m, the report's cart step and square-wave amplitude
 SQUARE_LEVEL = 2.2  # s, each level of the report's square wave
@@ -93,7 +99,8 @@ class Candidate:
     R : float
         Continuous LQR input weight.
     observer : float
-        Kalman filter designed for ``SIGMA_MEAS / observer`` (> 1: trusts the sensors more).
+        Kalman filter designed for ``SIGMA_MEAS / observer`` (> 1: trusts the sensors more;
+        ``controller_ss``'s ``observer``).
     a_cmd : float
         Force clamp as the cart acceleration it allows from upright (m/s^2).
     """
@@ -108,9 +115,8 @@ class Candidate:
         """The :class:`host.design.discrete.DiscreteController` of this design for ``params``."""
         from host.design import discrete
 
-        sig = tuple(s / self.observer for s in discrete.SIGMA_MEAS)
         return discrete.controller_ss(params, Q=self.Q, R=self.R, u_max=discrete.force_clamp(params, self.a_cmd),
-                                      sigma_meas=sig)
+                                      observer=self.observer)
 
     def u_max(self, params: RobotParams) -> float:
         """The force clamp (N) for ``params``."""
@@ -123,14 +129,16 @@ class Candidate:
         q = " ".join(f"{v:.6g}" for v in self.Q)
         return {"name": self.name, "Q": list(self.Q), "R": self.R, "observer": self.observer, "a_cmd": self.a_cmd,
                 "u_max": self.u_max(params),
-                "export": f"upright export --Q {q} --R {self.R:.6g} --u-max {self.u_max(params):.6g}"}
+                "export": f"upright export --Q {q} --R {self.R:.6g} --observer {self.observer:.6g} "
+                          f"--u-max {self.u_max(params):.6g}"}
 
 
 def shipped() -> Candidate:
-    """The shipped firmware design (``Q_DEFAULT``, ``R_DEFAULT``, ``A_CMD_DEFAULT``)."""
-    from host.design.discrete import A_CMD_DEFAULT, Q_DEFAULT, R_DEFAULT
+    """The shipped firmware design (``Q_DEFAULT``, ``R_DEFAULT``, ``OBSERVER_DEFAULT``, ``A_CMD_DEFAULT``)."""
+    from host.design.discrete import A_CMD_DEFAULT, OBSERVER_DEFAULT, Q_DEFAULT, R_DEFAULT
 
-    return Candidate("shipped", tuple(float(v) for v in Q_DEFAULT), float(R_DEFAULT), 1.0, float(A_CMD_DEFAULT))  # type: ignore[arg-type]
+    return Candidate("shipped", tuple(float(v) for v in Q_DEFAULT), float(R_DEFAULT), float(OBSERVER_DEFAULT),  # type: ignore[arg-type]
+                     float(A_CMD_DEFAULT))
 
 
 @dataclass
@@ -179,6 +187,28 @@ class Evaluation:
         return float(np.max(fin)), failing, float(np.mean(fin))
 
     @property
+    def nominal_ok(self) -> bool:
+        """Every constraint met at the nominal robot (point 0 of :meth:`UncertaintySet.points`)."""
+        rs = [self.ratios(s, c)[0] for s in self.metrics for c in CONSTRAINTS]
+        return all(not r > 1.0 for r in rs)  # nan (not run there) counts as met
+
+    @property
+    def falls(self) -> int:
+        """Robots (points) where the pendulum leaves ``|phi| < phi_max`` in some scenario (lost)."""
+        r = np.array([self.ratios(s, "phi_max") for s in self.metrics])
+        return int(np.sum(np.any(np.nan_to_num(r, nan=0.0) >= 1.0, axis=0)))
+
+    @property
+    def rank(self) -> tuple[bool, float, int, int, float]:
+        """Ranking key of the search, smaller is better: a design that fails on the nominal
+        robot (the model it was designed for) after every one that does not; then the worst
+        ratio, the robots where the pendulum is lost (a fall is worse than a slow settling,
+        and the worst ratio caps both), the robots with any failing check and the mean ratio
+        (:attr:`score`)."""
+        worst, failing, mean = self.score
+        return (not self.nominal_ok, worst, self.falls, failing, mean)
+
+    @property
     def passes(self) -> bool:
         """Every constraint met at every point where each scenario ran."""
         return self.score[0] <= 1.0
@@ -189,8 +219,8 @@ def _scenario(kind: str, amplitude: float = 0.0, duration: float = RUN_S, point:
     """A :class:`sim.scenario.Scenario` of a batch run (for its metrics, or to replay a corner)."""
     from sim.scenario import load_scenario, scenario_from_dict
 
-    if kind == "push":
-        sc = load_scenario("push_0p2N_5s")
+    if kind in FORCE_SCENARIOS:
+        sc = load_scenario(FORCE_SCENARIOS[kind])
     else:
         d: dict[str, Any] = {"name": f"robust_{kind}", "duration": duration,
                              "description": f"robust design, {kind} from rest (batch run)"}
@@ -212,7 +242,7 @@ def corner_scenario(kind: str, point: Point, params: RobotParams, sign: float = 
     """
     if kind not in SCENARIOS:
         raise ValueError(f"kind must be one of {SCENARIOS}, got {kind!r}")
-    dur = {"step": RUN_S, "square": SQUARE_LEVEL, "tilt": RUN_S, "push": 8.0}[kind]
+    dur = {"step": RUN_S, "square": SQUARE_LEVEL, "tilt": RUN_S, "push": 8.0, "kick": 5.0}[kind]
     return _scenario(kind, sign * STEP, dur, point, params, float(params.rate))
 
 
@@ -280,7 +310,7 @@ class MeasuredStart:
 
 
 def _batch_part(params: RobotParams, ctrl: Any, points: Sequence[Point], engine: str | None,
-                chunk: int) -> dict[str, dict[str, np.ndarray]]:
+                chunk: int, supply_measured: bool = False) -> dict[str, dict[str, np.ndarray]]:
     """step (+-), square (+- edges in the first 2.2 s) and tilt at every point, in the batch."""
     n = len(points)
     kinds = [("up", STEP, 0.0), ("down", -STEP, 0.0), ("tilt", 0.0, TILT)]
@@ -291,13 +321,14 @@ def _batch_part(params: RobotParams, ctrl: Any, points: Sequence[Point], engine:
     Ts = 1.0 / float(params.rate)
     n_sq = int(round(SQUARE_LEVEL / Ts))
     for k_sel, c in (((0, 1), ctrl), ((2,), MeasuredStart(ctrl))):
-        _batch_runs(params, c, points, kinds, k_sel, engine, chunk, out, sc_step, sc_sq, sc_tilt, n_sq)
+        _batch_runs(params, c, points, kinds, k_sel, engine, chunk, out, sc_step, sc_sq, sc_tilt, n_sq, supply_measured)
     return out
 
 
 def _batch_runs(params: RobotParams, ctrl: Any, points: Sequence[Point], kinds: Sequence[tuple[str, float, float]],
                 k_sel: Sequence[int], engine: str | None, chunk: int, out: dict[str, dict[str, np.ndarray]],
-                sc_step: Mapping[int, Any], sc_sq: Mapping[int, Any], sc_tilt: Any, n_sq: int) -> None:
+                sc_step: Mapping[int, Any], sc_sq: Mapping[int, Any], sc_tilt: Any, n_sq: int,
+                supply_measured: bool = False) -> None:
     from sim.batch import RunSet, simulate_batch
 
     runs_all = [(i, kind) for i in range(len(points)) for kind in k_sel]
@@ -310,7 +341,8 @@ def _batch_runs(params: RobotParams, ctrl: Any, points: Sequence[Point], kinds: 
                     delay_ticks=np.array([points[i].delay_ticks for i, _ in part], dtype=np.int64),
                     noise_seed=np.zeros(len(part), dtype=np.int64),
                     x_ref=np.array([kinds[k][1] if kinds[k][0] != "tilt" else kinds[k][2] for _, k in part]))
-        res = simulate_batch(params, ctrl, rs, duration=RUN_S, record=True, engine=engine)
+        res = simulate_batch(params, ctrl, rs, duration=RUN_S, record=True, engine=engine,
+                             supply_measured=supply_measured)
         tr = res.traces
         assert tr is not None
         n_full = tr["x"].shape[0]
@@ -334,20 +366,24 @@ def _worse(m: dict[str, np.ndarray], i: int, phi: float, acc: float, settle: flo
         m[key][i] = max(m[key][i], v)
 
 
-def _push_part(params: RobotParams, ctrl: Any, points: Sequence[Point], which: Sequence[int]) -> dict[str, np.ndarray]:
-    """The push scenario in the scenario simulator at the points ``which`` (nan elsewhere)."""
+def _force_part(kind: str, params: RobotParams, ctrl: Any, points: Sequence[Point], which: Sequence[int],
+                supply_measured: bool = False) -> dict[str, np.ndarray]:
+    """A scenario of :data:`FORCE_SCENARIOS` in the scenario simulator at the points ``which`` (nan elsewhere)."""
     out = {c: np.full(len(points), np.nan) for c in CONSTRAINTS}
     for i in which:
-        for c, v in zip(CONSTRAINTS, simulate_corner("push", points[i], params, ctrl)):
+        for c, v in zip(CONSTRAINTS, simulate_corner(kind, points[i], params, ctrl, supply_measured=supply_measured)):
             out[c][i] = v
     return out
 
 
-def simulate_corner(kind: str, point: Point, params: RobotParams, ctrl: Any, sign: float = 1.0) -> tuple[float, float, float]:
+def simulate_corner(kind: str, point: Point, params: RobotParams, ctrl: Any, sign: float = 1.0, *,
+                    supply_measured: bool = False) -> tuple[float, float, float]:
     """One run of the evaluation in the scenario simulator (:func:`sim.plantsim.run_scenario_float`).
 
     The tilt starts its estimator at the first measured tilt, as the firmware (and the batch
     evaluation, :class:`MeasuredStart`) do; the others start from rest at ``z = 0``.
+    ``supply_measured``: the firmware inverts the motor with the robot's supply
+    (:attr:`UncertaintySet.supply_measured`).
 
     Returns
     -------
@@ -359,9 +395,10 @@ def simulate_corner(kind: str, point: Point, params: RobotParams, ctrl: Any, sig
     from sim.plantsim import run_scenario_float
 
     sc = corner_scenario(kind, point, params, sign)
-    log = run_scenario_float(sc, params, ctrl, init="measured" if kind == "tilt" else "zero")
+    log = run_scenario_float(sc, params, ctrl, init="measured" if kind == "tilt" else "zero",
+                             supply_measured=supply_measured)
     acc = float(np.max(np.abs(log["xddot"])))
-    if kind == "push":  # three segments: the scenario metrics as they are
+    if kind in FORCE_SCENARIOS:  # several segments: the scenario metrics as they are
         m = compute_metrics(log, sc, params)
         peak, settle = m.peak_phi, m.settling_time
     else:  # one segment: the same definition, also for a run that falls
@@ -381,7 +418,9 @@ def evaluate(params: RobotParams, cand: Candidate, uset: UncertaintySet, *, push
     cand : Candidate
     uset : UncertaintySet
     push : bool
-        Also run the push at the nominal point and ``uset.push_points`` worst points.
+        Run the push and the kick at the nominal point and ``uset.push_points`` worst points;
+        ``False``: at the nominal point only, and only when the batch scenarios pass there
+        (enough for :attr:`Evaluation.nominal_ok`, the search's first criterion).
     engine : str, optional
         Batch engine (default numba when importable).
     chunk : int
@@ -396,20 +435,24 @@ def evaluate(params: RobotParams, cand: Candidate, uset: UncertaintySet, *, push
     rate = float(params.rate)
     pts = list(points) if points is not None else uset.points(rate, params.delay)
     ctrl = cand.controller(params)
-    metrics: dict[str, dict[str, np.ndarray]] = _batch_part(params, ctrl, pts, engine, chunk)
+    metrics: dict[str, dict[str, np.ndarray]] = _batch_part(params, ctrl, pts, engine, chunk, uset.supply_measured)
     lim = {"phi_max": float(params.phi_max), "a_max": float(params.a_max), "settle": float(params.t_settle)}
     limits = {s: dict(lim) for s in SCENARIOS}
     limits["square"]["settle"] = min(float(params.t_settle), SQUARE_LEVEL)
+    limits["kick"]["a_max"] = math.inf  # not a constraint for a Dirac kick (module docstring)
     ev = Evaluation(cand, pts, metrics, limits)
     if push:
         per_point = np.max([ev.ratios(s, c) for s in metrics for c in CONSTRAINTS], axis=0)
-        order = [int(i) for i in np.argsort(-per_point, kind="stable") if i != 0][: uset.push_points]
-        metrics["push"] = _push_part(params, ctrl, pts, [0, *order])
+        which = [0, *[int(i) for i in np.argsort(-per_point, kind="stable") if i != 0][: uset.push_points]]
+    else:
+        which = [0] if ev.nominal_ok else []
+    for kind in FORCE_SCENARIOS:
+        metrics[kind] = _force_part(kind, params, ctrl, pts, which, uset.supply_measured)
     return ev
 
 
 def worst_rows(ev: Evaluation, params: RobotParams) -> list[dict[str, Any]]:
-    """The worst case per scenario and constraint: value, limit, ratio, PASS/FAIL and the robot."""
+    """The worst case per scenario and constraint (where it is one): value, limit, ratio, PASS/FAIL and the robot."""
     rows = []
     rate = float(params.rate)
     for s in SCENARIOS:
@@ -417,8 +460,10 @@ def worst_rows(ev: Evaluation, params: RobotParams) -> list[dict[str, Any]]:
             continue
         ran = int(np.sum(np.isfinite(ev.ratios(s, "phi_max"))))
         for c in CONSTRAINTS:
-            v, r, i = ev.worst(s, c)
             lim = ev.limits[s][c]
+            if math.isinf(lim):
+                continue  # not a constraint of this scenario (the kick's acceleration)
+            v, r, i = ev.worst(s, c)
             rows.append({"scenario": s, "constraint": c, "worst": v, "limit": lim, "ratio": r,
                          "verdict": "PASS" if r <= 1.0 else "FAIL", "points": ran,
                          "fails": int(np.sum(ev.ratios(s, c) > 1.0)), "at": ev.points[i].label(rate) if i >= 0 else "",

@@ -6,9 +6,12 @@ ratio Q/R matters), the estimator's speed factor and the force clamp -- in two s
 shipped design and random candidates (the first ~60 % of the budget), then random
 perturbations of the best so far.  Each is scored by :func:`host.design.robust.evaluate` on
 the batch scenarios at every point of the set (common points for all: a fair comparison);
-the best and the shipped design then also get the push.  The ranking key is
-:attr:`host.design.robust.Evaluation.score`: the worst constraint ratio over all points and
-scenarios (capped at a fall), then the number of failing checks, then the mean ratio.
+the five best and the shipped design then also get the push and the kick at their worst robots
+(re-ranked).  The ranking key is
+:attr:`host.design.robust.Evaluation.rank`: a design that fails on the nominal robot ranks
+after every one that passes there; then the worst constraint ratio over all points and
+scenarios (capped at a fall), the number of robots where the pendulum is lost, the number of
+robots with a failing check and the mean ratio.
 """
 
 from __future__ import annotations
@@ -54,7 +57,7 @@ def perturb(c: Candidate, rng: np.random.Generator, name: str, scale: float = 0.
 
 def search(params: RobotParams, uset: UncertaintySet, candidates: int = 16, *, seed: int = 0,
            engine: str | None = None, progress: Callable[[int, int, Evaluation], None] | None = None,
-           push: bool = True) -> list[Evaluation]:
+           push: bool = True, finalists: int = 5) -> list[Evaluation]:
     """Search for the design with the best worst case over ``uset``.
 
     Parameters
@@ -71,7 +74,8 @@ def search(params: RobotParams, uset: UncertaintySet, candidates: int = 16, *, s
     progress : callable, optional
         ``progress(done, total, evaluation)`` after each candidate.
     push : bool
-        Run the push (scenario simulator) for the best and the shipped design.
+        Run the push and the kick (scenario simulator) at the worst robots too for the
+        ``finalists`` best and the shipped design, and rank the finalists again.
 
     Returns
     -------
@@ -98,13 +102,17 @@ def search(params: RobotParams, uset: UncertaintySet, candidates: int = 16, *, s
         run(c)
     k = 0
     while len(pool) < candidates:
-        best = min(evals, key=lambda e: e.score).candidate
+        best = min(evals, key=lambda e: e.rank).candidate
         c = perturb(best, rng, f"local{k}")
         k += 1
         pool.append(c)
         run(c)
-    evals.sort(key=lambda e: e.score)
+    evals.sort(key=lambda e: e.rank)
     if push:
-        for e in {id(evals[0]): evals[0], **{id(e): e for e in evals if e.candidate.name == "shipped"}}.values():
+        # the finalists and the shipped design get the push and the kick at their worst robots
+        # too (the search ran them at the nominal one only), and the finalists are ranked again
+        top = evals[:max(1, finalists)]
+        for e in {**{id(e): e for e in top}, **{id(e): e for e in evals if e.candidate.name == "shipped"}}.values():
             e.metrics.update(evaluate(params, e.candidate, uset, push=True, engine=engine, points=pts).metrics)
+        evals[:len(top)] = sorted(top, key=lambda e: e.rank)
     return evals

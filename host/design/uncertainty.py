@@ -35,7 +35,7 @@ FACTORS: dict[str, tuple[str, str]] = {
 }
 """Factor keys of an uncertainty file -> (batch parameter, meaning)."""
 
-_OTHER_KEYS = ("delay", "random", "seed", "push_points")
+_OTHER_KEYS = ("delay", "random", "seed", "push_points", "supply_measured")
 
 
 class UncertaintyError(ValueError):
@@ -101,6 +101,11 @@ class UncertaintySet:
         Seed of the random points.
     push_points : int
         Points worst for the batch scenarios at which the push is also run.
+    supply_measured : bool
+        The firmware measures the motor supply and inverts the motor with it (the default
+        board's divider, ``firmware/board.py`` ``VSUP_ADC_PIN``): a supply factor then only
+        moves the drive's limits.  ``False``: a board without the divider, whose duty assumes
+        the nominal supply (a supply factor is a force-gain and back-EMF-compensation error).
     source : str
         Where the set came from.
     """
@@ -110,6 +115,7 @@ class UncertaintySet:
     random: int = 32
     seed: int = 0
     push_points: int = 6
+    supply_measured: bool = True
     source: str = "<defaults>"
 
     def delay_ticks(self, rate: float) -> tuple[int, int]:
@@ -161,6 +167,13 @@ def _count(data: Mapping[str, Any], key: str, default: int, src: str, hi: int) -
     return v
 
 
+def _flag(data: Mapping[str, Any], key: str, default: bool, src: str) -> bool:
+    v = data.get(key, default)
+    if not isinstance(v, bool):
+        raise UncertaintyError(key, f"expected true or false, got {v!r} (in {src})")
+    return v
+
+
 def uncertainty_from_dict(data: Mapping[str, Any], source: str = "<dict>", base: "UncertaintySet | None" = None) -> UncertaintySet:
     """Validate a parsed uncertainty mapping; keys it leaves out keep ``base``'s values.
 
@@ -187,6 +200,7 @@ def uncertainty_from_dict(data: Mapping[str, Any], source: str = "<dict>", base:
         random=_count(data, "random", b.random if b else 32, source, 100_000),
         seed=_count(data, "seed", b.seed if b else 0, source, 2**63 - 1),
         push_points=_count(data, "push_points", b.push_points if b else 6, source, 100_000),
+        supply_measured=_flag(data, "supply_measured", b.supply_measured if b else True, source),
         source=source,
     )
 

@@ -238,6 +238,15 @@ class EmulatedHil:
             raise HilError("emulated board is not open")
         return self.board
 
+    @property
+    def measures_supply(self) -> bool:
+        """The board firmware measures its motor supply (``firmware/board.py`` ``VSUP_ADC_PIN``
+        on an ADC pin, the default): each run puts the simulated robot's supply on that pin, and
+        the firmware scales its duty by it as on a real robot."""
+        from firmware import board as fb
+
+        return int(getattr(fb, "VSUP_ADC_PIN", -1)) >= 26
+
     def _tail(self) -> str:
         return self.board.tail() if self.board is not None else ""
 
@@ -378,6 +387,8 @@ class EmulatedHil:
         b = self._b()
         params = params or load_params()
         sim = PlantSim(params, scenario, seed=seed, x0=x0)
+        if self.measures_supply:  # the robot's supply on the divider's pin (the scenario's [params] included)
+            b.set_supply_mv(1000.0 * float(sim.params.V_supply))
         period_us = sim.Ts * 1e6
         pc = int(round(period_us * CYCLES_PER_US))
         sink = Sink(self.host)
@@ -495,7 +506,7 @@ def run_all(hil: "EmulatedHil", scenarios: Sequence[Scenario], params: RobotPara
         cb = (lambda k, n, _name=sc.name: progress(_name, k, n)) if progress else None
         run = hil.run(sc, params if plant is None else plant, progress=cb)
         if compare:
-            run.reference = float_reference(sc, params, plant=plant)
+            run.reference = float_reference(sc, params, plant=plant, supply_measured=hil.measures_supply)
         if out is not None:
             run.stats["files"] = {k: str(v) for k, v in write_outputs(run, out, gif=gif, plot=plot).items()}
         runs.append(run)

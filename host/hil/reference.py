@@ -14,7 +14,8 @@ __all__ = ["float_reference"]
 
 
 def float_reference(scenario: Scenario, params: RobotParams, *, init: str = "measured",
-                    seed: int | None = None, ctrl: Any = None, plant: RobotParams | None = None) -> dict[str, np.ndarray]:
+                    seed: int | None = None, ctrl: Any = None, plant: RobotParams | None = None,
+                    supply_measured: bool = False) -> dict[str, np.ndarray]:
     """The same scenario closed with the float discrete design in pure simulation.
 
     The controller is :func:`host.design.discrete.controller_for` of the *design* parameters
@@ -42,6 +43,9 @@ def float_reference(scenario: Scenario, params: RobotParams, *, init: str = "mea
         uploaded).
     plant : RobotParams, optional
         The simulated robot when it is not the design's (``--plant``).
+    supply_measured : bool
+        The firmware inverts the motor with the robot's measured supply (the emulated board
+        with the default divider, :attr:`host.hil.emulated.EmulatedHil.measures_supply`).
 
     Returns
     -------
@@ -54,4 +58,4 @@ def float_reference(scenario: Scenario, params: RobotParams, *, init: str = "mea
     if init not in ("measured", "zero"):
         raise ValueError(f"init must be 'measured' or 'zero', got {init!r}")
     ctrl = controller_for(scenario, params) if ctrl is None else ctrl
-    return run_scenario_float(scenario, params, ctrl, init=init, seed=seed, plant=plant)
+    return run_scenario_float(scenario, params, ctrl, init=init, seed=seed, plant=plant, supply_measured=supply_measured)

@@ -150,9 +150,10 @@ class Design:
         Diagonal of the continuous LQR state weight ``[x, xdot, phi, phidot]``.
     R : float
         Continuous LQR input weight.
-    observer : float
+    observer : float, optional
         Observer speed factor: the Kalman filter is designed for measurement noise
-        ``SIGMA_MEAS / observer`` (> 1 trusts the sensors more: a faster observer).
+        ``SIGMA_MEAS / observer`` (> 1 trusts the sensors more: a faster observer); default
+        the shipped design's (``host.design.discrete.OBSERVER_DEFAULT``).
     K : 4 floats, optional
         A fixed state-feedback gain instead of LQR (``design="gain"``).
     u_max : float, optional
@@ -162,7 +163,7 @@ class Design:
     name: str = "lqr"
     Q: tuple[float, float, float, float] | None = None
     R: float | None = None
-    observer: float = 1.0
+    observer: float | None = None
     K: tuple[float, float, float, float] | None = None
     u_max: float | None = None
 
@@ -170,12 +171,11 @@ class Design:
         """The :class:`host.design.discrete.DiscreteController` of this design for ``params``."""
         from host.design import discrete
 
-        if not self.observer > 0:
+        if self.observer is not None and not self.observer > 0:
             raise SweepError(f"observer speed factor must be > 0, got {self.observer!r}")
-        sig = tuple(s / self.observer for s in discrete.SIGMA_MEAS)
         if self.K is not None:
-            return discrete.controller_ss(params, design="gain", K=self.K, u_max=self.u_max, sigma_meas=sig)
-        return discrete.controller_ss(params, Q=self.Q, R=self.R, u_max=self.u_max, sigma_meas=sig)
+            return discrete.controller_ss(params, design="gain", K=self.K, u_max=self.u_max, observer=self.observer)
+        return discrete.controller_ss(params, Q=self.Q, R=self.R, u_max=self.u_max, observer=self.observer)
 
     def as_dict(self) -> dict[str, Any]:
         """Columns describing the design (for tables)."""
@@ -187,7 +187,7 @@ class Design:
             "q_x": float(q[0]) if self.K is None else math.nan,
             "q_phi": float(q[2]) if self.K is None else math.nan,
             "r": float(self.R if self.R is not None else discrete.R_DEFAULT) if self.K is None else math.nan,
-            "observer": float(self.observer),
+            "observer": float(discrete.OBSERVER_DEFAULT if self.observer is None else self.observer),
         }
 
 
