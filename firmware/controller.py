@@ -174,8 +174,12 @@ class Controller:
         self.hkc = (1 << (self.skc - 1)) if self.skc > 0 else 0
         self.rstep = t[ca + 7]
         self.w_off = t[ca + 8]
-        # rg / 2**srg = 2**skt / krt (x LSB per u LSB); |e| <= emax keeps e * rg small
-        self.emax = 2 * self.ucmax + 2
+        # rg / 2**srg = 2**skt / krt (x LSB per u LSB).  emax: the largest force difference a
+        # reference within +-rlim can absorb, |krt| * 2 rlim / 2**skt (u LSB) -- a stiff position
+        # row turns the cart's distance from the reference after a catch into tens of newtons --
+        # and |e| <= emax keeps e * rg small (srg below)
+        k = self.krt if self.krt > 0 else -self.krt
+        self.emax = ((k * 2 * self.rlim) >> self.skt) + 2
         self.rg = 0
         self.srg = 0
         if self.krt != 0:

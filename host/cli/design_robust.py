@@ -49,7 +49,7 @@ def _jsonable(v: Any) -> Any:
 
 def run_robust(args: argparse.Namespace) -> int:
     """Run the robust design search and print/write its result."""
-    from host.design.robust import UncertaintyError, load_uncertainty, worst_rows
+    from host.design.robust import FORCE_LSB_MAX, UncertaintyError, load_uncertainty, worst_rows
     from host.design.robust_search import search
     from sim.params import load_params
 
@@ -73,7 +73,8 @@ def run_robust(args: argparse.Namespace) -> int:
     def progress(done: int, total: int, ev: Any) -> None:
         s = ev.score
         sys.stderr.write(f"  candidate {done}/{total} {ev.candidate.name}: worst ratio {s[0]:.3g}, lost at {ev.falls}, "
-                         f"failing at {s[1]} robots{'' if ev.nominal_ok else ', fails the nominal robot'} "
+                         f"failing at {s[1]} robots{'' if ev.nominal_ok else ', fails the nominal robot'}"
+                         f"{'' if ev.precise else f', force row {ev.force_lsb:.0f} LSB'} "
                          f"({time.perf_counter() - t0:.0f} s)\n")
         sys.stderr.flush()
 
@@ -81,14 +82,16 @@ def run_robust(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t0
     best = evals[0]
     ship = next(e for e in evals if e.candidate.name == "shipped")
-    print(f"\n{len(evals)} candidates in {wall:.0f} s, best first (nominal: passes on the design model; worst: ratio "
-          "to the limit, capped at a fall = 5; lost: robots where |phi| reaches phi_max; fails: robots failing a check):")
+    print(f"\n{len(evals)} candidates in {wall:.0f} s, best first (nominal: passes on the design model; lsb: worst "
+          f"error of the fixed-point force row, at most {FORCE_LSB_MAX:g}; worst: ratio to the limit, capped at a fall "
+          "= 5; lost: robots where |phi| reaches phi_max; fails: robots failing a check):")
     print(f"  {'design':10s} {'q_x':>8s} {'q_xdot':>8s} {'q_phi':>8s} {'q_phidot':>8s} {'R':>6s} {'observer':>8s} "
-          f"{'a_cmd':>6s} {'nominal':>7s} {'worst':>6s} {'lost':>5s} {'fails':>6s} {'mean':>6s}")
+          f"{'a_cmd':>6s} {'nominal':>7s} {'lsb':>4s} {'worst':>6s} {'lost':>5s} {'fails':>6s} {'mean':>6s}")
     for e in evals[:10]:
         c, s = e.candidate, e.score
         print(f"  {c.name:10s} {c.Q[0]:8.4g} {c.Q[1]:8.4g} {c.Q[2]:8.4g} {c.Q[3]:8.4g} {c.R:6.3g} {c.observer:8.3g} "
-              f"{c.a_cmd:6.3g} {'PASS' if e.nominal_ok else 'FAIL':>7s} {s[0]:6.3g} {e.falls:5d} {s[1]:6d} {s[2]:6.3g}")
+              f"{c.a_cmd:6.3g} {'PASS' if e.nominal_ok else 'FAIL':>7s} {e.force_lsb:4.0f} {s[0]:6.3g} {e.falls:5d} "
+              f"{s[1]:6d} {s[2]:6.3g}")
     out: dict[str, Any] = {"params": str(params.source), "uncertainty": uset.source, "points": len(pts),
                            "supply_measured": uset.supply_measured,
                            "candidates": len(evals), "seed": args.seed, "wall_s": wall, "designs": {}}

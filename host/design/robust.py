@@ -20,17 +20,19 @@ sensors' quantisation, the true motor (supply, back-EMF) and the delayed, discre
   edges from rest, +-20 cm, each to settle within its 2.2 s level;
 * ``tilt`` -- released at rest with 0.1 rad (``tilt_0p1``), 5 s;
 * ``push`` -- 0.2 N on the cart for 5 s (``push_0p2N_5s``, 8 s);
-* ``kick`` -- the 1 N s kick on the cart (``impulse_kick``, 5 s): tilt and settling only --
-  its acceleration is not a constraint, since the drive's back-EMF brakes the kicked cart at
+* ``kick`` -- the 1 N s kick on the cart at rest (``impulse_kick``: the kick comes 0.5 s into a
+  5 s run, so 4.5 s after it), started as the velocity jump the kick gives that robot (as
+  :class:`sim.plantsim.PlantSim` applies a Dirac impulse): tilt and settling only -- its
+  acceleration is not a constraint, since the drive's back-EMF brakes the kicked cart at
   ~100 m/s^2 whatever the controller does (the scenario's ``[expect]``).
 
-``step``, ``square`` and ``tilt`` run in the batch simulator (:func:`sim.batch.simulate_batch`,
+``step``, ``square``, ``tilt`` and ``kick`` run in the batch simulator (:func:`sim.batch.simulate_batch`,
 traces recorded), one run per point and edge; the metrics are the scenario metrics of
 :func:`sim.metrics.compute_metrics` on those traces (settling of phi and, with a reference,
 of x) with the batch's own peak |xddot|.  The batch cannot apply a force profile, so ``push``
-and ``kick`` run in the scenario simulator (:func:`sim.plantsim.run_scenario_float`) at the
-nominal point and the ``push_points`` points worst for the batch scenarios (during the search,
-at the nominal point only: :attr:`Evaluation.nominal_ok`).
+runs in the scenario simulator (:func:`sim.plantsim.run_scenario_float`) at the nominal point
+and the ``push_points`` points worst for the batch scenarios (during the search, at the
+nominal point only: :attr:`Evaluation.nominal_ok`).
 
 Constraints (the report's, from the robot file): ``|phi| < phi_max`` (0.3 rad), ``|xddot| <=
 a_max`` (5 m/s^2), settling ``<= t_settle`` (2.5 s; the square wave's level is 2.2 s, so
@@ -77,8 +79,14 @@ __all__ = [
 ]
 
 SCENARIOS = ("step", "square", "push", "kick", "tilt")
-FORCE_SCENARIOS = {"push": "push_0p2N_5s", "kick": "impulse_kick"}
-"""The scenarios with a force on the cart: run in the scenario simulator, not the batch."""
+FORCE_SCENARIOS = {"push": "push_0p2N_5s"}
+"""The scenarios with a force profile on the cart: run in the scenario simulator, not the batch."""
+FORCE_LSB_MAX = 40.0
+"""Largest worst-case error (output LSB, 2**-9 N) of the fixed-point force row a shipped design may
+have: a design with larger gains gets a coarser row (the accumulator must fit 2**30), and its
+command drifts from the float design the evaluation scores (the previous default: 34 LSB)."""
+KICK = 1.0  # N s, the report's kick (sim/scenarios/impulse_kick.toml)
+KICK_S = 4.5  # s, from the kick to the end of that scenario
 CONSTRAINTS = ("phi_max", "a_max", "settle")
 STEP = 0.2  # m, the report's cart step and square-wave amplitude
 SQUARE_LEVEL = 2.2  # s, each level of the report's square wave
@@ -156,12 +164,17 @@ class Evaluation:
     limits : dict
         Constraint limits (``phi_max``, ``a_max``, ``settle``; the square wave's settle limit is
         ``min(t_settle, 2.2 s)``).
+    force_lsb : float
+        Worst error of the firmware's force command caused by quantising the design's gains
+        into the fixed-point table (output LSB of 2**-9 N, :attr:`host.design.export.Row.quant_error`
+        of the ``force`` row; :data:`FORCE_LSB_MAX` bounds it).
     """
 
     candidate: Candidate
     points: list[Point]
     metrics: dict[str, dict[str, np.ndarray]]
     limits: dict[str, dict[str, float]]
+    force_lsb: float = math.nan
 
     def ratios(self, scenario: str, constraint: str) -> np.ndarray:
         """Value / limit per point (> 1 fails; never settled or beyond -> :data:`UNSETTLED`; not run -> nan)."""
@@ -199,19 +212,36 @@ class Evaluation:
         return int(np.sum(np.any(np.nan_to_num(r, nan=0.0) >= 1.0, axis=0)))
 
     @property
+    def precise(self) -> bool:
+        """The firmware carries the design at the precision of the force row's bound
+        (:data:`FORCE_LSB_MAX`)."""
+        return not self.force_lsb > FORCE_LSB_MAX
+
+    @property
     def rank(self) -> tuple[bool, float, int, int, float]:
         """Ranking key of the search, smaller is better: a design that fails on the nominal
-        robot (the model it was designed for) after every one that does not; then the worst
+        robot (the model it was designed for) or that the fixed-point table carries less
+        precisely than :data:`FORCE_LSB_MAX` after every one that does not; then the worst
         ratio, the robots where the pendulum is lost (a fall is worse than a slow settling,
         and the worst ratio caps both), the robots with any failing check and the mean ratio
         (:attr:`score`)."""
         worst, failing, mean = self.score
-        return (not self.nominal_ok, worst, self.falls, failing, mean)
+        return (not (self.nominal_ok and self.precise), worst, self.falls, failing, mean)
 
     @property
     def passes(self) -> bool:
         """Every constraint met at every point where each scenario ran."""
         return self.score[0] <= 1.0
+
+
+def kick_state(values: Mapping[str, float], params: RobotParams, impulse: float = KICK) -> tuple[float, float, float, float]:
+    """The state just after a cart impulse at rest, upright (:class:`sim.plantsim.PlantSim`'s jump of
+    the generalised momenta), for a robot's batch ``values`` (``M``, ``m``, ``I``; ``L`` the model's)."""
+    M, m, inertia = float(values["M"]), float(values["m"]), float(values["I"])
+    mL = m * float(params.L)
+    J = inertia + mL * float(params.L)
+    det = (M + m) * J - mL * mL
+    return 0.0, J * impulse / det, 0.0, mL * impulse / det
 
 
 def _scenario(kind: str, amplitude: float = 0.0, duration: float = RUN_S, point: Point | None = None,
@@ -226,6 +256,11 @@ def _scenario(kind: str, amplitude: float = 0.0, duration: float = RUN_S, point:
                              "description": f"robust design, {kind} from rest (batch run)"}
         if kind == "tilt":
             d["initial"] = {"phi": TILT}
+        elif kind == "kick":
+            d["description"] = f"robust design, {KICK:g} N s kick on the cart at rest (batch run)"
+            if point is not None and params is not None:
+                v = kick_state(point.values(params), params)
+                d["initial"] = {"xdot": v[1], "phidot": v[3]}
         else:
             d["reference"] = {"kind": "step", "start": 0.0, "amplitude": amplitude}
         sc = scenario_from_dict(d)
@@ -242,7 +277,7 @@ def corner_scenario(kind: str, point: Point, params: RobotParams, sign: float = 
     """
     if kind not in SCENARIOS:
         raise ValueError(f"kind must be one of {SCENARIOS}, got {kind!r}")
-    dur = {"step": RUN_S, "square": SQUARE_LEVEL, "tilt": RUN_S, "push": 8.0, "kick": 5.0}[kind]
+    dur = {"step": RUN_S, "square": SQUARE_LEVEL, "tilt": RUN_S, "push": 8.0, "kick": KICK_S}[kind]
     return _scenario(kind, sign * STEP, dur, point, params, float(params.rate))
 
 
@@ -311,25 +346,30 @@ class MeasuredStart:
 
 def _batch_part(params: RobotParams, ctrl: Any, points: Sequence[Point], engine: str | None,
                 chunk: int, supply_measured: bool = False) -> dict[str, dict[str, np.ndarray]]:
-    """step (+-), square (+- edges in the first 2.2 s) and tilt at every point, in the batch."""
+    """step (+-), square (+- edges in the first 2.2 s), tilt and kick at every point, in the batch."""
     n = len(points)
-    kinds = [("up", STEP, 0.0), ("down", -STEP, 0.0), ("tilt", 0.0, TILT)]
-    out = {k: {c: np.full(n, -np.inf) for c in CONSTRAINTS} for k in ("step", "square", "tilt")}
+    kinds = [("up", STEP, 0.0), ("down", -STEP, 0.0), ("tilt", 0.0, TILT), ("kick", 0.0, 0.0)]
+    out = {k: {c: np.full(n, -np.inf) for c in CONSTRAINTS} for k in ("step", "square", "tilt", "kick")}
     sc_step = {+1: _scenario("step", STEP), -1: _scenario("step", -STEP)}
     sc_sq = {+1: _scenario("square", STEP, SQUARE_LEVEL), -1: _scenario("square", -STEP, SQUARE_LEVEL)}
     sc_tilt = _scenario("tilt")
     Ts = 1.0 / float(params.rate)
     n_sq = int(round(SQUARE_LEVEL / Ts))
-    for k_sel, c in (((0, 1), ctrl), ((2,), MeasuredStart(ctrl))):
-        _batch_runs(params, c, points, kinds, k_sel, engine, chunk, out, sc_step, sc_sq, sc_tilt, n_sq, supply_measured)
+    n_kick = int(round(KICK_S / Ts))
+    for k_sel, c in (((0, 1, 3), ctrl), ((2,), MeasuredStart(ctrl))):
+        _batch_runs(params, c, points, kinds, k_sel, engine, chunk, out, sc_step, sc_sq, (sc_tilt, _scenario("kick")),
+                    (n_sq, n_kick), supply_measured)
     return out
 
 
 def _batch_runs(params: RobotParams, ctrl: Any, points: Sequence[Point], kinds: Sequence[tuple[str, float, float]],
                 k_sel: Sequence[int], engine: str | None, chunk: int, out: dict[str, dict[str, np.ndarray]],
-                sc_step: Mapping[int, Any], sc_sq: Mapping[int, Any], sc_tilt: Any, n_sq: int,
+                sc_step: Mapping[int, Any], sc_sq: Mapping[int, Any], sc_one: tuple[Any, Any], n_cut: tuple[int, int],
                 supply_measured: bool = False) -> None:
     from sim.batch import RunSet, simulate_batch
+
+    sc_tilt, sc_kick = sc_one
+    n_sq, n_kick = n_cut
 
     runs_all = [(i, kind) for i in range(len(points)) for kind in k_sel]
     for a in range(0, len(runs_all), chunk):
@@ -337,6 +377,9 @@ def _batch_runs(params: RobotParams, ctrl: Any, points: Sequence[Point], kinds: 
         vals = [points[i].values(params) for i, _ in part]
         x0 = np.zeros((len(part), 4))
         x0[:, 2] = [kinds[k][2] for _, k in part]
+        for j, (_, k) in enumerate(part):
+            if kinds[k][0] == "kick":
+                x0[j] = kick_state(vals[j], params)
         rs = RunSet(x0=x0, values={key: np.array([v[key] for v in vals]) for key in vals[0]},
                     delay_ticks=np.array([points[i].delay_ticks for i, _ in part], dtype=np.int64),
                     noise_seed=np.zeros(len(part), dtype=np.int64),
@@ -352,6 +395,10 @@ def _batch_runs(params: RobotParams, ctrl: Any, points: Sequence[Point], kinds: 
             if name == "tilt":
                 ph, st = _metrics_of(tr, j, sc_tilt, params, n_full)
                 _worse(out["tilt"], i, ph, acc, st)
+                continue
+            if name == "kick":  # the 4.5 s after the kick of impulse_kick
+                ph, st = _metrics_of(tr, j, sc_kick, params, n_kick)
+                _worse(out["kick"], i, ph, acc, st)
                 continue
             sgn = 1 if name == "up" else -1
             ph, st = _metrics_of(tr, j, sc_step[sgn], params, n_full)
@@ -418,7 +465,7 @@ def evaluate(params: RobotParams, cand: Candidate, uset: UncertaintySet, *, push
     cand : Candidate
     uset : UncertaintySet
     push : bool
-        Run the push and the kick at the nominal point and ``uset.push_points`` worst points;
+        Run the push at the nominal point and ``uset.push_points`` worst points;
         ``False``: at the nominal point only, and only when the batch scenarios pass there
         (enough for :attr:`Evaluation.nominal_ok`, the search's first criterion).
     engine : str, optional
@@ -440,7 +487,10 @@ def evaluate(params: RobotParams, cand: Candidate, uset: UncertaintySet, *, push
     limits = {s: dict(lim) for s in SCENARIOS}
     limits["square"]["settle"] = min(float(params.t_settle), SQUARE_LEVEL)
     limits["kick"]["a_max"] = math.inf  # not a constraint for a Dirac kick (module docstring)
-    ev = Evaluation(cand, pts, metrics, limits)
+    from host.design.export import export
+
+    force = next(r for r in export(params, ctrl).rows if r.name == "force")
+    ev = Evaluation(cand, pts, metrics, limits, force_lsb=force.quant_error)
     if push:
         per_point = np.max([ev.ratios(s, c) for s in metrics for c in CONSTRAINTS], axis=0)
         which = [0, *[int(i) for i in np.argsort(-per_point, kind="stable") if i != 0][: uset.push_points]]
