@@ -101,7 +101,8 @@ def test_balances_from_tilt(params, ctrl) -> None:
     # the shipped design holds the report's 5 m/s^2 ...
     assert np.max(np.abs(r["xddot"])) <= 5.0
     # ... where the report's weights need far more from 0.1 rad (about 22 m/s^2 here)
-    rep = controller_ss(params, Q=Q_REPORT, R=R_REPORT, u_max=force_limit(params))
+    # (with an estimator for the sensors' noise, observer 1, as the report's observer follows the sensors)
+    rep = controller_ss(params, Q=Q_REPORT, R=R_REPORT, u_max=force_limit(params), observer=1.0)
     r = simulate_loop(params, rep, [0, 0, 0.1, 0], 5.0, quantise=True)
     # measured 21.6 m/s^2; the late tilt 0.99 mrad
     assert np.max(np.abs(r["xddot"])) > 15.0 and np.max(np.abs(r["phi"][r["t"] > 2.5])) <= 2 * PHI_COUNT
@@ -125,9 +126,14 @@ def test_reference_step_is_tracked(params, ctrl) -> None:
 
 
 def test_saturation_is_fed_back(params) -> None:
-    small = controller_ss(params, u_max=2.0)
+    # a clamp below the design's own (2.88 N) saturates the command and still recovers.  2.5 N,
+    # not the 2.0 N this test used with the previous default: simulate_loop starts the estimator
+    # at z = 0 (it does not see the tilt at first, unlike the firmware), and the shipped
+    # estimator, which trusts the model (OBSERVER_DEFAULT 0.25), sees it late enough that 2.0 N
+    # no longer catches it from there (docs/parameters.md)
+    small = controller_ss(params, u_max=2.5)
     r = simulate_loop(params, small, [0, 0, 0.1, 0], 5.0)
-    assert np.max(np.abs(r["u"])) == pytest.approx(2.0)
+    assert np.max(np.abs(r["u"])) == pytest.approx(2.5)
     assert abs(r["phi"][-1]) < 1e-4  # unquantised: measured 1.4e-6 rad at 5 s
 
 

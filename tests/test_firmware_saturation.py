@@ -59,7 +59,12 @@ for gi, g in enumerate((G0, G1)):
                 app.step()
                 app.cmd_arm()
             hal.adc = 2048 - 1200 + rnd(2401)
-            hal.enc = (hal.enc + rnd(81) - 40) & 0xFFFF
+            # the encoder: a random walk, and every 600 ticks 150 ticks of a steady run at
+            # 1-1.3 m/s each way (a speed estimate the estimator believes, whatever its speed,
+            # so that the back-EMF term drives the duty to its limit)
+            ph = (k // 150) % 4
+            step = 30 + rnd(11) if ph == 1 else (-30 - rnd(11) if ph == 3 else rnd(81) - 40)
+            hal.enc = (hal.enc + step) & 0xFFFF
             d = app.step()
             if app.sup.state == BALANCING:
                 nbal += 1

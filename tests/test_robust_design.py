@@ -75,18 +75,27 @@ def test_robust_command_tiny_budget_reproduced_by_direct_simulation(tmp_path: Pa
 def test_evaluation_agrees_with_the_scenario_simulator_on_settling() -> None:
     params = load_params(None)
     uset = R.uncertainty_from_dict({"random": 0}, "<test>", R.load_uncertainty())
-    pts = [uset.points(params.rate, params.delay)[0],
-           R.Point({**{k: 1.0 for k in R.FACTORS}, "inertia": 0.7}, 5, False)]
+    soft = {k: 1.0 for k in R.FACTORS}
+    pts = [uset.points(params.rate, params.delay)[0], R.Point({**soft, "inertia": 0.8}, 5, False),
+           R.Point({**soft, "inertia": 0.7}, 5, False)]
     ev = R.evaluate(params, R.shipped(), uset, push=False, points=pts)
     ctrl = R.shipped().controller(params)
-    for i, p in enumerate(pts):
+    # tilt and square at the nominal robot and at inertia x0.8.  (At x0.7 the two simulators'
+    # tilt traces agree within a quarter ADC count, but a one-count limit cycle crosses the
+    # settling band's edge at 2.2 s in one and at 3.4 s in the other: the settling time is
+    # discontinuous there, docs/parameters.md, Robust design.)
+    for i, p in enumerate(pts[:2]):
         for kind in ("tilt", "square"):
             phi, acc, settle = R.simulate_corner(kind, p, params, ctrl)
             assert ev.metrics[kind]["settle"][i] == pytest.approx(settle, abs=0.05), (kind, i)
             assert ev.metrics[kind]["phi_max"][i] == pytest.approx(phi, rel=0.02), (kind, i)
             assert ev.metrics[kind]["a_max"][i] == pytest.approx(acc, rel=0.05), (kind, i)
-    # the soft pendulum of the issue: the shipped design misses 2.5 s on the step, not at nominal
-    assert ev.metrics["step"]["settle"][0] < params.t_settle < ev.metrics["step"]["settle"][1]
+    # the step both ways, and the soft pendulum of the issue: the shipped design misses 2.5 s
+    # on the step at inertia x0.7, not at nominal
+    for i in (0, 2):
+        settle = max(R.simulate_corner("step", pts[i], params, ctrl, sign)[2] for sign in (1.0, -1.0))
+        assert ev.metrics["step"]["settle"][i] == pytest.approx(settle, abs=0.05), i
+    assert ev.metrics["step"]["settle"][0] < params.t_settle < ev.metrics["step"]["settle"][2]
 
 
 @pytest.mark.parametrize("text, key", [
