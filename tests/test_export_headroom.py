@@ -220,7 +220,7 @@ def test_estimate_limits_default_and_option(v_limit, w_limit, v_want, w_want) ->
     s = H.measurements(p, fd, [0, 0, 0.1, 0], 2.0)
     u, _ = H.py_controller_run(fd, s.yx, s.yp, s.r)
     # within 1.5 % of the force clamp, the bound of test_firmware_fixed_vs_float (measured
-    # 0.0152 N with the 3.6 m/s / 30 rad/s clamps, 0.0326 N with the defaults, of 2.68 N)
+    # 0.0194 N with the 3.6 m/s / 30 rad/s clamps, 0.0297 N with the defaults, of 2.88 N)
     from host.design.discrete import force_clamp
 
     err = max(abs(a * fd.lsb["u"] - b) for a, b in zip(u, s.u_float))

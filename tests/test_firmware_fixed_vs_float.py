@@ -24,7 +24,7 @@ P = load_params()
 FD = export(P)
 
 # The bounds below are set from what they guard, not from the drive's 80 N stall force:
-# - the command: the controller's force clamp (2.68 N here).  Measured when set (default
+# - the command: the controller's force clamp (2.68 N when set; 2.88 N since the robust default).  Measured when set (default
 #   design, these four scenarios): 0.026-0.033 N = 1.0-1.2 % of the clamp, 14-17 force LSB
 #   (0.00195 N); 8 % of the 0.36 N peak of the push.  The force row's gains are quantised at
 #   shift 10 (the KB gains are integers 34-36, up to 1 % off) and the states carry their own

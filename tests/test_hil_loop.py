@@ -214,7 +214,7 @@ def test_priming_tick_is_out_of_the_scenario_range() -> None:
 # ---------------------------------------------------------------- saturation
 @pytest.mark.slow
 def test_large_tilt_with_the_force_clamp_is_cut_cleanly() -> None:
-    # the shipped design's actuator limit is its force clamp (4.4 m/s^2 from upright); 0.4 rad
+    # the shipped design's actuator limit is its force clamp (4.73 m/s^2 from upright); 0.4 rad
     # needs g*tan(0.4) = 4.1 m/s^2 just to hold, so it cannot be caught: the command sits at
     # the clamp, the pendulum falls and the supervisor cuts the motor at its tilt limit
     # (the tracking row alone: catch mode switched off in the uploaded table)

@@ -109,9 +109,11 @@ def test_hil_plant_runs_the_shipped_firmware_on_another_robot(soft: Path, tmp_pa
         assert {"name", "passed", "phi_max", "settle_s", "accel_max"} <= set(rec)
         assert rec["name"] == "ref_step_20cm"
     assert (a["phi_max"], a["settle_s"], a["accel_max"]) != (b["phi_max"], b["settle_s"], b["accel_max"])
-    # the finding: the 30 % softer pendulum misses the 2.5 s settling on the 20 cm step
+    # the finding was that the 30 % softer pendulum missed the 2.5 s settling on the 20 cm
+    # step with the default of then (Q = diag(1.5, 0, 0.1, 0.02)); the robust default shipped since
+    # meets it there, later than on the nominal robot (measured 1.95 s and 2.32 s)
     assert a["passed"] and a["settle_s"] < 2.5
-    assert not b["passed"] and b["settle_s"] > 2.5 and off.returncode == 1
+    assert b["passed"] and a["settle_s"] + 0.1 < b["settle_s"] <= 2.5 and off.returncode == 0
     # HIL and the float reference of the same plant agree (the firmware side keeps the design)
     assert b["dphi_vs_float"] is not None and b["dphi_vs_float"] < 0.01
 

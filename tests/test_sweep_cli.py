@@ -10,6 +10,7 @@ import pytest
 
 from host.cli import main as cli
 from host.cli.sweep import parse_noise
+from host.design.discrete import Q_DEFAULT
 from sim.scenario import load_scenario
 
 
@@ -63,7 +64,7 @@ def test_a_chosen_design_is_swept(tmp_path, capsys) -> None:
                      "--observer", "0.5", "--worst", "1", "--quiet", "--no-plots", "--out", str(tmp_path)]) == 0
     capsys.readouterr()
     s = load_scenario(next((tmp_path / "scenarios").glob("*.toml")))
-    assert "design qx1_qphi0.1_r0.1_obs0.5" in s.expect.note
+    assert f"design qx1_qphi{Q_DEFAULT[2]:g}_r0.1_obs0.5" in s.expect.note  # q_phi not given: the shipped one
 
 
 def test_parse_noise() -> None:

@@ -45,7 +45,7 @@ def bench() -> dict[str, Any]:
         "supply measured: the default board's divider (firmware/board.py VSUP_ADC_PIN), the duty scaled by it; "
         "no divider: the duty assumes the nominal supply",
         "step: +-20 cm from rest (5 s); square: its edges, settled within the 2.2 s level; tilt 0.1 rad (estimator "
-        "from the measured tilt); push 0.2 N x 5 s and kick 1 N s (its acceleration is no constraint) in the "
+        "from the measured tilt); kick 1 N s at rest (its acceleration is no constraint); push 0.2 N x 5 s in the "
         "scenario simulator at the nominal + worst points",
         "a fall shows as phi_max 1.571 (pi/2) and settle 'never'; docs/parameters.md 'Robust design'",
     ]
