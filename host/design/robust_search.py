@@ -6,12 +6,13 @@ ratio Q/R matters), the estimator's speed factor and the force clamp -- in two s
 shipped design and random candidates (the first ~60 % of the budget), then random
 perturbations of the best so far.  Each is scored by :func:`host.design.robust.evaluate` on
 the batch scenarios at every point of the set (common points for all: a fair comparison);
-the five best and the shipped design then also get the push and the kick at their worst robots
-(re-ranked).  The ranking key is
-:attr:`host.design.robust.Evaluation.rank`: a design that fails on the nominal robot ranks
-after every one that passes there; then the worst constraint ratio over all points and
-scenarios (capped at a fall), the number of robots where the pendulum is lost, the number of
-robots with a failing check and the mean ratio.
+the five best and the shipped design then also get the push at their worst robots (the
+search ran it at the nominal one only) and are ranked again.  The ranking key is
+:attr:`host.design.robust.Evaluation.rank`: a design that fails on the nominal robot, or that
+the fixed-point table carries less precisely than ``FORCE_LSB_MAX``, ranks after every one that
+does not; then the worst constraint ratio over all points and scenarios (capped at a fall), the
+number of robots where the pendulum is lost, the number of robots with a failing check and the
+mean ratio.
 """
 
 from __future__ import annotations
@@ -74,8 +75,8 @@ def search(params: RobotParams, uset: UncertaintySet, candidates: int = 16, *, s
     progress : callable, optional
         ``progress(done, total, evaluation)`` after each candidate.
     push : bool
-        Run the push and the kick (scenario simulator) at the worst robots too for the
-        ``finalists`` best and the shipped design, and rank the finalists again.
+        Run the push (scenario simulator) at the worst robots too for the ``finalists`` best
+        and the shipped design, and rank the finalists again.
 
     Returns
     -------
@@ -109,8 +110,8 @@ def search(params: RobotParams, uset: UncertaintySet, candidates: int = 16, *, s
         run(c)
     evals.sort(key=lambda e: e.rank)
     if push:
-        # the finalists and the shipped design get the push and the kick at their worst robots
-        # too (the search ran them at the nominal one only), and the finalists are ranked again
+        # the finalists and the shipped design get the push at their worst robots too (the
+        # search ran it at the nominal one only), and the finalists are ranked again
         top = evals[:max(1, finalists)]
         for e in {**{id(e): e for e in top}, **{id(e): e for e in evals if e.candidate.name == "shipped"}}.values():
             e.metrics.update(evaluate(params, e.candidate, uset, push=True, engine=engine, points=pts).metrics)
