@@ -13,6 +13,7 @@ dropped (full sin/cos and the centripetal term)::
 
 from __future__ import annotations
 
+import math
 from typing import Callable, Mapping
 
 import control as ct
@@ -28,6 +29,7 @@ __all__ = [
     "reduced_model",
     "rk4_step",
     "simulate",
+    "impulse_jump",
 ]
 
 STATES = ("x", "xdot", "phi", "phidot")
@@ -69,6 +71,19 @@ def dynamics(t: float, x: np.ndarray, u: np.ndarray, params: RobotParams | Mappi
     xdd = (J * rhs1 + mL * c * rhs2) / det
     phidd = (mL * c * rhs1 + (M + m) * rhs2) / det
     return np.array([xd, xdd, phid, phidd])
+
+
+def impulse_jump(phi: float, impulse: float, Mt: float, mL: float, J: float) -> tuple[float, float]:
+    """Velocity jump ``(dxdot, dphidot)`` of a Dirac ``impulse`` (N s) on the cart at tilt ``phi``.
+
+    The generalised momenta jump by ``[impulse, 0]``: ``Mq [dxd, dphid] = [impulse, 0]`` with the
+    mass matrix ``Mq = [[M + m, -mL cos], [-mL cos, J]]`` (``Mt = M + m``, ``mL = m L``,
+    ``J = I + m L^2``, as in :func:`dynamics`).  The scenario simulator applies it at each kick
+    (:class:`sim.plantsim.PlantSim`); the robust evaluation starts its kick runs from it.
+    """
+    c = math.cos(phi)
+    det = Mt * J - (mL * c) ** 2
+    return J * impulse / det, mL * c * impulse / det
 
 
 def make_nlsys(params: RobotParams, name: str = "pendulum") -> ct.NonlinearIOSystem:

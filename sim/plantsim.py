@@ -37,6 +37,7 @@ import numpy as np
 
 from . import motor, sensors
 from .params import RobotParams
+from .plant import impulse_jump
 from .scenario import Scenario
 
 __all__ = ["LOG_COLUMNS", "PlantSim", "run_scenario_float", "write_csv", "read_csv"]
@@ -169,11 +170,8 @@ class PlantSim:
         return xd, (J * rhs1 + mL * c * rhs2) / det, phid, (mL * c * rhs1 + (self._M + self._m) * rhs2) / det
 
     def _apply_impulse(self, x: list[float], imp: float) -> list[float]:
-        # generalised momenta jump: Mq [dxd, dphid] = [imp, 0], Mq = [[M+m, -mL c], [-mL c, J]]
-        c = math.cos(x[2])
-        mL, J, Mt = self._mL, self._J, self._M + self._m
-        det = Mt * J - (mL * c) ** 2
-        return [x[0], x[1] + J * imp / det, x[2], x[3] + mL * c * imp / det]
+        dxd, dphid = impulse_jump(x[2], imp, self._M + self._m, self._mL, self._J)
+        return [x[0], x[1] + dxd, x[2], x[3] + dphid]
 
     def _integrate(self, duty: float, t0: float) -> None:
         # classical RK4, unrolled on scalars (the same equations as _rhs / sim.plant.dynamics)

@@ -235,13 +235,13 @@ class Evaluation:
 
 
 def kick_state(values: Mapping[str, float], params: RobotParams, impulse: float = KICK) -> tuple[float, float, float, float]:
-    """The state just after a cart impulse at rest, upright (:class:`sim.plantsim.PlantSim`'s jump of
-    the generalised momenta), for a robot's batch ``values`` (``M``, ``m``, ``I``; ``L`` the model's)."""
-    M, m, inertia = float(values["M"]), float(values["m"]), float(values["I"])
-    mL = m * float(params.L)
-    J = inertia + mL * float(params.L)
-    det = (M + m) * J - mL * mL
-    return 0.0, J * impulse / det, 0.0, mL * impulse / det
+    """The state just after a cart impulse at rest, upright (:func:`sim.plant.impulse_jump`, as the
+    scenario simulator applies it), for a robot's batch ``values`` (``M``, ``m``, ``I``; ``L`` the model's)."""
+    from sim.plant import impulse_jump
+
+    M, m, L, inertia = float(values["M"]), float(values["m"]), float(params.L), float(values["I"])
+    dxd, dphid = impulse_jump(0.0, impulse, M + m, m * L, inertia + m * L**2)
+    return 0.0, dxd, 0.0, dphid
 
 
 def _scenario(kind: str, amplitude: float = 0.0, duration: float = RUN_S, point: Point | None = None,
@@ -357,19 +357,18 @@ def _batch_part(params: RobotParams, ctrl: Any, points: Sequence[Point], engine:
     n_sq = int(round(SQUARE_LEVEL / Ts))
     n_kick = int(round(KICK_S / Ts))
     for k_sel, c in (((0, 1, 3), ctrl), ((2,), MeasuredStart(ctrl))):
-        _batch_runs(params, c, points, kinds, k_sel, engine, chunk, out, sc_step, sc_sq, (sc_tilt, _scenario("kick")),
-                    (n_sq, n_kick), supply_measured)
+        _batch_runs(params, c, points, kinds, k_sel, engine, chunk, out, sc_step, sc_sq, n_sq,
+                    {"tilt": (sc_tilt, None), "kick": (_scenario("kick"), n_kick)}, supply_measured)
     return out
 
 
 def _batch_runs(params: RobotParams, ctrl: Any, points: Sequence[Point], kinds: Sequence[tuple[str, float, float]],
                 k_sel: Sequence[int], engine: str | None, chunk: int, out: dict[str, dict[str, np.ndarray]],
-                sc_step: Mapping[int, Any], sc_sq: Mapping[int, Any], sc_one: tuple[Any, Any], n_cut: tuple[int, int],
-                supply_measured: bool = False) -> None:
+                sc_step: Mapping[int, Any], sc_sq: Mapping[int, Any], n_sq: int,
+                single: Mapping[str, tuple[Any, int | None]], supply_measured: bool = False) -> None:
+    """Run the ``k_sel`` kinds at every point in chunks; ``single``: the kinds scored as one run
+    each, ``name -> (scenario, ticks scored or None: the whole run)``."""
     from sim.batch import RunSet, simulate_batch
-
-    sc_tilt, sc_kick = sc_one
-    n_sq, n_kick = n_cut
 
     runs_all = [(i, kind) for i in range(len(points)) for kind in k_sel]
     for a in range(0, len(runs_all), chunk):
@@ -392,13 +391,10 @@ def _batch_runs(params: RobotParams, ctrl: Any, points: Sequence[Point], kinds: 
         for j, (i, k) in enumerate(part):
             acc = float(res.metrics["xddot_max"][j])
             name = kinds[k][0]
-            if name == "tilt":
-                ph, st = _metrics_of(tr, j, sc_tilt, params, n_full)
-                _worse(out["tilt"], i, ph, acc, st)
-                continue
-            if name == "kick":  # the 4.5 s after the kick of impulse_kick
-                ph, st = _metrics_of(tr, j, sc_kick, params, n_kick)
-                _worse(out["kick"], i, ph, acc, st)
+            if name in single:  # the kick: the 4.5 s after it, as in impulse_kick
+                sc, n_ticks = single[name]
+                ph, st = _metrics_of(tr, j, sc, params, n_full if n_ticks is None else n_ticks)
+                _worse(out[name], i, ph, acc, st)
                 continue
             sgn = 1 if name == "up" else -1
             ph, st = _metrics_of(tr, j, sc_step[sgn], params, n_full)
