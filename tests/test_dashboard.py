@@ -8,7 +8,10 @@ talks to it over HTTP.  The browser test is tests/test_dashboard_browser.py.
 
 from __future__ import annotations
 
+import csv
 import json
+import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -16,11 +19,13 @@ import time
 import urllib.error
 import urllib.request
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import pytest
 
 from host.dashboard import gains as G
-from host.dashboard.hub import PAGE_TIMEOUT_S, Hub, SharedLink
+from host.dashboard.hub import COLUMNS, PAGE_TIMEOUT_S, Hub, SharedLink
+from host.dashboard.server import PAGE_HEADER, TOKEN_HEADER, split_url
 from host.link import messages as M
 from host.link.clients import Link
 from host.operate.board import has_message
@@ -220,40 +225,286 @@ def _req(url: str, data: bytes | None = None, headers: dict | None = None) -> tu
         return exc.code, json.loads(exc.read() or b"{}")
 
 
-def test_server_serves_the_page_and_guards_its_commands(tmp_path: Path) -> None:
-    proc = subprocess.Popen([sys.executable, "-m", "host.cli.main", "dashboard", "--virtual", "--http-port", "0",
-                             "--record-dir", str(tmp_path), "--seconds", "60"],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+class _Served:
+    """``upright dashboard --virtual`` in its own process: the printed address, its base and token."""
+
+    def __init__(self, tmp: Path, seconds: float | None = 120.0) -> None:
+        argv = [sys.executable, "-m", "host.cli.main", "dashboard", "--virtual", "--http-port", "0",
+                "--record-dir", str(tmp)]
+        if seconds is not None:
+            argv += ["--seconds", str(seconds)]
+        self.proc = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.page_url = self.proc.stdout.readline().strip()  # type: ignore[union-attr]
+        assert self.page_url.startswith("http://127.0.0.1:"), self._fail()
+        self.url, self.token = split_url(self.page_url)
+        assert len(self.token) >= 32 and self.page_url == f"{self.url}?token={self.token}"
+        host, port = urlsplit(self.url).hostname, urlsplit(self.url).port
+        self.addr = (str(host), int(port or 0))
+
+    def _fail(self) -> str:
+        if self.proc.poll() is not None:
+            return self.proc.stderr.read()  # type: ignore[union-attr]
+        return "no address printed"
+
+    def headers(self, page: str = "cli", **extra: str) -> dict[str, str]:
+        return {PAGE_HEADER: page, TOKEN_HEADER: self.token, "Content-Type": "application/json", **extra}
+
+    def post(self, path: str, body: dict | bytes | None = None, page: str = "cli") -> tuple[int, dict]:
+        data = body if isinstance(body, bytes) else json.dumps(body or {}).encode()
+        return _req(self.url + path, data, self.headers(page))
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 20.0) -> tuple[int, str]:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+        try:
+            _, err = self.proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            _, err = self.proc.communicate()
+        return self.proc.returncode, err
+
+
+def _raw(addr: tuple[str, int], data: bytes, *, shut: bool = False, timeout: float = 20.0) -> tuple[int, dict, float]:
+    """Send bytes as they are (a request no client library would send); the answer's status, its
+    JSON body (one line) and the seconds it took."""
+    t0 = time.monotonic()
+    with socket.create_connection(addr, timeout=timeout) as s:
+        s.sendall(data)
+        if shut:
+            s.shutdown(socket.SHUT_WR)
+        resp = b""
+        while b"\r\n\r\n" not in resp:
+            chunk = s.recv(65536)
+            if not chunk:
+                return 0, {}, time.monotonic() - t0  # closed without an answer
+            resp += chunk
+        head, _, body = resp.partition(b"\r\n\r\n")
+        lines = head.decode("latin-1").split("\r\n")
+        hdr = {k.lower(): v.strip() for k, _, v in (ln.partition(":") for ln in lines[1:])}
+        n = int(hdr["content-length"])
+        while len(body) < n:
+            chunk = s.recv(65536)
+            if not chunk:
+                break
+            body += chunk
+    assert len(body) == n and body.count(b"\n") == 0, body  # one line
+    return int(lines[0].split()[1]), json.loads(body), time.monotonic() - t0
+
+
+def _post_bytes(served: _Served, path: str, body: bytes, *, length: str | None = "auto",
+                headers: dict[str, str] | None = None) -> bytes:
+    h = {"Host": f"127.0.0.1:{served.addr[1]}", PAGE_HEADER: "cli", TOKEN_HEADER: served.token,
+         "Content-Type": "application/json", **(headers or {})}
+    if length == "auto":
+        h["Content-Length"] = str(len(body))
+    elif length is not None:
+        h["Content-Length"] = length
+    h = {k: v for k, v in h.items() if v is not None}
+    return (f"POST {path} HTTP/1.1\r\n" + "".join(f"{k}: {v}\r\n" for k, v in h.items()) + "\r\n").encode() + body
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory: pytest.TempPathFactory):
+    s = _Served(tmp_path_factory.mktemp("dash"))
     try:
-        url = proc.stdout.readline().strip()  # type: ignore[union-attr]
-        assert url.startswith("http://127.0.0.1:")
-        page = urllib.request.urlopen(url, timeout=10).read().decode()
-        assert "/vendor/uPlot.iife.min.js" in page and "http" not in page.split("<body>")[1].replace("http-", "")
-        assert len(urllib.request.urlopen(url + "vendor/uPlot.iife.min.js", timeout=10).read()) > 20000
-        # the event stream: hello, then telemetry rows
-        with urllib.request.urlopen(url + "events", timeout=10) as es:
-            head = es.read(4000).decode()
-        assert head.startswith("event: hello") and "event: t" in head
-        H = {"X-Upright-Page": "cli", "Content-Type": "application/json"}
-        assert _req(url + "api/arm", b"{}")[0] == 403  # no header: no command
-        code, body = _req(url + "api/arm", b"{}", H)
-        assert code == 403 and "live dashboard page" in body["error"]  # not a live page
-        assert _req(url + "api/ping", b"{}", H)[0] == 410
-        assert _req(url + "api/record.csv")[0] == 404
-        assert _req(url + "api/reference", b'{"x": "nan"}', H)[0] == 400
-        code, body = _req(url + "api/reference", b'{"x": 5}', H)
-        assert code == 409 and "out_of_range" in body["error"]  # the board's own refusal
-        assert _req(url + "api/gains?design=shipped", b"", H)[0] == 200
-        bad = urllib.request.Request(url + "api/status", headers={"Host": "evil.example:80"})
-        with pytest.raises(urllib.error.HTTPError) as exc:
-            urllib.request.urlopen(bad, timeout=10)
-        assert exc.value.code == 403
-        st = _req(url + "api/status")[1]
-        assert st["heartbeat"]["state_name"] == "disarmed" and st["telemetry_rows"] > 10
-        assert st["gains"]["crc"] == G.M.crc16(G.design_table("shipped")[0])
+        yield s
     finally:
-        proc.send_signal(2)
-        proc.wait(timeout=15)
+        code, err = s.stop()
+    assert "Traceback" not in err and "internal error" not in err, err[-3000:]
+
+
+def test_server_serves_the_page_and_guards_its_commands(served: _Served) -> None:
+    url = served.url
+    page = urllib.request.urlopen(served.page_url, timeout=10).read().decode()
+    assert "/vendor/uPlot.iife.min.js" in page and "http" not in page.split("<body>")[1].replace("http-", "")
+    # the page carries this run's token, and is served only to the address that carries it
+    assert f'<meta name="upright-token" content="{served.token}">' in page
+    for bad in (url, url + "?token=" + "x" * len(served.token), url + "index.html"):
+        code, body = _req(bad)
+        assert code == 403 and "token" in body["error"], (bad, body)
+    assert len(urllib.request.urlopen(url + "vendor/uPlot.iife.min.js", timeout=10).read()) > 20000
+    app = urllib.request.urlopen(url + "static/app.js", timeout=10).read().decode()
+    assert app.count(f'"{TOKEN_HEADER}": TOKEN') == 2  # both the commands and the ping send it
+    # the event stream: hello, then telemetry rows
+    with urllib.request.urlopen(url + "events", timeout=10) as es:
+        head = es.read(4000).decode()
+    assert head.startswith("event: hello") and "event: t" in head
+    code, body = served.post("api/arm")
+    assert code == 403 and "live dashboard page" in body["error"]  # not a live page
+    assert served.post("api/ping")[0] == 410
+    assert _req(url + "api/record.csv")[0] == 404
+    code, body = served.post("api/reference", {"x": 0.9})
+    assert code == 409 and "out_of_range" in body["error"]  # the board's own refusal (ref_limit_um 0.8 m)
+    assert served.post("api/reference", {"x": 0.0})[0] == 200
+    assert served.post("api/disarm")[0] == 200 and served.post("api/clear")[0] == 200
+    assert _req(url + "api/gains?design=shipped", b"", served.headers())[0] == 200
+    bad = urllib.request.Request(url + "api/status", headers={"Host": "evil.example:80"})
+    with pytest.raises(urllib.error.HTTPError) as exc:
+        urllib.request.urlopen(bad, timeout=10)
+    assert exc.value.code == 403
+    st = _req(url + "api/status")[1]
+    assert st["heartbeat"]["state_name"] == "disarmed" and st["telemetry_rows"] > 10
+    assert st["gains"]["crc"] == G.M.crc16(G.design_table("shipped")[0])
+
+
+@pytest.mark.parametrize("path", ["api/disarm", "api/clear", "api/reference", "api/gains?design=shipped",
+                                  "api/arm", "api/ping", "api/record/start", "api/square"])
+@pytest.mark.parametrize("who", ["no token", "wrong token", "no page", "foreign origin", "foreign host"])
+def test_commands_only_from_the_page_it_served(served: _Served, path: str, who: str) -> None:
+    # any other local process (it knows the routes and a page id, not the token) is refused: 403, one line
+    h = {"no token": {TOKEN_HEADER: None}, "wrong token": {TOKEN_HEADER: served.token[:-1] + "A"},
+         "no page": {PAGE_HEADER: None}, "foreign origin": {"Origin": "http://127.0.0.1:1"},
+         "foreign host": {"Host": "evil.example"}}[who]
+    body = b'{"x": 0.1}' if path == "api/reference" else b"{}"
+    code, ans, _ = _raw(served.addr, _post_bytes(served, "/" + path, body, headers=h))
+    assert code == 403, ans
+    word = {"no token": "token", "wrong token": "token", "no page": PAGE_HEADER, "foreign origin": "Origin",
+            "foreign host": "Host"}[who]
+    assert word in ans["error"]
+
+
+_REF = "/api/reference"
+MALFORMED = [
+    # (name, path, body, Content-Length ("auto" = the body's), extra headers, status, words in the answer)
+    ("no Content-Length", "/api/disarm", b"", None, {}, 411, "Content-Length required"),
+    ("chunked", "/api/disarm", b"0\r\n\r\n", None, {"Transfer-Encoding": "chunked"}, 411, "Transfer-Encoding"),
+    ("negative Content-Length", "/api/disarm", b"", "-1", {}, 400, "negative"),
+    ("Content-Length not a number", "/api/disarm", b"", "12abc", {}, 400, "not a number"),
+    ("oversized Content-Length", "/api/gains?file=g.py", b"", str(10**9), {}, 413, "too large"),
+    ("short body, closed", _REF, b'{"x": 0', "20", {}, 400, "7 of 20 bytes before the connection closed"),
+    ("not JSON", _REF, b'{"x": ', "auto", {}, 400, "not JSON"),
+    ("not UTF-8", _REF, b'{"x": "\xff"}', "auto", {}, 400, "UTF-8"),
+    ("NaN literal", _REF, b'{"x": NaN}', "auto", {}, 400, "NaN is not a JSON number"),
+    ("Infinity literal", _REF, b'{"x": -Infinity}', "auto", {}, 400, "-Infinity is not a JSON number"),
+    ("overflowing float", _REF, b'{"x": 1e999}', "auto", {}, 400, "x must be finite"),
+    ("absurd float", _REF, b'{"x": 1e308}', "auto", {}, 400, "x = 1e+308 m is out of range"),
+    ("absurd int", _REF, b'{"x": ' + b"9" * 400 + b"}", "auto", {}, 400, "out of range"),
+    ("huge int", _REF, b'{"x": ' + b"9" * 5000 + b"}", "auto", {}, 400, "not JSON"),
+    ("bool for a number", _REF, b'{"x": true}', "auto", {}, 400, "x must be a number, got bool"),
+    ("string for a number", _REF, b'{"x": "0.1"}', "auto", {}, 400, "x must be a number, got str"),
+    ("missing key", _REF, b"{}", "auto", {}, 400, "missing key 'x'"),
+    ("unknown key", _REF, b'{"x": 0.1, "y": 1}', "auto", {}, 400, "unknown key 'y'"),
+    ("repeated key", _REF, b'{"x": 0.1, "x": 0.7}', "auto", {}, 400, "given twice"),
+    ("array body", _REF, b"[0.1]", "auto", {}, 400, "must be a JSON object, got list"),
+    ("nested too deep", _REF, b"[" * 100000 + b"]" * 100000, "auto", {}, 400, "not JSON"),
+    ("body on a bare command", "/api/arm", b'{"force": 1}', "auto", {}, 400, "unknown key 'force'"),
+    ("square period", "/api/square", b'{"amplitude": 0.2, "period": 0}', "auto", {}, 400, "period = 0 s is out of range"),
+    ("square top", "/api/square", b'{"amplitude": 0.8, "low": 0.5}', "auto", {}, 400, "low + amplitude = 1.3 m"),
+    ("square stop", "/api/square", b'{"stop": "yes"}', "auto", {}, 400, "stop must be true or false"),
+    ("ping samples", "/api/ping", b'{"latency_ms": 5}', "auto", {}, 400, "latency_ms must be a list"),
+    ("ping sample", "/api/ping", b'{"updates": [1, "a"]}', "auto", {}, 400, "updates[1] must be a number"),
+    ("unknown query", "/api/disarm?now=1", b"", "auto", {}, 400, "unknown query parameter 'now'"),
+    ("gains: design and body", "/api/gains?design=shipped", b"abc", "auto", {}, 400, "no body expected"),
+    ("gains: not a table", "/api/gains?file=g.bin", b"abc", "auto", {}, 400, "not a gain table"),
+    ("gains: unknown design", "/api/gains?design=nope", b"", "auto", {}, 400, "unknown table"),
+    ("unknown route", "/api/selfdestruct", b"", "auto", {}, 404, "not found"),
+]
+
+
+@pytest.mark.parametrize("name, path, body, length, extra, status, words", MALFORMED, ids=[m[0] for m in MALFORMED])
+def test_every_malformed_request_is_answered_in_one_line(served: _Served, name: str, path: str, body: bytes,
+                                                        length: str | None, extra: dict, status: int,
+                                                        words: str) -> None:
+    code, ans, took = _raw(served.addr, _post_bytes(served, path, body, length=length, headers=extra),
+                           shut=name.startswith("short body"))
+    assert code == status, ans
+    assert words in ans["error"], ans
+    assert took < 4.0  # answered at once, not after a timeout
+    # the server lives on, the board untouched
+    st = _req(served.url + "api/status")[1]
+    assert st["heartbeat"]["state_name"] == "disarmed" and st["heartbeat"]["faults"] == 0
+
+
+def test_the_servers_own_http_errors_are_one_line(served: _Served) -> None:
+    host = f"Host: 127.0.0.1:{served.addr[1]}\r\n"
+    code, ans, _ = _raw(served.addr, b"PUT /api/disarm HTTP/1.1\r\n" + host.encode() + b"Content-Length: 0\r\n\r\n")
+    assert code == 501 and "PUT" in ans["error"]
+    code, ans, _ = _raw(served.addr, b"GET /" + b"a" * 70000 + b" HTTP/1.1\r\n\r\n")
+    assert code == 414
+    code, ans, _ = _raw(served.addr, b"GET / HTTP/1.1\r\n" + b"".join(b"X-%d: 1\r\n" % i for i in range(120)) + b"\r\n")
+    assert code == 431
+    code, ans, _ = _raw(served.addr, b"BREW /pot HTCPCP/1.0\r\n\r\n")
+    assert code == 400
+
+
+@pytest.mark.slow
+def test_idle_and_stalled_requests_time_out(served: _Served) -> None:
+    # a short body that never completes, headers that never end, a connection that says nothing:
+    # each is let go after REQUEST_TIMEOUT_S (5 s), the first two answered in one line, and the
+    # server answers others meanwhile -- no handler thread waits forever
+    results: dict[str, tuple[int, dict, float]] = {}
+    stalls = {
+        "short body": _post_bytes(served, _REF, b'{"x": 0', length="20"),
+        "headers": b"POST /api/disarm HTTP/1.1\r\nHost: 127.0.0.1\r\n",
+        "silent": b"",
+    }
+    threads = [threading.Thread(target=lambda k=k, d=d: results.__setitem__(k, _raw(served.addr, d)))
+               for k, d in stalls.items()]
+    for t in threads:
+        t.start()
+    time.sleep(0.5)
+    assert _req(served.url + "api/status")[0] == 200  # served while three connections stall
+    for t in threads:
+        t.join(30)
+    code, ans, took = results["short body"]
+    assert code == 400 and "7 of 20 bytes in 5 s" in ans["error"] and 4.5 < took < 15
+    code, ans, took = results["headers"]
+    assert code == 408 and "timed out" in ans["error"] and 4.5 < took < 15
+    code, ans, took = results["silent"]
+    assert code == 0 and 4.5 < took < 15  # closed: nothing to answer
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=lambda s: s.name)
+def test_any_signal_disarms_the_board_before_the_dashboard_exits(tmp_path: Path, sig: signal.Signals) -> None:
+    # armed from a live page, recording; the signal: the board is disarmed, by the firmware's own
+    # word (its heartbeat and its per-tick answer), before the dashboard exits with 128 + signal
+    served = _Served(tmp_path, seconds=None)
+    es = None
+    try:
+        es = urllib.request.urlopen(served.url + "events", timeout=10)
+        head = b""
+        while b"\n\n" not in head:
+            head += es.read1(4096)
+        page = json.loads(dict(ln.split(": ", 1) for ln in head.partition(b"\n\n")[0].decode().splitlines())["data"])["id"]
+        stop = threading.Event()
+
+        def pinger() -> None:  # what app.js does every 250 ms, and the stream read on
+            while not stop.is_set():
+                try:
+                    served.post("api/ping", {}, page)
+                    es.read1(65536)
+                except (OSError, ValueError):  # the dashboard has gone
+                    return
+                stop.wait(0.2)
+
+        threading.Thread(target=pinger, daemon=True).start()
+        time.sleep(0.5)
+        assert served.post("api/record/start", {}, page)[0] == 200
+        code, body = served.post("api/arm", {}, page)
+        assert code == 200, body
+        t0 = time.monotonic()
+        while True:
+            st = _req(served.url + "api/status")[1]
+            if st["heartbeat"]["state"] in (1, 2) and st["virtual"]["fw_state"] in (1, 2) and st["feeding"]:
+                break
+            assert time.monotonic() - t0 < 15, st
+            time.sleep(0.1)
+        time.sleep(0.5)
+        rec = Path(st["record"]["path"])
+        code, err = served.stop(sig)
+        stop.set()
+    finally:
+        if es is not None:
+            es.close()
+        served.stop(signal.SIGKILL)
+    assert code == (130 if sig == signal.SIGINT else 128 + sig), err
+    assert "board disarmed (its heartbeat: disarmed)" in err, err
+    assert "Traceback" not in err
+    # the recording (closed after the disarm) shows the board armed, then disarmed at its end
+    rows = list(csv.reader(rec.read_text().splitlines()))
+    states = [int(r[COLUMNS.index("state")]) for r in rows[1:]]
+    assert {1, 2} & set(states) and states[-1] == 0, states[-20:]
 
 
 # ---------------------------------------------------------------- bad input

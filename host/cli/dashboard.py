@@ -6,17 +6,24 @@
     upright dashboard --port /dev/ttyUSB0          # a board (its link at the board's UART rate)
     upright dashboard --emulate rp2040             # the emulated Pico (``upright emulate rp2040 --pty``)
 
-Prints the page's address (``http://127.0.0.1:8765/``) on stdout, one line, and serves until
-Ctrl-C (or ``--seconds``).  Everything the page loads is served from the project (uPlot from
-``node_modules``).  The dashboard keeps the board's watchdog fed only while a page is open and
-the arm was asked from it; when the last page closes it stops and disarms the board; on exit it
-disarms the board it can still reach.  Recordings go to ``--record-dir`` (CSV, one row per
-telemetry frame) and download from the page.
+Prints the page's address (``http://127.0.0.1:8765/?token=...``) on stdout, one line, and
+serves until Ctrl-C, SIGTERM or SIGHUP (a closed terminal), or ``--seconds``.  The address
+carries this run's random token: the page is served only with it, and the server takes board
+commands only from that page (``host/dashboard/server.py``), not from any other local
+process.  Everything the page loads is served from the project (uPlot from ``node_modules``).
+The dashboard keeps the board's watchdog fed only while a page is open and the arm was asked
+from it; when the last page closes it stops and disarms the board.  On exit -- by any of those
+signals, or ``--seconds`` -- it disarms the board before anything else, waits (up to 2 s) for
+the board's own word that it is disarmed and says so in one line on stderr; further signals
+during that are ignored.  Exit status 130 after Ctrl-C, 128 + the signal's number after SIGTERM
+(143) or SIGHUP (129).  Recordings go to ``--record-dir`` (CSV, one row per telemetry frame)
+and download from the page.
 """
 
 from __future__ import annotations
 
 import argparse
+import signal
 import subprocess
 import sys
 import time
@@ -25,7 +32,42 @@ from typing import Any
 
 from host.cli import args as A
 
-__all__ = ["add_arguments", "run"]
+__all__ = ["add_arguments", "run", "SHUTDOWN_SIGNALS"]
+
+SHUTDOWN_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+"""Signals (besides SIGINT, Ctrl-C) that end the dashboard the way Ctrl-C does: board disarmed first."""
+_CONFIRM_S = 2.0
+
+
+class _Signalled(BaseException):
+    """SIGTERM or SIGHUP reached the dashboard (a BaseException, like KeyboardInterrupt: nothing
+    on the way out swallows it)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _on_signal(signum: int, frame: object) -> None:
+    raise _Signalled(signum)
+
+
+def _install(handler: Any, signums: tuple[int, ...]) -> dict[int, Any]:
+    old = {}
+    for s in signums:
+        try:
+            old[s] = signal.signal(s, handler)
+        except (ValueError, OSError):  # pragma: no cover - not the main thread
+            pass
+    return old
+
+
+def _restore(old: dict[int, Any]) -> None:
+    for s, h in old.items():
+        try:
+            signal.signal(s, h)
+        except (ValueError, OSError, TypeError):  # pragma: no cover
+            pass
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -72,7 +114,19 @@ def _start_emulator() -> tuple[subprocess.Popen[bytes], str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``upright dashboard``."""
+    """Run ``upright dashboard`` (SIGTERM and SIGHUP end it as Ctrl-C does: board disarmed first)."""
+    old = _install(_on_signal, SHUTDOWN_SIGNALS)
+    try:
+        return _serve(args)
+    except _Signalled as sig:
+        name = signal.Signals(sig.signum).name
+        print(f"upright dashboard: {name}: stopped", file=sys.stderr, flush=True)
+        return 128 + sig.signum
+    finally:
+        _restore(old)
+
+
+def _serve(args: argparse.Namespace) -> int:
     from host.dashboard.hub import Hub, PlainPump, SharedLink
     from host.dashboard.server import VENDOR, DashboardServer
     from host.link.clients import LinkError, open_link
@@ -118,8 +172,8 @@ def run(args: argparse.Namespace) -> int:
             server = DashboardServer(hub, "127.0.0.1", args.http_port).start()
         except OSError as exc:
             raise A.RunFailed(f"--http-port {args.http_port}: {exc.strerror or exc}") from None
-        print(server.url, flush=True)
-        print(f"upright dashboard: open {server.url} (Ctrl-C stops; the board is disarmed on exit)",
+        print(server.page_url, flush=True)
+        print(f"upright dashboard: open {server.page_url} (Ctrl-C stops; the board is disarmed on exit)",
               file=sys.stderr, flush=True)
         t_end = None if args.seconds is None else time.monotonic() + args.seconds
         while t_end is None or time.monotonic() < t_end:
@@ -133,31 +187,72 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _shutdown(hub: Any, server: Any, plant: Any, pump: Any, link: Any, emu: Any) -> None:
-    # disarm what can still be reached, then stop everything, each step on its own
+    # disarm what can still be reached (first, and with every further signal ignored), then stop
+    # everything, each step on its own
+    held = _install(_note_signal, (signal.SIGINT, *SHUTDOWN_SIGNALS))
+    try:
+        if hub is not None:
+            _disarm(hub, plant)
+            hub.close()
+        if server is not None:
+            server.stop()
+        if pump is not None:
+            pump.stop()
+        if plant is not None:
+            plant.stop()
+        if link is not None:
+            from host.link.clients import LinkError
+
+            try:
+                link.close()
+            except (LinkError, OSError):
+                pass
+        if emu is not None:
+            try:
+                emu.stdin.close()
+                emu.wait(timeout=5.0)
+            except (OSError, subprocess.TimeoutExpired):
+                emu.kill()
+                emu.wait()
+    finally:
+        _restore(held)
+
+
+def _note_signal(signum: int, frame: object) -> None:
+    # during the shutdown: the disarm must not be cut short (it takes at most a few seconds)
+    print(f"upright dashboard: {signal.Signals(signum).name} while disarming: ignored", file=sys.stderr, flush=True)
+
+
+def _disarm(hub: Any, plant: Any) -> None:
+    """Disarm the board, then wait for its own word: the heartbeat (and, on the virtual board, the
+    firmware's per-tick answer) saying disarmed; one line on stderr either way."""
+    from firmware import msgtable as T
     from host.link.clients import LinkError
     from host.operate.board import BoardError
 
-    if hub is not None:
-        try:
-            hub.disarm_now()
-        except (LinkError, OSError, BoardError):
-            pass
-        hub.close()
-    if server is not None:
-        server.stop()
-    if pump is not None:
-        pump.stop()
-    if plant is not None:
-        plant.stop()
-    if link is not None:
-        try:
-            link.close()
-        except (LinkError, OSError):
-            pass
-    if emu is not None:
-        try:
-            emu.stdin.close()
-            emu.wait(timeout=5.0)
-        except (OSError, subprocess.TimeoutExpired):
-            emu.kill()
-            emu.wait()
+    armed = {s[0] for s in T.STATES if s[1] in ("armed", "balancing")}
+    try:
+        hub.disarm_now()
+    except (LinkError, OSError, BoardError) as exc:
+        print(f"upright dashboard: disarm failed: {' '.join(str(exc).split())} "
+              "(the board's link watchdog cuts the motor without a host heartbeat)", file=sys.stderr, flush=True)
+        return
+    n0 = hub.n
+    t_end = time.monotonic() + _CONFIRM_S
+    state = None
+    while time.monotonic() < t_end:
+        hb = hub.heartbeat or {}
+        state = hb.get("state")
+        fw = plant.fw_state if plant is not None else None
+        # a telemetry row after the heartbeat, so a recording ends with the disarmed state too
+        if state is not None and state not in armed and (fw is None or fw not in armed) and hub.n > n0:
+            break
+        time.sleep(0.02)
+    from host.link import messages as M
+
+    name = M.STATES.get(state, "unknown") if state is not None else "no heartbeat"
+    if state is not None and state not in armed:
+        print(f"upright dashboard: board disarmed (its heartbeat: {name})", file=sys.stderr, flush=True)
+    else:
+        print(f"upright dashboard: disarm sent, not confirmed within {_CONFIRM_S:g} s (last heartbeat: {name})",
+              file=sys.stderr, flush=True)

@@ -6,17 +6,31 @@
 // handed to the screen): a conservative figure.  The page pings the server every 250 ms with
 // its screen-update times and latencies; the server keeps the board's heartbeat fed only
 // while pages ping (see host/dashboard/hub.py).  window.dash exposes the state to tests.
+//
+// Every POST carries this run's token (the server wrote it into the page's <meta
+// name="upright-token">): the server takes commands only from the page it served.
+//
+// The force plot shows the force applied to the cart: the telemetry's force while the board
+// is balancing (state from the heartbeat), 0 otherwise -- the driver is off then, whatever
+// force value the last telemetry frame still carries.
 "use strict";
 
 const WINDOW_S = 10;
 const KEEP = 20000;
+const TOKEN = (document.querySelector('meta[name="upright-token"]') || {}).content || "";
 const dash = window.dash = {
   id: null, columns: [], received: new Map(), nrows: 0, heartbeat: null, hello: null,
-  latency: [], updates: [], stats: null, feeding: false, notes: [],
+  latency: [], updates: [], stats: null, feeding: false, notes: [], balancing: null, drawn: null,
 };
 const $ = (id) => document.getElementById(id);
 let C = {};            // column name -> index
-const buf = { t: [], phi: [], x: [], ref: [], force: [], duty: [] };
+const buf = { n: [], t: [], phi: [], x: [], ref: [], force: [], duty: [] };
+dash.drawn = buf;
+
+function appliedForce(r) {
+  // the force on the cart: 0 unless the board is balancing (the driver is off otherwise)
+  return r[C.state] === dash.balancing ? r[C.force] : 0;
+}
 let dirty = false, raf = 0, newestRx = null;
 let plots = [];
 let pendingLat = [], pendingUpd = [];
@@ -49,7 +63,7 @@ function setupPlots() {
                 { label: "ref (m)", stroke: "#888", width: 1.5, dash: [6, 4] }],
         axes: [{ label: "m" }] }) },
     { keys: ["force", "duty"], u: mkPlot($("p-force"), "force and duty", {
-        lines: [{ label: "force (N)", stroke: "#1f8f4e", width: 1.5, scale: "N" },
+        lines: [{ label: "applied force (N)", stroke: "#1f8f4e", width: 1.5, scale: "N" },
                 { label: "duty", stroke: "#8e44ad", width: 1, scale: "duty" }],
         axes: [{ label: "N", scale: "N" }, { label: "duty", scale: "duty", side: 1, grid: { show: false } }] },
       { N: { auto: true }, duty: { auto: true } }) },
@@ -65,8 +79,10 @@ function onRow(d) {
   if (!dash.received.has(n)) dash.nrows++;
   dash.received.set(n, r);
   if (dash.received.size > KEEP) dash.received.delete(dash.received.keys().next().value);
+  buf.n.push(n);
   buf.t.push(r[C.t]);
-  for (const k of ["phi", "x", "ref", "force", "duty"]) buf[k].push(r[C[k]]);
+  for (const k of ["phi", "x", "ref", "duty"]) buf[k].push(r[C[k]]);
+  buf.force.push(appliedForce(r));
   const tmin = r[C.t] - WINDOW_S;
   let cut = 0;
   while (cut < buf.t.length && buf.t[cut] < tmin) cut++;
@@ -127,7 +143,7 @@ function message(text, err) {
 }
 
 async function post(path, body, raw) {
-  const headers = { "X-Upright-Page": dash.id || "page" };
+  const headers = { "X-Upright-Page": dash.id || "page", "X-Upright-Token": TOKEN };
   if (!raw) headers["Content-Type"] = "application/json";
   const res = await fetch(path, { method: "POST", headers, body: raw ? body : JSON.stringify(body || {}) });
   let data = {};
@@ -179,7 +195,7 @@ async function ping() {
   pendingLat = []; pendingUpd = [];
   try {
     const res = await fetch("/api/ping", {
-      method: "POST", headers: { "X-Upright-Page": dash.id, "Content-Type": "application/json" },
+      method: "POST", headers: { "X-Upright-Page": dash.id, "X-Upright-Token": TOKEN, "Content-Type": "application/json" },
       body: JSON.stringify({ latency_ms: lat, updates: upd }),
     });
     const d = await res.json();
@@ -206,6 +222,8 @@ function connect() {
     dash.columns = h.columns;
     C = {};
     h.columns.forEach((c, i) => { C[c] = i; });
+    const bal = Object.keys(h.states).find((k) => h.states[k] === "balancing");
+    dash.balancing = bal == null ? null : Number(bal);
     const info = h.info || {};
     $("conn").textContent = `${info.mode || ""} ${info.port || ""}`.trim() + ` · page ${h.id}`;
     $("upright").hidden = !h.virtual;
