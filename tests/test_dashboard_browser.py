@@ -8,6 +8,10 @@ link and in the firmware's own loop answers), steps the reference and sees the c
 disarms, downloads a recording whose rows are the telemetry rows the page received, and, armed
 again, is closed without a disarm: the server must stop the host heartbeat and disarm.
 
+The page sends this run's token with every command (a fetch from the page without it is refused
+with 403), and the force plot shows the applied force: 0 on every point drawn while the board is
+not balancing, whatever force value the telemetry still carries after a disarm.
+
 Measured here and asserted: at least 20 screen updates per second, and frame-to-screen latency
 (the server's receive time of a telemetry frame to the animation frame after the one that drew
 it) under 100 ms at the 95th percentile.
@@ -61,6 +65,7 @@ def dashboard(tmp_path: Path):
     try:
         url = proc.stdout.readline().strip()  # type: ignore[union-attr]
         assert url.startswith("http://127.0.0.1:"), (url, proc.stderr.read() if proc.poll() is not None else "")  # type: ignore[union-attr]
+        assert "?token=" in url  # the page's address carries this run's token
         yield url, proc
     finally:
         if proc.poll() is None:
@@ -88,11 +93,19 @@ def test_dashboard_in_chromium(dashboard, tmp_path: Path) -> None:
 
     # live data, arm and disarm seen on the page, in the server's view of the link and in the
     # firmware's own per-tick answers
-    assert res["rows_per_s_page"] >= 40  # the board's 50 Hz telemetry
+    # the board's 50 Hz telemetry; on a loaded machine the virtual board falls behind real time
+    # (it skips the time, never bursts: `behind_s`) and sends fewer rows per wall-clock second --
+    # that every row the server read reached the page is checked on the recording below
+    assert res["rows_per_s_page"] >= (40 if res["behind_s"] == 0 else 20), res
     assert res["armed_page"] in ("armed", "balancing") and res["armed_link"] in ("armed", "balancing")
     assert res["armed_fw_state"] in (1, 2)
     assert res["feeding_armed"] is True and res["feeding_disarmed"] is False
     assert res["disarmed_page"] == "disarmed" and res["disarmed_link"] == "disarmed"
+    # commands only with the token; the force plot: the telemetry's force while balancing, 0 otherwise
+    assert res["no_token_status"] == 403 and "token" in res["no_token_error"]
+    fd = res["force_drawn"]
+    assert fd["balancing_points"] > 100 and fd["idle_points"] > 20, fd
+    assert fd["balancing_drawn_equal"] and fd["idle_drawn_nonzero"] == 0, fd
     # the firmware balances the simulated robot through the step (it tilts, it does not fall)
     assert 0.001 < res["tilt_max_after_step"] < 0.3
 

@@ -5,8 +5,10 @@
 //
 // Loads the page, sees live data move, starts a recording, arms the board (state seen on the
 // page), steps the reference and sees the cart follow, runs a square wave (screenshot),
-// disarms, stops the recording and downloads it; then arms again and closes the page without
-// disarming: the server must stop feeding and disarm by itself.  Writes OUTDIR/page_rows.json
+// disarms (the force plot then shows 0 N: the applied force, whatever the telemetry's last force
+// value), stops the recording and downloads it; then arms again and closes the page without
+// disarming: the server must stop feeding and disarm by itself.  Also checked: the page sends
+// this run's token with every command, and the same command from the page without it is refused.  Writes OUTDIR/page_rows.json
 // (every telemetry row the page received), OUTDIR/recording.csv (the download) and prints one
 // JSON line with what it saw and measured.  Exit status 0 = every step passed.
 import { chromium } from "playwright-core";
@@ -56,12 +58,22 @@ try {
   await page.waitForFunction(() => window.dash && window.dash.id && window.dash.nrows > 25, null, { timeout: 20000 });
   step("loaded");
 
+  // the server takes commands only with this run's token (the page has it): the page's own
+  // fetch without it is refused
+  const noToken = await page.evaluate(async () => {
+    const r = await fetch("/api/disarm", { method: "POST", headers: { "X-Upright-Page": window.dash.id }, body: "{}" });
+    return { status: r.status, text: await r.text() };
+  });
+  if (noToken.status !== 403) throw new Error(`a command without the token got ${noToken.status}: ${noToken.text}`);
+  step("token", { no_token_status: noToken.status, no_token_error: JSON.parse(noToken.text).error });
+
   // live data: rows keep arriving and the plots redraw
-  const n0 = await page.evaluate(() => window.dash.nrows);
+  const s0 = await status(), n0 = await page.evaluate(() => window.dash.nrows), t0 = Date.now();
   await sleep(2000);
-  const n1 = await page.evaluate(() => window.dash.nrows);
+  const s1 = await status(), n1 = await page.evaluate(() => window.dash.nrows), dt = (Date.now() - t0) / 1000;
   if (n1 - n0 < 40) throw new Error(`only ${n1 - n0} telemetry rows in 2 s`);
-  step("live", { rows_per_s_page: (n1 - n0) / 2 });
+  step("live", { rows_per_s_page: (n1 - n0) / dt, rows_per_s_server: (s1.telemetry_rows - s0.telemetry_rows) / dt,
+                 behind_s: s1.virtual ? s1.virtual.behind_s : null });
 
   await page.click("#recstart");
   await page.waitForFunction(() => /recording/.test(document.querySelector("#recinfo").textContent), null, { timeout: 5000 });
@@ -116,6 +128,29 @@ try {
   const [disarmed] = await waitStatus((s) => s.heartbeat.state === 0, 5000, "disarmed on the link");
   step("disarmed", { disarmed_page: await page.textContent("#state"), disarmed_link: disarmed.heartbeat.state_name,
                      feeding_disarmed: disarmed.feeding });
+
+  // disarmed: the force plot shows the applied force, 0, on every point drawn while not balancing
+  await sleep(1000);
+  const forces = await page.evaluate(() => {
+    const d = window.dash, C = d.columns, b = d.drawn;
+    const out = { balancing_points: 0, idle_points: 0, idle_drawn_nonzero: 0, idle_telemetry_nonzero: 0,
+                  idle_telemetry_force_max: 0, balancing_drawn_equal: true };
+    for (let i = 0; i < b.n.length; i++) {
+      const r = d.received.get(b.n[i]);
+      if (!r) continue;
+      const f = r[C.indexOf("force")];
+      if (r[C.indexOf("state")] === d.balancing) {
+        out.balancing_points++;
+        if (b.force[i] !== f) out.balancing_drawn_equal = false;
+      } else {
+        out.idle_points++;
+        if (b.force[i] !== 0) out.idle_drawn_nonzero++;
+        if (f !== 0) { out.idle_telemetry_nonzero++; out.idle_telemetry_force_max = Math.max(out.idle_telemetry_force_max, Math.abs(f)); }
+      }
+    }
+    return out;
+  });
+  step("force_drawn", { force_drawn: forces });
 
   await page.click("#recstop");
   await page.waitForFunction(() => /recorded \d+ rows/.test(document.querySelector("#msg").textContent), null, { timeout: 5000 });
