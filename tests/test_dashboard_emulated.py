@@ -9,7 +9,9 @@ held upright there and the board runs at ~0.15-0.2x real time), and this test pl
 HTTP exactly as ``static/app.js`` does: it opens the event stream (which makes it a page with an
 id), pings, arms, sees the board's own heartbeat answer armed/balancing, records, disarms,
 downloads the recording, arms again and drops the stream: the server must stop feeding the board
-and disarm it by itself.  Ctrl-C ends the dashboard and its emulator.
+and disarm it by itself.  Every command carries the run's token (from the address the dashboard
+prints); one without it is refused.  Last, armed from a new page, SIGTERM ends the dashboard: it
+disarms the board first (its own heartbeat says disarmed) and exits with 143.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import csv
 import io
 import json
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -30,6 +33,7 @@ import pytest
 
 from host.boards.rp2040.board import FIRMWARE, ROOT
 from host.dashboard.hub import COLUMNS
+from host.dashboard.server import PAGE_HEADER, TOKEN_HEADER, split_url
 
 pytestmark = [
     pytest.mark.rp2040,
@@ -39,10 +43,15 @@ pytestmark = [
 ]
 
 
-def _req(url: str, data: bytes | None = None, page: str | None = None) -> tuple[int, dict]:
+TOKEN = {"": ""}  # this run's token (set from the printed address)
+
+
+def _req(url: str, data: bytes | None = None, page: str | None = None, token: bool = True) -> tuple[int, dict]:
     headers = {"Content-Type": "application/json"}
     if page is not None:
-        headers["X-Upright-Page"] = page
+        headers[PAGE_HEADER] = page
+    if token:
+        headers[TOKEN_HEADER] = TOKEN[""]
     r = urllib.request.Request(url, data=data, headers=headers, method="POST" if data is not None else "GET")
     try:
         with urllib.request.urlopen(r, timeout=30) as res:
@@ -108,6 +117,7 @@ def test_dashboard_serves_the_emulated_board(tmp_path: Path) -> None:
     try:
         url = proc.stdout.readline().strip()  # type: ignore[union-attr]
         assert url.startswith("http://127.0.0.1:"), (url, proc.stderr.read() if proc.poll() is not None else "")  # type: ignore[union-attr]
+        url, TOKEN[""] = split_url(url)
         st = _wait(url, lambda s: s.get("heartbeat") and s.get("telemetry_rows", 0) > 5, 120, "heartbeat and telemetry")
         assert st["heartbeat"]["state_name"] == "disarmed"
         # a command from something that is not a live page is refused; a live page may arm
@@ -115,6 +125,8 @@ def test_dashboard_serves_the_emulated_board(tmp_path: Path) -> None:
         assert code == 403 and "live dashboard page" in body["error"]
         page = _Page(url)
         _req(url + "api/ping", b"{}", page.id)
+        code, body = _req(url + "api/arm", b"{}", page.id, token=False)
+        assert code == 403 and TOKEN_HEADER in body["error"]  # a live page's id without the token
         assert _req(url + "api/record/start", b"{}", page.id)[0] == 200
         code, body = _req(url + "api/arm", b"{}", page.id)
         assert code == 200, body
@@ -129,7 +141,9 @@ def test_dashboard_serves_the_emulated_board(tmp_path: Path) -> None:
             time.sleep(0.25)
         code, body = _req(url + "api/disarm", b"{}", page.id)
         assert code == 200, body
-        _wait(url, lambda s: s["heartbeat"]["state_name"] == "disarmed", 60, "disarmed")
+        st = _wait(url, lambda s: s["heartbeat"]["state_name"] == "disarmed", 60, "disarmed")
+        # a telemetry row after that heartbeat, so the recording ends with the disarmed state
+        _wait(url, lambda s, n=st["telemetry_rows"]: s["telemetry_rows"] > n + 1, 30, "telemetry after the disarm")
         code, rec = _req(url + "api/record/stop", b"{}", page.id)
         assert code == 200 and rec["rows"] > 10 and rec["lost"] == 0, rec
         data = urllib.request.urlopen(url + "api/record.csv", timeout=30).read().decode()
@@ -145,14 +159,23 @@ def test_dashboard_serves_the_emulated_board(tmp_path: Path) -> None:
         page = None
         _wait(url, lambda s: s["heartbeat"]["state_name"] == "disarmed" and s["heartbeat"]["faults"] == 0, 60,
               "the server's own disarm after the page closed")
+        # armed from a new page, the dashboard is ended by SIGTERM: it disarms first
+        page = _Page(url)
+        _req(url + "api/ping", b"{}", page.id)
+        assert _req(url + "api/arm", b"{}", page.id)[0] == 200
+        _wait(url, lambda s: s["heartbeat"]["state_name"] in ("armed", "balancing"), 60, "armed for SIGTERM")
+        proc.send_signal(signal.SIGTERM)
+        out = proc.communicate(timeout=60)
+        assert proc.returncode == 128 + signal.SIGTERM, out[1][-2000:]
+        assert "board disarmed (its heartbeat: disarmed)" in out[1], out[1][-2000:]
     finally:
         if page is not None:
             page.close()
-        if proc.poll() is None:
+        if proc.returncode is None:  # a step above failed: end it as Ctrl-C does
             proc.send_signal(2)
-        try:
-            out = proc.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            out = proc.communicate()
-    assert proc.returncode in (0, 130), out[1][-2000:]
+            try:
+                out = proc.communicate(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                out = proc.communicate()
+            assert proc.returncode in (0, 130), out[1][-2000:]

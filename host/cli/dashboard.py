@@ -13,7 +13,7 @@ commands only from that page (``host/dashboard/server.py``), not from any other 
 process.  Everything the page loads is served from the project (uPlot from ``node_modules``).
 The dashboard keeps the board's watchdog fed only while a page is open and the arm was asked
 from it; when the last page closes it stops and disarms the board.  On exit -- by any of those
-signals, or ``--seconds`` -- it disarms the board before anything else, waits (up to 2 s) for
+signals, or ``--seconds`` -- it disarms the board before anything else, waits (up to 3 s) for
 the board's own word that it is disarmed and says so in one line on stderr; further signals
 during that are ignored.  Exit status 130 after Ctrl-C, 128 + the signal's number after SIGTERM
 (143) or SIGHUP (129).  Recordings go to ``--record-dir`` (CSV, one row per telemetry frame)
@@ -36,7 +36,7 @@ __all__ = ["add_arguments", "run", "SHUTDOWN_SIGNALS"]
 
 SHUTDOWN_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
 """Signals (besides SIGINT, Ctrl-C) that end the dashboard the way Ctrl-C does: board disarmed first."""
-_CONFIRM_S = 2.0
+_CONFIRM_S = 3.0
 
 
 class _Signalled(BaseException):

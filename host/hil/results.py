@@ -101,7 +101,8 @@ class HilRun:
         return self.scenario.duration / self.wall_s if self.wall_s > 0 else math.inf
 
     def phi_error(self) -> float:
-        """Largest ``|phi_hil - phi_float|`` (rad) against the float reference (nan if none).
+        """Largest ``|phi_hil - phi_float|`` (rad) against the float reference (nan if none;
+        :meth:`phi_error_note` says why).
 
         Compared only while the firmware drives the motor (:func:`driven_ticks`): once its
         supervisor has taken over (a fault, or the board disarmed), the float design --
@@ -110,8 +111,15 @@ class HilRun:
         the firmware's |phi| first reaches the catch-mode threshold (``host.design.catch``);
         a run that starts beyond it has no comparison (nan).
         """
+        return self._comparison()[0]
+
+    def phi_error_note(self) -> str | None:
+        """Why :meth:`phi_error` is nan, in one line (``None`` when it is a number)."""
+        return self._comparison()[1]
+
+    def _comparison(self) -> tuple[float, str | None]:
         if self.reference is None:
-            return math.nan
+            return math.nan, "no float reference (the run was not compared)"
         from host.design.catch import CATCH_DEFAULT
 
         n = min(len(self.log["phi"]), len(self.reference["phi"]))
@@ -119,9 +127,12 @@ class HilRun:
         big = np.nonzero(np.abs(np.asarray(self.log["phi"][:n], dtype=float)) >= CATCH_DEFAULT.phi_on)[0]
         if big.size:
             if big[0] == 0:
-                return math.nan
+                phi0 = abs(float(self.log["phi"][0]))
+                return math.nan, (f"starts at |phi| = {phi0:.2f} rad, beyond the catch-mode threshold "
+                                  f"({CATCH_DEFAULT.phi_on:g} rad): the firmware catches with its second force row, "
+                                  "the float design models the tracking row only")
             n = int(big[0])
-        return float(np.max(np.abs(self.log["phi"][:n] - self.reference["phi"][:n]))) if n else 0.0
+        return (float(np.max(np.abs(self.log["phi"][:n] - self.reference["phi"][:n]))) if n else 0.0), None
 
     def summary(self, name: str | None = None) -> Any:
         """Metrics and constraint checks (:class:`sim.metrics.RunSummary`)."""
