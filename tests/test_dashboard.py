@@ -430,8 +430,9 @@ def test_the_servers_own_http_errors_are_one_line(served: _Served) -> None:
 @pytest.mark.slow
 def test_idle_and_stalled_requests_time_out(served: _Served) -> None:
     # a short body that never completes, headers that never end, a connection that says nothing:
-    # each is let go after REQUEST_TIMEOUT_S (5 s), the first two answered in one line, and the
-    # server answers others meanwhile -- no handler thread waits forever
+    # each is let go after REQUEST_TIMEOUT_S (5 s), the first two answered in one line; headers
+    # that trickle in a byte a second are cut at HEAD_TIMEOUT_S (10 s) with a 408; the server
+    # answers others meanwhile -- no handler thread waits forever
     results: dict[str, tuple[int, dict, float]] = {}
     stalls = {
         "short body": _post_bytes(served, _REF, b'{"x": 0', length="20"),
@@ -440,6 +441,26 @@ def test_idle_and_stalled_requests_time_out(served: _Served) -> None:
     }
     threads = [threading.Thread(target=lambda k=k, d=d: results.__setitem__(k, _raw(served.addr, d)))
                for k, d in stalls.items()]
+
+    def trickle() -> None:  # headers one byte a second: never idle for 5 s, never complete
+        t0 = time.monotonic()
+        with socket.create_connection(served.addr, timeout=30) as s:
+            try:
+                for b in b"POST /api/disarm HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: " + b"a" * 60:
+                    s.sendall(bytes([b]))
+                    time.sleep(1.0)
+            except OSError:  # the server closed its side
+                pass
+            resp = b""
+            try:
+                while chunk := s.recv(4096):
+                    resp += chunk
+            except OSError:
+                pass
+        results["trickle"] = (int(resp.split()[1]) if resp else 0, json.loads(resp.partition(b"\r\n\r\n")[2] or b"{}"),
+                              time.monotonic() - t0)
+
+    threads.append(threading.Thread(target=trickle))
     for t in threads:
         t.start()
     time.sleep(0.5)
@@ -452,6 +473,8 @@ def test_idle_and_stalled_requests_time_out(served: _Served) -> None:
     assert code == 408 and "timed out" in ans["error"] and 4.5 < took < 15
     code, ans, took = results["silent"]
     assert code == 0 and 4.5 < took < 15  # closed: nothing to answer
+    code, ans, took = results["trickle"]
+    assert code == 408 and "not complete within 10 s" in ans["error"] and 9.5 < took < 25, (code, ans, took)
 
 
 @pytest.mark.slow

@@ -24,13 +24,15 @@ from typing import Any, BinaryIO, Mapping
 
 from firmware import msgtable as T
 
-__all__ = ["BadRequest", "MAX_BODY", "REQUEST_TIMEOUT_S", "REF_MAX_M", "SQUARE_PERIOD_S",
+__all__ = ["BadRequest", "MAX_BODY", "REQUEST_TIMEOUT_S", "HEAD_TIMEOUT_S", "REF_MAX_M", "SQUARE_PERIOD_S",
            "content_length", "read_body", "json_args", "ROUTES"]
 
 MAX_BODY = 256 * 1024
 """Largest request body (a gains module is ~10 kB; a page's ping a few kB)."""
 REQUEST_TIMEOUT_S = 5.0
 """Idle read timeout of a connection, and the most time a request's body may take to arrive."""
+HEAD_TIMEOUT_S = 10.0
+"""The most time a request line and its headers may take, however slowly they trickle in."""
 REF_MAX_M = max(p[4] for p in T.PARAMS if p[1] == "ref_limit_um") * 1e-6
 """The largest reference any board accepts (m): the top of ``ref_limit_um``'s range; the board
 refuses beyond its own (smaller) limit."""

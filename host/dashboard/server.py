@@ -47,6 +47,7 @@ from __future__ import annotations
 import hmac
 import json
 import secrets
+import socket
 import sys
 import threading
 import time
@@ -122,8 +123,8 @@ class _Handler(BaseHTTPRequestHandler):
         self._send(status, json.dumps(obj).encode(), "application/json")
 
     def _error(self, status: int, text: str, *, close: bool = False) -> None:
-        # one line, JSON; ``close`` where the rest of the request was not read
-        if close or status >= 500 or status in (408, 411, 413):
+        # one line, JSON; the connection closes where the rest of the request was not read
+        if close or not getattr(self, "_body_done", True) or status >= 500 or status in (408, 411, 413):
             self.close_connection = True
         self._json({"error": _one_line(text)}, status)
 
@@ -139,21 +140,33 @@ class _Handler(BaseHTTPRequestHandler):
             pass
 
     def handle_one_request(self) -> None:
-        """One request; as http.server's, but a request left half-sent is answered 408 before the
-        connection is closed, and nothing escapes as a traceback."""
+        """One request; as http.server's, but a request left half-sent (idle for the socket timeout,
+        or its line and headers not complete within :data:`~host.dashboard.request.HEAD_TIMEOUT_S`)
+        is answered 408 before the connection is closed, and nothing escapes as a traceback."""
         started = False
+        self._answered = False
+        self._body_done = True
+        self._reaped = False
+        self.server.head_started(self)
         try:
-            self.raw_requestline = self.rfile.readline(65537)
-            started = bool(self.raw_requestline)
-            if len(self.raw_requestline) > 65536:
-                self.requestline = self.request_version = self.command = ""
-                self.send_error(HTTPStatus.REQUEST_URI_TOO_LONG, "request line too long")
-                return
-            if not self.raw_requestline:
-                self.close_connection = True
-                return
-            if not self.parse_request():
-                return
+            try:
+                self.raw_requestline = self.rfile.readline(65537)
+                started = bool(self.raw_requestline)
+                if self._reaped:
+                    raise TimeoutError
+                if len(self.raw_requestline) > 65536:
+                    self.requestline = self.request_version = self.command = ""
+                    self.send_error(HTTPStatus.REQUEST_URI_TOO_LONG, "request line too long")
+                    return
+                if not self.raw_requestline:
+                    self.close_connection = True
+                    return
+                if not self.parse_request():
+                    return
+                if self._reaped:
+                    raise TimeoutError
+            finally:
+                self.server.head_done(self)
             method = getattr(self, "do_" + self.command, None)
             if method is None:
                 self.send_error(HTTPStatus.NOT_IMPLEMENTED, f"method {self.command[:20]!r} not supported")
@@ -162,17 +175,26 @@ class _Handler(BaseHTTPRequestHandler):
             self.wfile.flush()
         except TimeoutError:
             self.close_connection = True
-            if started and not getattr(self, "_answered", False):
-                if not hasattr(self, "command"):
-                    self.command = ""
-                if not hasattr(self, "request_version"):
-                    self.request_version = "HTTP/1.1"
+            if started and not self._answered:
+                for k, v in (("command", ""), ("request_version", "HTTP/1.1"), ("requestline", "")):
+                    if not hasattr(self, k):
+                        setattr(self, k, v)
+                why = (f"request line and headers not complete within {R.HEAD_TIMEOUT_S:g} s" if self._reaped
+                       else f"nothing more came within {self.timeout:g} s")
                 try:
-                    self._error(408, f"request timed out: nothing more came within {self.timeout:g} s", close=True)
+                    self._error(408, f"request timed out: {why}", close=True)
                 except OSError:
                     pass
         except OSError:  # the client went away
             self.close_connection = True
+
+    def reap(self) -> None:
+        """The request's line and headers took too long: end the read (the server's reaper thread)."""
+        self._reaped = True
+        try:
+            self.connection.shutdown(socket.SHUT_RD)
+        except OSError:
+            pass
 
     def send_response(self, code: int, message: str | None = None) -> None:
         self._answered = True
@@ -221,6 +243,8 @@ class _Handler(BaseHTTPRequestHandler):
     do_HEAD = do_GET
 
     def _get(self) -> None:
+        if (self.headers.get("Content-Length") or "0").strip() != "0" or self.headers.get("Transfer-Encoding"):
+            self._body_done = False  # a GET's body is not read: the connection closes after the answer
         if not self._host_ok():
             self._error(403, "bad Host header: the dashboard answers only to 127.0.0.1 / localhost")
             return
@@ -292,6 +316,7 @@ class _Handler(BaseHTTPRequestHandler):
                 self._error(500, f"internal error: {type(exc).__name__}: {exc}")
 
     def _post(self) -> None:
+        self._body_done = False
         # who: this machine, this origin, this run's page -- before a byte of the body is read
         if not self._host_ok():
             self._error(403, "bad Host header: the dashboard answers only to 127.0.0.1 / localhost", close=True)
@@ -333,6 +358,7 @@ class _Handler(BaseHTTPRequestHandler):
         except R.BadRequest:
             self.close_connection = True
             raise
+        self._body_done = True
         hub = self.server.hub
         try:
             if p == "/api/gains":
@@ -415,6 +441,8 @@ class DashboardServer(ThreadingHTTPServer):
         self._conn_lock = threading.Lock()
         self.connections = 0
         self.refused_busy = 0
+        self.reaped = 0
+        self._heads: dict[int, tuple[float, Any]] = {}
 
     @property
     def url(self) -> str:
@@ -466,10 +494,34 @@ class DashboardServer(ThreadingHTTPServer):
             with self._conn_lock:
                 self.connections -= 1
 
+    def head_started(self, handler: Any) -> None:
+        """A handler starts reading a request's line and headers (the reaper watches it)."""
+        with self._conn_lock:
+            self._heads[id(handler)] = (time.monotonic() + R.HEAD_TIMEOUT_S, handler)
+
+    def head_done(self, handler: Any) -> None:
+        with self._conn_lock:
+            self._heads.pop(id(handler), None)
+
+    def _reaper(self) -> None:
+        # ends the read of any request whose line and headers trickle in for longer than
+        # HEAD_TIMEOUT_S (the socket timeout alone bounds only the gap between two bytes)
+        while not self.closing:
+            time.sleep(0.25)
+            now = time.monotonic()
+            with self._conn_lock:
+                late = [h for t, h in self._heads.values() if now > t]
+                for h in late:
+                    self._heads.pop(id(h), None)
+            for h in late:
+                self.reaped += 1
+                h.reap()
+
     def start(self) -> "DashboardServer":
         self._thread = threading.Thread(target=self.serve_forever, kwargs={"poll_interval": 0.1},
                                         name="dashboard-http", daemon=True)
         self._thread.start()
+        threading.Thread(target=self._reaper, name="dashboard-reaper", daemon=True).start()
         return self
 
     def stop(self) -> None:
