@@ -231,6 +231,7 @@ def _disarm(hub: Any, plant: Any) -> None:
     from host.operate.board import BoardError
 
     armed = {s[0] for s in T.STATES if s[1] in ("armed", "balancing")}
+    t0 = time.monotonic()
     try:
         hub.disarm_now()
     except (LinkError, OSError, BoardError) as exc:
@@ -252,7 +253,8 @@ def _disarm(hub: Any, plant: Any) -> None:
 
     name = M.STATES.get(state, "unknown") if state is not None else "no heartbeat"
     if state is not None and state not in armed:
-        print(f"upright dashboard: board disarmed (its heartbeat: {name})", file=sys.stderr, flush=True)
+        ms = (time.monotonic() - t0) * 1000.0
+        print(f"upright dashboard: board disarmed in {ms:.0f} ms (its heartbeat: {name})", file=sys.stderr, flush=True)
     else:
         print(f"upright dashboard: disarm sent, not confirmed within {_CONFIRM_S:g} s (last heartbeat: {name})",
               file=sys.stderr, flush=True)
