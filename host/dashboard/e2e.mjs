@@ -163,6 +163,10 @@ try {
   fs.writeFileSync(path.join(outDir, "page_rows.json"), JSON.stringify(rows));
 
   // arm again, then close the page without disarming: the server stops feeding and disarms
+  // (the pendulum, disarmed, has been falling: stand it up first, as a hand would)
+  await page.click("#upright");
+  await page.waitForFunction(() => /pendulum upright/.test(document.querySelector("#msg").textContent), null, { timeout: 5000 });
+  await sleep(300);
   await page.click("#arm");
   await page.waitForFunction(() => ["1", "2"].includes(document.querySelector("#state").dataset.state), null, { timeout: 5000 });
   await waitStatus((s) => s.feeding && [1, 2].includes(s.heartbeat.state), 5000, "armed again");
