@@ -11,5 +11,8 @@
 * :mod:`host.dashboard.gains` -- the gain tables the page offers (the shipped design, a file);
 * :mod:`host.dashboard.server` -- the HTTP server (stdlib ``http.server``): the page, its
   assets (uPlot from ``node_modules``: nothing from a CDN), Server-Sent Events, a small JSON API;
+  commands only with this run's token (in the printed address and the page it served);
+* :mod:`host.dashboard.request` -- what a request must look like (its length, its JSON, each
+  field's type and range): every malformed one refused in one line before it reaches the board;
 * ``static/`` -- the page; ``e2e.mjs`` -- the browser test's driver (playwright-core).
 """
