@@ -81,7 +81,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="start the emulated board (rp2040) and connect to its host link")
     parser.add_argument("--http-port", type=A.int_range(0, 65535), default=8765, metavar="N",
                         help="port of the page on 127.0.0.1 (default 8765; 0 = any free port)")
-    parser.add_argument("--baudrate", type=A.positive_int, default=A.board_baud(),
+    parser.add_argument("--baudrate", "--baud", type=A.positive_int, default=A.board_baud(),
                         help=f"serial baud rate (default {A.board_baud()}: firmware/board.py UART_BAUD)")
     parser.add_argument("--node", type=A.int_range(0, 63), default=1, help="CAN node id (default 1)")
     parser.add_argument("--record-dir", default="out/dashboard", metavar="DIR",
