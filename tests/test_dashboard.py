@@ -1,9 +1,14 @@
-"""``upright dashboard`` without a browser: gain tables, the watchdog policy, the HTTP guards, bad input.
+"""``upright dashboard`` without a browser: gain tables, the watchdog policy, the HTTP guards, bad input, signals.
 
 The policy test drives :class:`host.dashboard.hub.Hub` over a scripted link that answers every
 command (no board needed): no page, no host heartbeat; a live page's arm starts it; the page
-going silent stops it and disarms.  The server test runs ``upright dashboard --virtual`` and
-talks to it over HTTP.  The browser test is tests/test_dashboard_browser.py.
+going silent stops it and disarms.  The server tests run ``upright dashboard --virtual`` (one
+process for the module) and talk to it over HTTP and raw sockets: the page only at the printed
+address (its token), commands only with the token, every malformed request answered in one
+line, idle and stalled connections let go.  Each signal test starts its own dashboard, arms the
+virtual board from a live page and ends the dashboard with SIGINT, SIGTERM or SIGHUP: the board
+must be disarmed, by its own word, before the exit.  The browser test is
+tests/test_dashboard_browser.py.
 """
 
 from __future__ import annotations
