@@ -153,6 +153,17 @@ def test_readme_command_works_as_shown(cmd: str, tmp_path: Path) -> None:
                        text=True, timeout=600)
     assert r.returncode == 0, f"{' '.join(argv)}\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}"
     assert "Traceback" not in r.stderr
+    if "--plant soft_pendulum" in cmd:
+        _check_soft_pendulum_claim(r.stdout)
+
+
+def _check_soft_pendulum_claim(stdout: str) -> None:
+    # the README states the settling time of this run: the figure is the run's own (+-0.05 s)
+    claim = re.search(r"settles the 20 cm step, in ([0-9.]+) s", README.read_text())
+    assert claim, "README no longer states the soft_pendulum settling time"
+    row = next(ln for ln in stdout.splitlines() if ln.startswith("ref_step_20cm"))
+    settle = float(row.split()[2])
+    assert abs(settle - float(claim.group(1))) <= 0.05, (settle, claim.group(1))
 
 
 def test_readme_scenario_format_loads_and_runs(tmp_path: Path) -> None:
