@@ -39,6 +39,13 @@ ENC_PIO_SM = const(0)
 PWM_PIN = const(16)
 DIR_PIN = const(17)
 EN_PIN = const(18)
+# driver-enable dead-man: EN is driven by a PIO state machine (PIO1's machine DEADMAN_SM - 4;
+# the encoder's program fills PIO0) that holds it low unless the control loop refreshes it
+# (set_motor, every tick): the driver is cut DEADMAN_PERIODS loop periods after the last
+# refresh, whatever the CPU is doing (a hang anywhere, interrupts off); the hardware watchdog
+# resets the board later.  -1: no dead-man (EN a plain output).  docs/firmware.md
+DEADMAN_SM = const(4)
+DEADMAN_PERIODS = const(2)
 # e-stop input: a normally-closed switch to GND (active low, internal pull-up; -1: none).
 # Asserted -> motor and enable off at once (pin IRQ), F_ESTOP latched (docs/firmware.md)
 ESTOP_PIN = const(19)
