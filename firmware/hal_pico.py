@@ -5,7 +5,7 @@
 # The driver enable (EN) is driven by a second PIO state machine, a dead-man (_deadman below):
 # it holds EN low unless the control loop refreshes it every tick, so a hang anywhere (the
 # step, the link, a HAL call, a C call that never returns, interrupts off) cuts the driver
-# within DEADMAN_PERIODS loop periods, whatever the CPU does (docs/firmware.md, "Hardware
+# DEADMAN_PCT % of a loop period after the last refresh, whatever the CPU does (docs/firmware.md, "Hardware
 # cut-offs").
 #
 # The PIO program is the pico-examples quadrature decoder (x4 decoding with a 16-entry
@@ -201,7 +201,7 @@ class HalPico:
         self._en = None
         self._en_value = self._nop
         self._dm = None
-        self._dm_periods = getattr(board, "DEADMAN_PERIODS", 2)
+        self._dm_pct = getattr(board, "DEADMAN_PCT", 175)
         if board.EN_PIN >= 0 and not (sys.platform == "rp2" and self._dead_man(board)):
             self._en = machine.Pin(board.EN_PIN, machine.Pin.OUT, value=0)
             self._en_value = self._en.value
@@ -389,7 +389,7 @@ class HalPico:
     @micropython.viper
     def _dm_put(self, on: int):
         # the driver enable through the dead-man (set_enable, off, the e-stop IRQ: no
-        # allocation): 1 -> a refresh word (EN high for two periods unless refreshed), 0 -> the
+        # allocation): 1 -> a refresh word (EN high for DEADMAN_PCT % of a period unless refreshed), 0 -> the
         # word 0 (EN low within one 16 us loop).  The IRQ flag is cleared: a trip counts once
         s = ptr32(self._io)
         sm = s[_IO_DM_SM]
@@ -511,15 +511,15 @@ class HalPico:
     def set_enable(self, on):
         # driver enable (EN/nSLEEP): 1 only while balancing (the supervisor decides).  With
         # the dead-man (rp2 port), EN then stays high only while set_motor is called at least
-        # every DEADMAN_PERIODS loop periods (set_period)
+        # every DEADMAN_PCT % of a loop period (set_period)
         if on and self._hit:
             on = 0
         self._en_value(on)
 
     def set_period(self, us):
         # the control loop's period (App, from its gain table): the dead-man's timeout is
-        # DEADMAN_PERIODS of it from the last refresh (N + 1 loops of 16 us)
-        n = (self._dm_periods * us) // _DM_LOOP_US - 1
+        # DEADMAN_PCT % of it from the last refresh (N + 1 loops of 16 us)
+        n = (self._dm_pct * us) // (100 * _DM_LOOP_US) - 1
         if n < 1:
             n = 1
         self._dm_n = n
