@@ -81,6 +81,8 @@ def test_estop_cuts_pwm_and_enable_within_microseconds() -> None:
         edges, ev, _, r = _collect(b, 20)
         en_low = [c for p, c, v in edges if p == BOARD.EN_PIN and v == 0]
         pwm0 = [c for c, cmp_, *_ in ev if cmp_ == 0]
+        print(f"\ne-stop: EN low {(en_low[0] - t0) / US:.0f} us, PWM compare 0 {(pwm0[0] - t0) / US:.0f} us after the edge"
+              if en_low and pwm0 else "")
         assert en_low and (en_low[0] - t0) / US < 200, en_low
         assert pwm0 and (pwm0[0] - t0) / US < 200, pwm0
         assert not [e for e in ev if e[1] != 0], "duty written after the e-stop"
