@@ -5,8 +5,8 @@
 # The driver enable (EN) is driven by a second PIO state machine, a dead-man (_deadman below):
 # it holds EN low unless the control loop refreshes it every tick, so a hang anywhere (the
 # step, the link, a HAL call, a C call that never returns, interrupts off) cuts the driver
-# DEADMAN_PCT % of a loop period after the last refresh, whatever the CPU does (docs/firmware.md, "Hardware
-# cut-offs").
+# DEADMAN_PCT % of a loop period after the last refresh, whatever the CPU does
+# (docs/firmware.md, "Hardware cut-offs").
 #
 # The PIO program is the pico-examples quadrature decoder (x4 decoding with a 16-entry
 # jump table on the previous/current A,B state): the count lives in the Y register
@@ -374,7 +374,9 @@ class HalPico:
                 pw[3] = (pw[3] & (-0x10000)) | cc
         # the dead-man's refresh (the loop is alive: it just commanded the motor): while the
         # driver is enabled, one word into the state machine's TX FIFO (dropped when full:
-        # the machine takes one every 16 us).  An expiry since the last refresh is counted
+        # the machine takes one every 16 us).  An expiry since the last refresh is counted.
+        # An e-stop IRQ between the DM_ON test and the write leaves EN on with compare 0 (it
+        # wrote that after this call's compare) until the next tick latches F_ESTOP
         if s[_IO_DM_ON]:
             sm = s[_IO_DM_SM]
             b = 0x5030
@@ -389,8 +391,8 @@ class HalPico:
     @micropython.viper
     def _dm_put(self, on: int):
         # the driver enable through the dead-man (set_enable, off, the e-stop IRQ: no
-        # allocation): 1 -> a refresh word (EN high for DEADMAN_PCT % of a period unless refreshed), 0 -> the
-        # word 0 (EN low within one 16 us loop).  The IRQ flag is cleared: a trip counts once
+        # allocation): 1 -> a refresh word (EN high for DEADMAN_PCT % of a period unless
+        # refreshed), 0 -> the word 0 (EN low within one 16 us loop).  The IRQ flag is cleared
         s = ptr32(self._io)
         sm = s[_IO_DM_SM]
         b = 0x5030  # PIO1 base, shifted at run time (a folded constant would be a big int)

@@ -198,7 +198,8 @@ def test_a_hang_cuts_the_enable_within_three_periods(board: EmulatedBoard, kind:
     # the tick before the last motor command: it completed (step and poll) whatever the hang point
     since_prev = (t_cut - before[-2][0]) / US
     print(f"\n{kind}: EN low {since_last:.0f} us after the last motor command, {since_prev:.0f} us after the one "
-          f"before, {since_hang:.0f} us after the hang; reset {(resets[0][0] - t_hang) / US / 1000:.1f} ms after the hang")
+          f"before, {since_hang:.0f} us after the hang; "
+          f"reset {(resets[0][0] - t_hang) / US / 1000:.1f} ms after the hang")
     # the dead-man's timeout from the last refresh, not something else, cut it
     assert TIMEOUT_US <= since_last < TIMEOUT_US + 50, since_last
     assert max(since_last, since_prev, since_hang) <= 3 * PERIOD_US, (since_last, since_prev, since_hang)
