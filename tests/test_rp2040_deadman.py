@@ -153,6 +153,23 @@ def test_refresh_costs_microseconds_per_tick(board: EmulatedBoard) -> None:
     assert 0.0 < per_call < 5.0, (off0, on0, off1, on1)
 
 
+@pytest.mark.parametrize("period", [500, 4000, 20000])
+def test_timeout_follows_the_loop_period(board: EmulatedBoard, period: int) -> None:
+    # the loop rates a table may have (50-2000 Hz): one motor command, then nothing -- EN is one
+    # pulse of DEADMAN_PCT % of the period, counted from that command
+    board.exec(f"hal.set_period({period})", timeout=2.0)
+    board.usb_write(b"hal.set_enable(1)\nhal.set_motor(1000)\n\x04")
+    edges, ev, _, _ = _collect(board, 20 + 2 * period // 1000,
+                               until=lambda e, r: any(p == BOARD.EN_PIN and v == 0 for p, _, v in e))
+    board._read_until(b"\x04", 1e6)
+    en = [(c, v) for p, c, v in edges if p == BOARD.EN_PIN]
+    assert [v for _, v in en] == [1, 0], en
+    last = max(c for c, *_ in ev if c < en[1][0])
+    want = (BOARD.DEADMAN_PCT * period) // (100 * 16) * 16
+    assert want <= (en[1][0] - last) / US < want + 50, ((en[1][0] - last) / US, want)
+    board.exec(f"hal.set_enable(0)\nhal.set_period({PERIOD_US})", timeout=2.0)
+
+
 def test_balancing_loop_never_trips_it(board: EmulatedBoard) -> None:
     # the shipped loop with its UART link, telemetry every tick (the link's worst case): the
     # refresh comes every period (EN high throughout), no expiry counted; once the bounded run
