@@ -157,7 +157,8 @@ def test_refresh_costs_microseconds_per_tick(board: EmulatedBoard) -> None:
 def test_timeout_follows_the_loop_period(board: EmulatedBoard, period: int) -> None:
     # the loop rates a table may have (50-2000 Hz): one motor command, then nothing -- EN is one
     # pulse of DEADMAN_PCT % of the period, counted from that command
-    board.exec(f"hal.set_period({period})", timeout=2.0)
+    board.exec(f"import firmware.board as B\nfrom firmware.hal_pico import HalPico\nhal = HalPico(B)\n"
+               f"hal.set_period({period})", timeout=3.0)
     board.usb_write(b"hal.set_enable(1)\nhal.set_motor(1000)\n\x04")
     edges, ev, _, _ = _collect(board, 20 + 2 * period // 1000,
                                until=lambda e, r: any(p == BOARD.EN_PIN and v == 0 for p, _, v in e))
@@ -167,7 +168,7 @@ def test_timeout_follows_the_loop_period(board: EmulatedBoard, period: int) -> N
     last = max(c for c, *_ in ev if c < en[1][0])
     want = (BOARD.DEADMAN_PCT * period) // (100 * 16) * 16
     assert want <= (en[1][0] - last) / US < want + 50, ((en[1][0] - last) / US, want)
-    board.exec(f"hal.set_enable(0)\nhal.set_period({PERIOD_US})", timeout=2.0)
+    board.exec("hal.set_enable(0)", timeout=2.0)
 
 
 def test_balancing_loop_never_trips_it(board: EmulatedBoard) -> None:
