@@ -2,26 +2,26 @@
 
 HalPico drives EN through a PIO state machine (firmware/hal_pico.py ``_deadman``, PIO1) that holds
 it low unless the loop refreshes it: every ``set_motor`` while the driver is enabled puts one word
-into its TX FIFO, and the machine cuts EN ``board.DEADMAN_PERIODS`` (2) loop periods after the last
-one -- whatever the CPU is doing.  A hang is injected at four points of a balancing loop (App.run
-with the board's own config: viper, heap locked, hardware watchdog on):
+into its TX FIFO, and the machine cuts EN ``board.DEADMAN_PCT`` (175) % of the loop period after
+the last one -- whatever the CPU is doing.  A hang is injected at four points of a balancing loop
+(App.run with the board's own config: viper, heap locked, hardware watchdog on):
 
 * ``step``: in the control step, right after a non-zero duty went out (a Python ``while True``);
 * ``poll``: in the link poll, a UART write that blocks in C for 20 s;
 * ``hal``: in a HAL call, the encoder read waiting in C (``sm.get()``) on a stopped state machine;
 * ``irq_off``: in the step, interrupts disabled and a loop that never yields.
 
-Each time EN falls two periods after the last motor command on the pins (the last PWM compare
-write: the refresh follows it by a few instructions), within three periods of the last good tick
-and of the hang; the PWM is never written again, and the hardware watchdog (board.WDT_MS) still
-resets the board about 100 ms after the hang -- its pins back to inputs, RC_WATCHDOG at the next
-boot.  A balancing loop with telemetry every tick never trips it, and the refresh costs a few
-microseconds a tick.
+Each time EN falls 3.5 ms after the last motor command on the pins (the last PWM compare write:
+the refresh follows it by a few instructions), within three periods of the last complete tick and
+of the hang; the PWM is never written again, and the hardware watchdog (board.WDT_MS) still resets
+the board about 100 ms after the hang -- its pins back to inputs, RC_WATCHDOG at the next boot.
+The timeout follows the loop period (50-2000 Hz tables); a balancing loop with telemetry every
+tick never trips it, and the refresh costs under a microsecond a tick.
 
-Measured here (125 MHz emulated cycles): EN low 4.01-4.03 ms after the last refresh for every
-hang point (2.0-4.0 ms after the hang itself), reset 98-99 ms after the hang; the refresh 1-2 us
-a tick.  One board for the module (each hang ends in a watchdog reset; the test re-enters the
-REPL of the rebooted board): about 60-90 s of wall time.
+Measured here (125 MHz emulated cycles): EN low 3.51-3.52 ms after the last refresh for every hang
+point (<= 5.52 ms after the tick before it, 1.9-3.5 ms after the hang itself), reset 98-98.4 ms
+after the hang; the refresh 0.70 us a tick.  One board for the module (each hang ends in a
+watchdog reset; the test re-enters the REPL of the rebooted board): about 60-70 s of wall time.
 """
 
 from __future__ import annotations
