@@ -232,3 +232,29 @@ def test_a_hang_cuts_the_enable_within_three_periods(board: EmulatedBoard, kind:
     out = board.exec("import firmware.board as B\nfrom firmware.hal_pico import HalPico\nh = HalPico(B)\n"
                      "print(h.reset_cause())")
     assert out.split() == [str(T.RC_WATCHDOG)]
+
+
+def test_the_emulation_of_the_pins_is_exact() -> None:
+    # the harness steps the PIO lazily (caught up when the CPU looks, edges stamped at the PIO's
+    # own cycle) and skips stalls and steady states; against the reference (every machine
+    # stepped after every CPU instruction, no skips) on two fresh boards fed the same requests:
+    # the same EN edges at the same cycles, the same PWM writes, the same encoder reads -- with
+    # the dead-man refreshed, expiring (the last gap, 3.6 ms, is over its 3.49 ms) and
+    # re-enabled, and encoder edges arriving while the CPU reads the decoder's FIFO
+    code = (b"hal.set_enable(1)\nv = []\nfor i in range(8):\n    hal.set_motor(2000)\n    v.append(hal.read_encoder())\n"
+            b"    time.sleep_us(1500 + 300 * i)\nhal.set_motor(0)\nprint(v, hal.deadman_trips())\n\x04")
+    seen = []
+    for exact in (False, True):
+        with EmulatedBoard(main=False) as b:
+            b._request({"cmd": "config", "watch": [BOARD.DIR_PIN, BOARD.EN_PIN], "pio_exact": exact})
+            b.exec("import time\nimport firmware.board as B\nfrom firmware.hal_pico import HalPico\nhal = HalPico(B)\n"
+                   f"hal.set_period({PERIOD_US})", timeout=3.0)
+            b.set_encoder(300)
+            b.usb_write(code)
+            edges, ev, _, _ = _collect(b, 45)
+            out = b._read_until(b"\x04", 1e6).decode()
+            seen.append((edges, ev, out))
+    (e0, p0, o0), (e1, p1, o1) = seen
+    assert [v for p, _, v in e0 if p == BOARD.EN_PIN] == [1, 0, 1, 0], e0  # on, expired, on again, off
+    assert o0.replace("\x04", " ").split()[-1] == "1"  # the expiry, counted by the refresh that came after it
+    assert e0 == e1 and p0 == p1 and o0 == o1

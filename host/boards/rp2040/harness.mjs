@@ -15,8 +15,11 @@
 //   {"cmd":"usb","data":"<hex>"}            bytes from the USB host to the CDC OUT endpoint
 //   {"cmd":"run","us":1000}                 run for that much emulated time; answers the state
 //   {"cmd":"state"}                         the state answer without running
-//   {"cmd":"config","pwm":16,"dir":17,"en":18,"watch":[17,18],"pwm_edges":false,
+//   {"cmd":"config","pwm":16,"dir":17,"en":18,"watch":[17,18],"pwm_edges":false,"pio_exact":false,
 //    "loop_probe":{"gap_us":40,"min_reads":3,"raw":false}}
+//                                           pio_exact: step every state machine after every CPU
+//                                           instruction with no skips (the reference the fast
+//                                           stepping below must match; slow)
 //                                           loop_probe: find the firmware's loop iterations from
 //                                           its reads of the TIMER (see "loop probe" below);
 //                                           null switches it off
@@ -160,6 +163,7 @@ const pioSMs = []; // {sm, pio, next, div, snap, snapAt, same, period}
 let pioNext = Infinity;
 let pioLazy = false;
 let pioSkipped = 0; // PIO cycles skipped by the steady-state and stall rules (statistics)
+let pioExact = false; // config "pio_exact": every machine stepped after every instruction, no skips (reference)
 const WAIT_TX = 3, WAIT_OUT = 5; // rp2040js WaitType.txFIFO, WaitType.Out
 function smDiv(sm) {
   const i = sm.clockDivInt === 0 ? 65536 : sm.clockDivInt;
@@ -174,7 +178,7 @@ function pioCanWake() {
   return false;
 }
 function pioMode() {
-  pioLazy = pioSMs.length > 0 && !pioCanWake();
+  pioLazy = !pioExact && pioSMs.length > 0 && !pioCanWake();
 }
 function refreshPio() {
   const old = new Map(pioSMs.map((e) => [e.sm, e]));
@@ -233,13 +237,14 @@ function stepPio(upTo) {
     }
     if (e === null) break;
     const sm = e.sm;
-    if (sm.waiting && !sm.execValid && (sm.waitType === WAIT_TX || sm.waitType === WAIT_OUT) && sm.txFIFO.empty) {
+    if (pioExact) {
+      // the reference: no skips
+    } else if (sm.waiting && !sm.execValid && (sm.waitType === WAIT_TX || sm.waitType === WAIT_OUT) && sm.txFIFO.empty) {
       const k = Math.floor((upTo - e.next) / e.div) + 1;
       e.next += k * e.div;
       pioSkipped += k * e.div;
       continue;
-    }
-    if (sm.pc === sm.wrapBottom && !sm.waiting) {
+    } else if (sm.pc === sm.wrapBottom && !sm.waiting) {
       if (!e.same) {
         const snap = smSnapshot(sm, e.pio);
         if (snap === e.snap && e.next > e.snapAt) {
@@ -953,6 +958,11 @@ function handle(req) {
       if (req.en !== undefined) cfg.en = req.en;
       if (req.watch !== undefined) cfg.watch = req.watch;
       if (req.pwm_edges !== undefined) cfg.pwmEdges = !!req.pwm_edges;
+      if (req.pio_exact !== undefined) {
+        pioSync();
+        pioExact = !!req.pio_exact;
+        pioMode();
+      }
       if (req.loop_probe !== undefined) {
         const lp = req.loop_probe;
         probe.on = !!lp;
