@@ -270,6 +270,8 @@ class App:
         self.motor.max_duty = p[T.P_MAX_DUTY]
         self.period_us = 1000000 // rate
         self.timing.period_us = self.period_us
+        if hasattr(self.hal, "set_period"):
+            self.hal.set_period(self.period_us)  # HalPico: the driver-enable dead-man's timeout
         # calibration (upright board calibrate): pot offset (-1: the table's) and signs
         sn = self.sensors
         po = p[T.P_POT_OFFSET]

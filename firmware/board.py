@@ -39,6 +39,15 @@ ENC_PIO_SM = const(0)
 PWM_PIN = const(16)
 DIR_PIN = const(17)
 EN_PIN = const(18)
+# driver-enable dead-man: EN is driven by a PIO state machine (PIO1's machine DEADMAN_SM - 4;
+# the encoder's program fills PIO0) that holds it low unless the control loop refreshes it
+# (set_motor, every tick): the driver is cut DEADMAN_PCT % of a loop period after the last
+# refresh, whatever the CPU is doing (a hang anywhere, interrupts off); the hardware watchdog
+# resets the board later.  175: 3.5 ms at 500 Hz -- a tick may start 0.75 period late (the
+# late-tick rule counts 0.5), and a hang anywhere in a tick cuts within 3 periods of the last
+# complete one.  -1: no dead-man (EN a plain output).  docs/firmware.md, "Hardware cut-offs"
+DEADMAN_SM = const(4)
+DEADMAN_PCT = const(175)
 # e-stop input: a normally-closed switch to GND (active low, internal pull-up; -1: none).
 # Asserted -> motor and enable off at once (pin IRQ), F_ESTOP latched (docs/firmware.md)
 ESTOP_PIN = const(19)

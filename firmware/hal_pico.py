@@ -2,6 +2,12 @@
 # encoder decoded by a PIO state machine (no CPU per edge), PWM + DIR H-bridge.
 # The only kind of module that imports machine; pins come from firmware/board.py.
 #
+# The driver enable (EN) is driven by a second PIO state machine, a dead-man (_deadman below):
+# it holds EN low unless the control loop refreshes it every tick, so a hang anywhere (the
+# step, the link, a HAL call, a C call that never returns, interrupts off) cuts the driver
+# DEADMAN_PCT % of a loop period after the last refresh, whatever the CPU does
+# (docs/firmware.md, "Hardware cut-offs").
+#
 # The PIO program is the pico-examples quadrature decoder (x4 decoding with a 16-entry
 # jump table on the previous/current A,B state): the count lives in the Y register
 # and its low 16 bits are pushed (noblock) on every change, so the CPU reads the
@@ -57,8 +63,20 @@ _IO_PIO = const(10)  # its PIO block (0, 1)
 _IO_SLICE = const(11)  # PWM slice of the motor pin
 _IO_CHAN = const(12)  # its channel (0: A, 1: B)
 _IO_ESTOP = const(13)  # e-stop GPIO (-1: none)
-_IO_N = const(14)
+_IO_DM_ON = const(14)  # dead-man: 1 while the driver is enabled (set_motor refreshes it)
+_IO_DM_N = const(15)  # ... the refresh word: the count of _DM_LOOP_US loops EN stays high
+_IO_DM_SM = const(16)  # ... its state machine within PIO1 (-1: no dead-man, EN a plain pin)
+_IO_DM_TRIPS = const(17)  # ... expiries seen by the refresh (the loop came back too late)
+_IO_N = const(18)
 _SPINS = const(2000)  # bound of the waits for an ADC conversion (~2 us) or a PIO push
+# dead-man timing: the state machine runs at 1 MHz (clock divider 125 at 125 MHz) and checks
+# for a refresh once per 16-cycle loop; the count N in a refresh word keeps EN high for
+# (N + 1) loops.  Without a loop period (no App yet: the REPL, the bench) the count is the
+# largest small int (4.7 hours): EN then follows set_enable alone
+_DM_HZ = const(1000000)
+_DM_LOOP_US = const(16)
+_DM_FOREVER = const(0x3FFFFFFF)
+_PIO1_EXECCTRL = const(0x503000CC)  # SM0_EXECCTRL of PIO1 (+ 0x18 per machine)
 
 
 @rp2.asm_pio(in_shiftdir=rp2.PIO.SHIFT_LEFT, out_shiftdir=rp2.PIO.SHIFT_RIGHT)
@@ -107,6 +125,26 @@ def _quadrature():
     nop()
     nop()
     nop()
+
+
+@rp2.asm_pio(set_init=2)  # 2: rp2.PIO.OUT_LOW (a literal: the CPython stand-ins have no PIO.OUT_LOW)
+def _deadman():
+    # EN on the set pin.  A refresh word N > 0 sets EN high and (re)starts a count of N + 1
+    # loops of 16 cycles; 0 sets it low at once.  The count running out sets EN low and raises
+    # IRQ flag (rel 0) for the CPU to see.  `mov x, status` is all ones while the TX FIFO is
+    # empty (EXECCTRL STATUS_SEL = TX, STATUS_N = 1: set by HalPico after the machine is made)
+    label("off")
+    set(pins, 0)
+    label("idle")
+    pull(block)
+    mov(y, osr)
+    jmp(not_y, "off")
+    set(pins, 1)
+    label("count")
+    mov(x, status)[7]
+    jmp(not_x, "idle")        # a word waits: take it
+    jmp(y_dec, "count")[6]
+    irq(rel(0))                 # expired: flag it; wraps to "off"
 
 
 class HalPico:
@@ -158,10 +196,13 @@ class HalPico:
         self._mem = getattr(machine, "mem32", None)
         self._intr = _PWM_INTR
         self._wrap_bit = 1 << ((board.PWM_PIN >> 1) & 7)
-        # driver enable: low until the supervisor balances (App: set_enable)
+        # driver enable: low until the supervisor balances (App: set_enable); on the rp2 port
+        # through the dead-man state machine (_dead_man), elsewhere a plain output
         self._en = None
         self._en_value = self._nop
-        if board.EN_PIN >= 0:
+        self._dm = None
+        self._dm_pct = getattr(board, "DEADMAN_PCT", 175)
+        if board.EN_PIN >= 0 and not (sys.platform == "rp2" and self._dead_man(board)):
             self._en = machine.Pin(board.EN_PIN, machine.Pin.OUT, value=0)
             self._en_value = self._en.value
         self._msign = board.MOTOR_SIGN
@@ -197,6 +238,23 @@ class HalPico:
             self.ticks_diff_fast = time.ticks_diff
             self.ticks_add_fast = time.ticks_add
 
+    def _dead_man(self, board):
+        # start-up, rp2 port: EN driven by the _deadman state machine on PIO1 (the encoder's
+        # program fills PIO0).  EN is an output, low, from here on; False: no dead-man
+        # configured (board.DEADMAN_SM -1), EN a plain output
+        n = getattr(board, "DEADMAN_SM", -1)
+        if n < 4 or n > 7 or self._mem is None or board.PWM_PIN >= 30:
+            return False
+        sm = rp2.StateMachine(n, _deadman, freq=_DM_HZ, set_base=machine.Pin(board.EN_PIN))
+        # STATUS_SEL = TX FIFO, STATUS_N = 1: `mov x, status` reads all ones when it is empty
+        a = _PIO1_EXECCTRL + 0x18 * (n & 3)
+        self._mem[a] = (self._mem[a] & ~0x1F) | 1
+        self._dm = sm
+        self._dm_sm = n & 3
+        self._dm_n = _DM_FOREVER
+        sm.active(1)
+        return True
+
     def _fast(self, board, k):
         # start-up: the state of the viper I/O paths, then they replace the methods
         io = array("i", [0] * _IO_N)
@@ -211,7 +269,13 @@ class HalPico:
         io[_IO_SLICE] = (board.PWM_PIN >> 1) & 7
         io[_IO_CHAN] = board.PWM_PIN & 1
         io[_IO_ESTOP] = -1 if self._estop_pin is None else board.ESTOP_PIN
+        io[_IO_DM_SM] = -1
         self._io = io
+        if self._dm is not None:
+            io[_IO_DM_SM] = self._dm_sm
+            io[_IO_DM_N] = self._dm_n
+            self._en_value = self._dm_put
+            self._dm_put(0)  # EN low, IRQ flag clear: the state the loop starts from
         self.read_angle_raw = self._read_angle_v
         self.read_encoder = self._read_encoder_v
         self.set_motor = self._set_motor_v
@@ -301,13 +365,50 @@ class HalPico:
         top = pw[4] & 0xFFFF
         if top > 0x7FFF:
             self._duty_u16(duty << 1)
-            return
-        x = (duty << 1) * (top + 1) + 32767
-        cc = (x + (x >> 16) + 1) >> 16
-        if s[_IO_CHAN]:
-            pw[3] = (pw[3] & 0xFFFF) | (cc << 16)
         else:
-            pw[3] = (pw[3] & (-0x10000)) | cc
+            x = (duty << 1) * (top + 1) + 32767
+            cc = (x + (x >> 16) + 1) >> 16
+            if s[_IO_CHAN]:
+                pw[3] = (pw[3] & 0xFFFF) | (cc << 16)
+            else:
+                pw[3] = (pw[3] & (-0x10000)) | cc
+        # the dead-man's refresh (the loop is alive: it just commanded the motor): while the
+        # driver is enabled, one word into the state machine's TX FIFO (dropped when full:
+        # the machine takes one every 16 us).  An expiry since the last refresh is counted.
+        # An e-stop IRQ between the DM_ON test and the write leaves EN on with compare 0 (it
+        # wrote that after this call's compare) until the next tick latches F_ESTOP
+        if s[_IO_DM_ON]:
+            sm = s[_IO_DM_SM]
+            b = 0x5030
+            p = ptr32(b << 16)
+            f = 1 << sm
+            if p[12] & f:
+                p[12] = f
+                s[_IO_DM_TRIPS] = s[_IO_DM_TRIPS] + 1
+            if not (p[1] & (f << 16)):
+                p[4 + sm] = s[_IO_DM_N]
+
+    @micropython.viper
+    def _dm_put(self, on: int):
+        # the driver enable through the dead-man (set_enable, off, the e-stop IRQ: no
+        # allocation): 1 -> a refresh word (EN high for DEADMAN_PCT % of a period unless
+        # refreshed), 0 -> the word 0 (EN low within one 16 us loop).  The IRQ flag is cleared
+        s = ptr32(self._io)
+        sm = s[_IO_DM_SM]
+        b = 0x5030  # PIO1 base, shifted at run time (a folded constant would be a big int)
+        p = ptr32(b << 16)
+        w = 0
+        d = 0
+        if on:
+            w = s[_IO_DM_N]
+            d = 1
+        s[_IO_DM_ON] = d
+        p[12] = 1 << sm  # IRQ (0x030): write 1 to clear
+        full = 1 << (16 + sm)  # FSTAT TXFULL
+        n = _SPINS
+        while n > 0 and (p[1] & full):
+            n -= 1
+        p[4 + sm] = w  # TXFn (0x010 + 4 n)
 
     @micropython.viper
     def _estop_v(self) -> bool:
@@ -410,10 +511,27 @@ class HalPico:
             self._io[_IO_DIR] = d
 
     def set_enable(self, on):
-        # driver enable (EN/nSLEEP): 1 only while balancing (the supervisor decides)
+        # driver enable (EN/nSLEEP): 1 only while balancing (the supervisor decides).  With
+        # the dead-man (rp2 port), EN then stays high only while set_motor is called at least
+        # every DEADMAN_PCT % of a loop period (set_period)
         if on and self._hit:
             on = 0
         self._en_value(on)
+
+    def set_period(self, us):
+        # the control loop's period (App, from its gain table): the dead-man's timeout is
+        # DEADMAN_PCT % of it from the last refresh (N + 1 loops of 16 us)
+        n = (self._dm_pct * us) // (100 * _DM_LOOP_US) - 1
+        if n < 1:
+            n = 1
+        self._dm_n = n
+        if self._io is not None and self._dm is not None:
+            self._io[_IO_DM_N] = n
+
+    def deadman_trips(self):
+        # dead-man expiries the refresh has seen since start-up (the driver was cut because
+        # the loop was late or hung, and the loop came back); 0 without a dead-man
+        return self._io[_IO_DM_TRIPS] if self._io is not None and self._dm is not None else 0
 
     def estop(self):
         # True while the e-stop input is low, or if its IRQ fired since the last call

@@ -2,15 +2,18 @@
 
 * e-stop (board.ESTOP_PIN, active low): the pin IRQ drives EN low and writes PWM compare 0 within
   tens of microseconds; the loop latches F_ESTOP on its next tick;
-* a hung loop (a step that never returns; a blocking UART write): the hardware watchdog
-  (board.WDT_MS = 100 ms) resets the chip -- PWM and EN fall back to inputs -- and the next boot
-  reads the reset-cause marker (RC_WATCHDOG) the loop left in WATCHDOG SCRATCH3;
+* a hung loop (a step that never returns; a blocking UART write): the driver-enable dead-man
+  (a PIO state machine the loop refreshes in set_motor) drops EN board.DEADMAN_PCT % of a period
+  after the last motor command; then the hardware watchdog (board.WDT_MS = 100 ms) resets the
+  chip -- PWM and EN fall back to inputs -- and the next boot reads the reset-cause marker
+  (RC_WATCHDOG) the loop left in WATCHDOG SCRATCH3 (tests/test_rp2040_deadman.py measures the
+  dead-man at four hang points of the shipped viper loop; here the bytecode loop);
 * direction changes: DIR flips only while the PWM output is low (duty 0 in force first).
 
-Measured here (125 MHz emulated cycles, bytecode firmware): e-stop edge -> EN low 28 us,
--> PWM compare 0 written 20 us (in force at the next PWM wrap, <= 50 us); hang -> reset (PWM and EN
-off) 98-99.3 ms, both hang kinds.  The bounds below are generous: the cut-off exists and is of
-that order, not the exact figure.
+Measured here (125 MHz emulated cycles, bytecode firmware): e-stop edge -> EN low 56 us (the
+dead-man's "off" word; 28 us when EN was a CPU pin), -> PWM compare 0 written 22 us (in force at the next PWM wrap, <= 50 us); hang -> EN low 3.5 ms
+after the last motor command (dead-man), -> reset (PWM and EN inputs) 98-99.3 ms, both hang kinds.
+The bounds below are generous: the cut-off exists and is of that order, not the exact figure.
 """
 
 from __future__ import annotations
@@ -78,6 +81,8 @@ def test_estop_cuts_pwm_and_enable_within_microseconds() -> None:
         edges, ev, _, r = _collect(b, 20)
         en_low = [c for p, c, v in edges if p == BOARD.EN_PIN and v == 0]
         pwm0 = [c for c, cmp_, *_ in ev if cmp_ == 0]
+        if en_low and pwm0:
+            print(f"\ne-stop: EN low {(en_low[0] - t0) / US:.0f} us, PWM compare 0 {(pwm0[0] - t0) / US:.0f} us after")
         assert en_low and (en_low[0] - t0) / US < 200, en_low
         assert pwm0 and (pwm0[0] - t0) / US < 200, pwm0
         assert not [e for e in ev if e[1] != 0], "duty written after the e-stop"
@@ -99,6 +104,10 @@ def test_hung_loop_is_reset_by_the_hardware_watchdog(kind: str) -> None:
         assert hang and resets, (hang, resets)
         assert any(p == BOARD.EN_PIN and v == 1 for p, _, v in edges if p == BOARD.EN_PIN and _ < hang[0])
         assert not [e for e in ev if e[1] != 0 and e[0] > hang[0]]
+        # the dead-man drops EN within three periods (2 ms) of the last motor command
+        last = max(e[0] for e in ev if e[0] < hang[0])
+        cut = [c for p, c, v in edges if p == BOARD.EN_PIN and v == 0 and c > hang[0]]
+        assert cut and (cut[0] - last) / US <= 3 * 2000, (cut, last)
         dt_ms = (resets[0][0] - hang[0]) / US / 1000
         # the board's watchdog timeout, less the part of a tick between the last feed and the hang
         assert BOARD.WDT_MS - 5 <= dt_ms <= BOARD.WDT_MS + 5, dt_ms

@@ -15,8 +15,11 @@
 //   {"cmd":"usb","data":"<hex>"}            bytes from the USB host to the CDC OUT endpoint
 //   {"cmd":"run","us":1000}                 run for that much emulated time; answers the state
 //   {"cmd":"state"}                         the state answer without running
-//   {"cmd":"config","pwm":16,"dir":17,"en":18,"watch":[17,18],"pwm_edges":false,
+//   {"cmd":"config","pwm":16,"dir":17,"en":18,"watch":[17,18],"pwm_edges":false,"pio_exact":false,
 //    "loop_probe":{"gap_us":40,"min_reads":3,"raw":false}}
+//                                           pio_exact: step every state machine after every CPU
+//                                           instruction with no skips (the reference the fast
+//                                           stepping below must match; slow)
 //                                           loop_probe: find the firmware's loop iterations from
 //                                           its reads of the TIMER (see "loop probe" below);
 //                                           null switches it off
@@ -135,24 +138,33 @@ function setNanos(n) {
 // rp2040js runs PIO from setTimeout (1000 steps per macrotask, no divider).  That is disabled;
 // every enabled state machine is stepped at its own clock-enable times on the CPU's cycle count:
 // one step per divider period (int + frac/256 system cycles), 1 + delay periods per instruction,
-// one period per stalled cycle.
+// one period per stalled cycle.  Several machines are interleaved in time order.
 //
 // Speed, without giving up exactness:
-//  * Lazy stepping: while no PIO output pin is enabled, no PIO interrupt is enabled and no DMA
-//    channel is busy, nothing outside the PIO can see its state except through its registers and
-//    its input pins.  The machines are then caught up to the current cycle just before the CPU
-//    touches a PIO register, before an input pin or the IO/pad configuration changes, and at the
-//    end of each run -- the same steps at the same cycles as stepping after every instruction.
+//  * Lazy stepping: while no PIO interrupt is enabled and no DMA channel is busy, nothing on the
+//    chip can see a state machine's state except through its registers: rp2040js feeds a PIO
+//    output pin back into nothing (not GPIO_IN, not a GPIO interrupt, not another block's `in`),
+//    so its level is seen only by the harness's pin listeners and state answers.  The machines are
+//    then caught up to the current cycle just before the CPU touches a PIO or IO_BANK0 register,
+//    before an input pin or the IO/pad configuration changes, and at the end of each run -- the
+//    same steps at the same cycles as stepping after every instruction; a pin a machine drives
+//    changes (and its listeners see the edge) at the cycle of the instruction that drove it.
 //    Otherwise they are stepped after every CPU instruction (and cycle by cycle in WFI).
-//  * Steady state: a lone state machine whose complete state (registers, shift counters, FIFO
-//    contents, IRQ flags, pins) is identical at two consecutive passes through its wrap target,
-//    with nothing external touching it in between, repeats that period forever; whole periods
-//    are skipped by advancing its clock-enable time (its state is then the one it would have).
-//    The quadrature decoder idles like that (it pushes an unchanged count into a full FIFO).
-const pioSMs = []; // {sm, pio, next, div, snap, snapAt}
+//  * Stalled on an empty TX FIFO (`pull block`, an autopull `out`): nothing but a register write
+//    (the CPU, or a DMA channel through the same bus) can end the stall, and every register access
+//    catches the machines up first: the stalled clock periods are skipped in one go.
+//  * Steady state: a machine whose complete state (registers, shift counters, FIFO contents, IRQ
+//    flags, its block's pins) is identical at two consecutive passes through its wrap target,
+//    with nothing external touching it in between, repeats that period; whole periods are skipped
+//    by advancing its clock-enable time (its state is then the one it would have) -- up to the
+//    next step of any other machine (which could change what it sees).  The quadrature decoder
+//    idles like that (it pushes an unchanged count into a full FIFO).
+const pioSMs = []; // {sm, pio, next, div, snap, snapAt, same, period}
 let pioNext = Infinity;
 let pioLazy = false;
-let pioSkipped = 0; // PIO cycles skipped by the steady-state rule (statistics)
+let pioSkipped = 0; // PIO cycles skipped by the steady-state and stall rules (statistics)
+let pioExact = false; // config "pio_exact": every machine stepped after every instruction, no skips (reference)
+const WAIT_TX = 3, WAIT_OUT = 5; // rp2040js WaitType.txFIFO, WaitType.Out
 function smDiv(sm) {
   const i = sm.clockDivInt === 0 ? 65536 : sm.clockDivInt;
   return i + sm.clockDivFrac / 256;
@@ -166,7 +178,7 @@ function pioCanWake() {
   return false;
 }
 function pioMode() {
-  pioLazy = pioSMs.length > 0 && !pioCanWake() && (mcu.pio[0].pinDirections | mcu.pio[1].pinDirections) === 0;
+  pioLazy = !pioExact && pioSMs.length > 0 && !pioCanWake();
 }
 function refreshPio() {
   const old = new Map(pioSMs.map((e) => [e.sm, e]));
@@ -176,7 +188,7 @@ function refreshPio() {
       if (!sm.enabled) continue;
       const div = smDiv(sm);
       const prev = old.get(sm);
-      pioSMs.push({ sm, pio, div, next: prev ? prev.next : cyc + div, snap: null, snapAt: 0 });
+      pioSMs.push({ sm, pio, div, next: prev ? prev.next : cyc + div, snap: null, snapAt: 0, same: false, period: 0 });
     }
   }
   pioNext = Infinity;
@@ -184,14 +196,21 @@ function refreshPio() {
   pioMode();
 }
 function pioTouched() {
-  for (let k = 0; k < pioSMs.length; k++) pioSMs[k].snap = null;
+  for (let k = 0; k < pioSMs.length; k++) {
+    pioSMs[k].snap = null;
+    pioSMs[k].same = false;
+  }
 }
-function pioSync() {
-  // catch the machines up to the current time (before something observes or changes their world)
+function pioCatchUp() {
+  // step the machines up to the current time (before something observes their pins)
   if (pioSMs.length) {
     const now = Math.floor(clock.nanosCounter / NS_PER_CYCLE);
     if (pioNext <= now) stepPio(now);
   }
+}
+function pioSync() {
+  // catch the machines up to the current time (before something observes or changes their world)
+  pioCatchUp();
   pioTouched();
 }
 function smSnapshot(sm, pio) {
@@ -200,57 +219,74 @@ function smSnapshot(sm, pio) {
     `${sm.outputShiftCount},${sm.waiting},${sm.waitType},${sm.execValid},${sm.execCtrl},${rx.items},` +
     `${tx.items},${pio.irq},${pio.pinValues},${pio.pinDirections}`;
 }
+function pinsAt(pio, at) {
+  // a machine changed its block's pins: the GPIO listeners see it at the cycle it happened
+  const now = clock.nanosCounter;
+  clock.nanosCounter = at * NS_PER_CYCLE;
+  pio.checkChangedPins();
+  clock.nanosCounter = now;
+}
 function stepPio(upTo) {
-  if (pioSMs.length === 1) {
-    const e = pioSMs[0];
+  const n = pioSMs.length;
+  for (;;) {
+    // the machine due first (time order: machines of one block talk through IRQ flags)
+    let e = null;
+    for (let k = 0; k < n; k++) {
+      const c = pioSMs[k];
+      if (c.next <= upTo && (e === null || c.next < e.next)) e = c;
+    }
+    if (e === null) break;
     const sm = e.sm;
-    const wrap = sm.wrapBottom;
-    while (e.next <= upTo) {
-      if (sm.pc === wrap && !sm.waiting) {
+    if (pioExact) {
+      // the reference: no skips
+    } else if (sm.waiting && !sm.execValid && (sm.waitType === WAIT_TX || sm.waitType === WAIT_OUT) && sm.txFIFO.empty) {
+      const k = Math.floor((upTo - e.next) / e.div) + 1;
+      e.next += k * e.div;
+      pioSkipped += k * e.div;
+      continue;
+    } else if (sm.pc === sm.wrapBottom && !sm.waiting) {
+      if (!e.same) {
         const snap = smSnapshot(sm, e.pio);
-        if (snap === e.snap) {
-          const period = e.next - e.snapAt;
-          const k = Math.floor((upTo - e.next) / period);
-          if (k > 0) {
-            e.next += k * period;
-            pioSkipped += k * period;
-          }
+        if (snap === e.snap && e.next > e.snapAt) {
+          e.same = true;
+          e.period = e.next - e.snapAt;
         } else {
           e.snap = snap;
+          e.snapAt = e.next;
         }
+      }
+      if (e.same) {
+        // whole periods, up to the next step of another machine
+        let limit = upTo;
+        for (let k = 0; k < n; k++) if (pioSMs[k] !== e && pioSMs[k].next < limit) limit = pioSMs[k].next;
+        const j = Math.floor((limit - e.next) / e.period);
+        if (j > 0) {
+          e.next += j * e.period;
+          pioSkipped += j * e.period;
+          continue;
+        }
+        // no whole period before another machine's step: on, and compare again at the next wrap
+        e.same = false;
         e.snapAt = e.next;
-        if (e.next > upTo) break;
       }
-      const c0 = sm.cycles;
-      sm.step();
-      let dc = sm.cycles - c0; // 1 + delay, 0 while stalled
-      if (dc < 1) dc = 1;
-      e.next += dc * e.div;
     }
-    pioNext = e.next;
-  } else {
-    // several machines: interleave them in time order (they may talk through IRQ flags)
-    for (;;) {
-      let best = null;
-      for (let k = 0; k < pioSMs.length; k++) {
-        const e = pioSMs[k];
-        if (e.next <= upTo && (best === null || e.next < best.next)) best = e;
-      }
-      if (best === null) break;
-      const sm = best.sm;
-      const c0 = sm.cycles;
-      sm.step();
-      let dc = sm.cycles - c0;
-      if (dc < 1) dc = 1;
-      best.next += dc * best.div;
+    const pio = e.pio;
+    const irq = pio.irq, pv = pio.pinValues, pd = pio.pinDirections;
+    const at = e.next;
+    const c0 = sm.cycles;
+    sm.step();
+    let dc = sm.cycles - c0; // 1 + delay, 0 while stalled
+    if (dc < 1) dc = 1;
+    e.next += dc * e.div;
+    if (pio.irq !== irq || pio.pinValues !== pv || pio.pinDirections !== pd) {
+      // what the block's other machines see changed: their steady state is to be seen again
+      for (let k = 0; k < n; k++) if (pioSMs[k].pio === pio) pioSMs[k].same = false;
+      if (pio.pinValues !== pio.oldPinValues || pio.pinDirections !== pio.oldPinDirections) pinsAt(pio, at);
     }
-    let next = Infinity;
-    for (const e of pioSMs) if (e.next < next) next = e.next;
-    pioNext = next;
   }
-  mcu.pio[0].checkChangedPins();
-  mcu.pio[1].checkChangedPins();
-  if (pioLazy && (mcu.pio[0].pinDirections | mcu.pio[1].pinDirections)) pioLazy = false;
+  let next = Infinity;
+  for (let k = 0; k < n; k++) if (pioSMs[k].next < next) next = pioSMs[k].next;
+  pioNext = next;
 }
 for (const pio of mcu.pio) {
   pio.run = () => {}; // no wall-clock stepping
@@ -263,6 +299,7 @@ for (const pio of mcu.pio) {
   pio.writeUint32 = (offset, value) => {
     pioSync();
     origWrite(offset, value);
+    pio.checkChangedPins(); // an SMn_INSTR write (pio_sm_set_pins...) drives pins now
     // CTRL (enable/restart) and SMn_CLKDIV (0xc8 + 0x18 n) change the stepping plan
     if (offset === 0 || (offset >= 0xc8 && offset <= 0x124 && (offset - 0xc8) % 0x18 === 0)) refreshPio();
     else pioMode();
@@ -316,6 +353,15 @@ for (const base of [0x40014, 0x4001c]) {
     gpioCache = -1;
     orig(offset, value);
     if (base === 0x4001c) followPulls();
+  };
+}
+{
+  // IO_BANK0 GPIOn_STATUS shows a pin's output (a PIO's too): the machines catch up first
+  const per = mcu.peripherals[0x40014];
+  const orig = per.readUint32.bind(per);
+  per.readUint32 = (offset) => {
+    pioCatchUp();
+    return orig(offset);
   };
 }
 
@@ -912,6 +958,11 @@ function handle(req) {
       if (req.en !== undefined) cfg.en = req.en;
       if (req.watch !== undefined) cfg.watch = req.watch;
       if (req.pwm_edges !== undefined) cfg.pwmEdges = !!req.pwm_edges;
+      if (req.pio_exact !== undefined) {
+        pioSync();
+        pioExact = !!req.pio_exact;
+        pioMode();
+      }
       if (req.loop_probe !== undefined) {
         const lp = req.loop_probe;
         probe.on = !!lp;
