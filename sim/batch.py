@@ -850,6 +850,14 @@ def _loop_numba(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
     sp, sf = s.sens_plant, s.sens_fw
     cpm_p, cpr_p = float(enc_counts_per_m(sp)), float(2.0 ** sp["adc_bits"] / sp["pot_range"])
     full_p = float(2 ** int(sp["adc_bits"]) - 1)
+    rl = s.real
+    if rl is not None:
+        amp_a, inl_w = inl_terms(sp)
+        rc = (_per_run(rl.fc, N), _per_run(rl.fs, N), _per_run(rl.hp, N), _per_run(mt["deadband"], N),
+              _per_run(mt["duty_min"], N), _per_run(amp_a, N), float(inl_w))
+    else:
+        zr = np.zeros(N)
+        rc = (zr, zr, zr, zr, zr, zr, 0.0)
     cpm_f, cpr_f = float(enc_counts_per_m(sf)), float(2.0 ** sf["adc_bits"] / sf["pot_range"])
     G = np.ascontiguousarray(s.Gs.transpose(0, 2, 1))  # (NG, nz+3, nz+2): a column contiguous
     Bu = np.ascontiguousarray(s.Bus.T)  # (nz, NG)
@@ -912,6 +920,7 @@ def _loop_numba(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
             accel, al,
             out["phi_max"], out["x_max"], out["xddot_max"], out["force_max"], lo, out["phi_sq"], out["f_sq"],
             s.record, tr_c,
+            rl is not None, *(a[z] for a in rc[:6]), rc[6],
         )
         return out, lo, tr_c
 
