@@ -310,6 +310,7 @@ def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
                           timeout=600)
 
 
+@pytest.mark.slow
 def test_simulate_runs_the_realistic_plant(tmp_path: Path) -> None:
     csv = tmp_path / "real.csv"
     r = _cli("simulate", "--scenario", "ref_step_20cm", "--plant", str(REALISTIC), "--csv", str(csv), cwd=ROOT)
@@ -325,23 +326,32 @@ def test_simulate_runs_the_realistic_plant(tmp_path: Path) -> None:
     assert len(a["x"]) == len(b["x"]) and np.max(np.abs(a["x"] - b["x"])) > 0.01
 
 
+def replay_matches(csv: Path, scenario: dict) -> None:
+    """The HIL log is the realistic plant's: the scenario simulator, fed the board's duties, reads
+    exactly the counts the board got (ADC with the pot's nonlinearity, the motor encoder)."""
+    from sim.plantsim import read_csv
+
+    log = read_csv(csv)
+    n = int(round(scenario["duration"] * 500))
+    assert len(log["t"]) == n and np.all(np.isfinite(log["phi"]))
+    sim = PlantSim(load_params(REALISTIC), scenario_from_dict(scenario))
+    for d in log["duty"].astype(int):
+        assert sim.read() == (int(log["adc"][sim.tick]), int(log["enc"][sim.tick])), sim.tick
+        sim.step(int(d))
+    assert np.array_equal(sim.result()["x"], log["x"])
+
+
+SHORT = {"name": "short_tilt", "duration": 1.0, "initial": {"phi": 0.05}}
+SHORT_TOML = 'name = "short_tilt"\nduration = 1.0\n[initial]\nphi = 0.05\n'
+
+
 @pytest.mark.slow
 def test_hil_virtual_runs_the_realistic_plant(tmp_path: Path) -> None:
     sc = tmp_path / "short_tilt.toml"
-    sc.write_text('name = "short_tilt"\nduration = 1.0\n[initial]\nphi = 0.05\n')
+    sc.write_text(SHORT_TOML)
     out = tmp_path / "hil"
     r = _cli("hil", "--virtual", "--plant", str(REALISTIC), "--scenario", str(sc), "--out", str(out), "--no-plots",
              "--no-compare", "--quiet", cwd=ROOT)
     assert r.returncode in (0, 1), r.stderr
     assert "differs in: cart.coulomb" in r.stderr
-    from sim.plantsim import read_csv
-
-    log = read_csv(out / "short_tilt.csv")
-    assert len(log["t"]) == 500 and np.all(np.isfinite(log["phi"]))
-    assert np.max(np.abs(log["phi"])) < 0.3  # the firmware holds the realistic cart over the second
-    # the log is the realistic plant's: replayed in the scenario simulator with the board's duties
-    sim = PlantSim(load_params(REALISTIC), scenario_from_dict({"name": "short_tilt", "duration": 1.0,
-                                                               "initial": {"phi": 0.05}}))
-    for d in log["duty"].astype(int):
-        assert sim.read() == (int(log["adc"][sim.tick]), int(log["enc"][sim.tick]))
-        sim.step(int(d))
+    replay_matches(out / "short_tilt.csv", SHORT)
