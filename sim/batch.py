@@ -30,6 +30,12 @@ vectorised over the batch tick by tick; ``"numba"`` (the default when numba is i
 the compiled kernel of :mod:`sim.batch_kernel`, run by run on all cores, **bit-identical** to
 the reference per run (metrics and traces; see that module for what makes it so).
 
+Plant realism (dry friction, gear backlash with the encoder on the motor shaft, the bridge's
+deadband and minimum duty, pot nonlinearity; :data:`REALISM_KEYS`, per run; docs/parameters.md,
+"Plant realism"): when any run has it, both engines take a path that decides the gear's contact
+and stuck/sliding at each RK4 sub-step's start and holds them over it; that path leaves an ideal
+run's arithmetic exactly as the ideal path's, so a run's result still does not depend on its batch.
+
 The firmware side (count conversion, motor inversion, controller) always uses the
 *nominal* parameters; only the plant and the motor that turns duty into force are the
 run's true ones -- that is what parameter uncertainty means for the real robot.

@@ -21,6 +21,14 @@ The HIL runner calls ``read()`` -> sends the frame -> gets the duty -> ``step(du
 Every tick is logged; :meth:`PlantSim.result` returns the log as arrays (:data:`LOG_COLUMNS`),
 the input of :mod:`sim.metrics` and :mod:`sim.plots`.
 
+Plant realism (the robot file's ``cart.coulomb``, ``cart.stiction``, ``motor.backlash``,
+``motor.deadband``, ``motor.duty_min``, ``sensors.pot_inl``; docs/parameters.md, "Plant
+realism"): off on the ideal robot (the defaults), whose ticks run the plain code below; with any
+of them on, :meth:`PlantSim._integrate_real` decides the gear's contact and stuck/sliding at each
+sub-step's start (the scheme of :mod:`sim.batch`, which it agrees with to rounding), the encoder
+reads the motor side of the gear play and the ADC the pot's nonlinearity.  :attr:`PlantSim.stuck`
+and :attr:`PlantSim.gear_play` show the extra state.
+
 For speed (the lockstep HIL budget is a fraction of a millisecond per tick) the per-tick
 integration uses scalar ``math`` versions of the plant and motor equations; a test checks
 them against :func:`sim.plant.dynamics` and :func:`sim.motor.force_from_duty`.
