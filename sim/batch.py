@@ -30,6 +30,12 @@ vectorised over the batch tick by tick; ``"numba"`` (the default when numba is i
 the compiled kernel of :mod:`sim.batch_kernel`, run by run on all cores, **bit-identical** to
 the reference per run (metrics and traces; see that module for what makes it so).
 
+Plant realism (dry friction, gear backlash with the encoder on the motor shaft, the bridge's
+deadband and minimum duty, pot nonlinearity; :data:`REALISM_KEYS`, per run; docs/parameters.md,
+"Plant realism"): when any run has it, both engines take a path that decides the gear's contact
+and stuck/sliding at each RK4 sub-step's start and holds them over it; that path leaves an ideal
+run's arithmetic exactly as the ideal path's, so a run's result still does not depend on its batch.
+
 The firmware side (count conversion, motor inversion, controller) always uses the
 *nominal* parameters; only the plant and the motor that turns duty into force are the
 run's true ones -- that is what parameter uncertainty means for the real robot.
@@ -49,14 +55,15 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from .motor import MOTOR_KEYS, duty_from_force, force_from_duty
-from .params import RobotParams
+from .motor import MOTOR_KEYS, bridge_fraction, duty_from_force, force_from_duty
+from .params import SCHEMA, RobotParams
 from .plant import dynamics, rk4_step
 from .sensors import (
     NoiseModel,
     adc_to_phi,
     enc_counts_per_m,
     encoder_delta,
+    inl_terms,
     phi_to_adc,
     x_to_encoder,
 )
@@ -64,6 +71,7 @@ from .sensors import (
 __all__ = [
     "BatchError",
     "PLANT_KEYS",
+    "REALISM_KEYS",
     "VARIED_KEYS",
     "METRICS",
     "RunSet",
@@ -81,12 +89,19 @@ __all__ = [
 PLANT_KEYS = ("M", "m", "L", "I", "b", "g")
 """Physical parameters of the equations of motion that may vary per run."""
 
-VARIED_KEYS = PLANT_KEYS + ("V_supply", "R", "kt")
+REALISM_KEYS = ("coulomb", "stiction", "backlash", "deadband", "duty_min", "pot_inl")
+"""Plant-realism parameters that may vary per run (``docs/parameters.md``, "Plant realism"); 0 = ideal."""
+
+VARIED_KEYS = PLANT_KEYS + ("V_supply", "R", "kt") + REALISM_KEYS
 """Every parameter a :class:`RunSet` may give per run (the true robot of that run).
 
-Sensor and geometry parameters (``r_wheel``, ``gear``, ``enc_cpr``, ``pot_*``) stay
-nominal: the firmware converts counts with them, so they are known exactly.
+Sensor and geometry parameters (``r_wheel``, ``gear``, ``enc_cpr``, ``pot_range``,
+``pot_offset``, ``pot_inl_cycles``) stay nominal: the firmware converts counts with them, so
+they are known exactly (the pot's nonlinearity ``pot_inl``, which the firmware does not know,
+may vary).
 """
+
+_REAL_DOTTED = {k.split(".", 1)[1]: k for k in SCHEMA if k.split(".", 1)[1] in REALISM_KEYS}
 
 METRICS = (
     "phi_max",
@@ -152,7 +167,11 @@ class RunSet:
                 a = np.broadcast_to(np.asarray(v, dtype=float), (n,)).copy()
             except ValueError as exc:
                 raise BatchError(f"per-run {k} must be a number or {n} numbers, got shape {np.shape(v)}") from exc
-            if not np.all(np.isfinite(a)) or np.any(a <= 0) and k != "b" or np.any(a < 0):
+            if k in REALISM_KEYS:
+                sp = SCHEMA[_REAL_DOTTED[k]]
+                if not np.all(np.isfinite(a)) or np.any(a < sp.lo) or np.any(a > sp.hi):
+                    raise BatchError(f"per-run {k} must be finite, in {sp.lo:g} .. {sp.hi:g} {sp.unit} ({sp.doc})")
+            elif not np.all(np.isfinite(a)) or np.any(a <= 0) and k != "b" or np.any(a < 0):
                 raise BatchError(f"per-run {k} must be finite and positive")
             vals[k] = a
         object.__setattr__(self, "values", vals)
@@ -187,6 +206,7 @@ class RunSet:
         """Mapping of the true plant and motor parameters (arrays, or run ``i``'s floats)."""
         out: dict[str, Any] = dict(nominal.physical)
         out.update({k: getattr(nominal, k) for k in MOTOR_KEYS})
+        out.update({k: nominal.values[_REAL_DOTTED[k]] for k in REALISM_KEYS})
         for k, v in self.values.items():
             out[k] = v if i is None else float(v[i])
         return out
@@ -520,14 +540,22 @@ def simulate_batch(
     h = Ts / sub
     base = params if plant is None else plant
     true = runs.true_params(base)
+    realv = {k: _per_run(true[k], N) for k in REALISM_KEYS}
+    real_on = any(bool(np.any(v != 0.0)) for v in realv.values())
+    motor_true = {k: true[k] for k in MOTOR_KEYS}
+    sens_plant = {k: getattr(base, k) for k in _SENSOR_KEYS}
+    if real_on:
+        motor_true.update(deadband=true["deadband"], duty_min=true["duty_min"])
+        sens_plant.update(pot_inl=true["pot_inl"], pot_inl_cycles=base.pot_inl_cycles)
     setup = _Setup(
         N=N, n_ticks=n_ticks, sub=sub, h=h, Ts=Ts, stacked=stacked, idx=idx,
         Gs=np.stack(Gs), Bus=np.stack(Bus), u_maxes=u_maxes,
         phys={k: true[k] for k in PLANT_KEYS},
-        motor_true={k: true[k] for k in MOTOR_KEYS},
+        motor_true=motor_true,
         motor_nom={k: true[k] if supply_measured and k == "V_supply" else getattr(params, k) for k in MOTOR_KEYS},
         supply_measured=bool(supply_measured),
-        sens_plant={k: getattr(base, k) for k in _SENSOR_KEYS},
+        sens_plant=sens_plant,
+        real=_Realism(realv) if real_on else None,
         sens_fw={k: getattr(params, k) for k in _SENSOR_KEYS},
         drive=drive, noise=noise, accel_limit=accel_limit, settle_band=settle_band,
         w0=n_ticks * sub - int(round(window / h)), record=record, progress=progress,
@@ -557,6 +585,17 @@ _SENSOR_KEYS = ("adc_bits", "pot_range", "pot_offset", "enc_cpr", "r_wheel")
 _TRACES = ("x", "xdot", "phi", "phidot", "u_sat", "force", "duty", "x_meas", "phi_meas")
 
 
+class _Realism:
+    """Per-run plant-realism constants of a batch (docs/parameters.md, "Plant realism")."""
+
+    def __init__(self, v: Mapping[str, np.ndarray]) -> None:
+        self.fc = v["coulomb"]  # N, sliding friction
+        self.fs = np.maximum(v["stiction"], v["coulomb"])  # N, breakaway force
+        self.fric = self.fs > 0.0
+        self.hp = 0.5 * v["backlash"]  # m, half the gear play
+        self.play = self.hp > 0.0
+
+
 @dataclass
 class _Setup:
     """What both engines of :func:`simulate_batch` start from."""
@@ -577,6 +616,7 @@ class _Setup:
     supply_measured: bool
     sens_plant: dict[str, Any]
     sens_fw: dict[str, Any]
+    real: _Realism | None
     drive: str
     noise: NoiseModel
     accel_limit: float | None
@@ -660,13 +700,40 @@ def _loop_numpy(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
             F = np.clip(F, (-accel_limit - a0) / a1, (accel_limit - a0) / a1)
         return dynamics(0.0, x, F, phys), F
 
+    rl = s.real
+    if rl is not None:
+        # plant realism (docs/parameters.md, "Plant realism"; sim.plantsim.PlantSim._integrate_real):
+        # the gear's contact, sticking and the sliding direction decided at each sub-step's start
+        mL_ = phys["m"] * phys["L"]
+        mLg_ = mL_ * phys["g"]
+        J_ = phys["I"] + phys["m"] * phys["L"] * phys["L"]
+        play = rl.play if drive == "motor" else np.zeros(N, dtype=bool)
+        delta = np.zeros(N)  # motor side minus wheel side of the gear play (m)
+        stuck = rl.fric & (X[1] == 0.0)
+        dirn = np.where(X[1] >= 0.0, 1.0, -1.0)
+        eng = np.full(N, 2)
+        v0 = np.zeros(N)
+
+        def rhs_real(x: np.ndarray, duty: np.ndarray | None, us: np.ndarray, stk: np.ndarray,
+                     ff: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            F = us if duty is None else _gate(force_from_duty(duty, x[1], motor_true), eng)
+            if accel_limit is not None:  # the drive's limit, as in the frictionless plant
+                a0 = dynamics(0.0, x, zeros, phys)[1]
+                a1 = dynamics(0.0, x, ones, phys)[1] - a0
+                F = np.clip(F, (-accel_limit - a0) / a1, (accel_limit - a0) / a1)
+            d = dynamics(0.0, x, np.where(rl.fric, F - ff, F), phys)
+            d[1] = np.where(stk, 0.0, d[1])
+            d[3] = np.where(stk, (mLg_ * np.sin(x[2])) / J_, d[3])
+            return d, F
+
     sample = 0
     for k in range(n_ticks + 1):
         # --- sensors: this tick's reading enters the delay line, the delayed one comes out
         j = k % blk
         if j == 0:
             nblock = stream.take(min(blk, n_ticks + 1 - k))
-        ring_enc[k % L] = x_to_encoder(X[0], sens, nblock[j, 0])
+        xe = X[0] if rl is None else np.where(play, X[0] + delta, X[0])  # the motor encoder
+        ring_enc[k % L] = x_to_encoder(xe, sens, nblock[j, 0])
         ring_adc[k % L] = phi_to_adc(X[2], sens, nblock[j, 1])
         idx = ((k - d) % L) * N + cols
         seen_enc = flat_enc[idx]
@@ -682,11 +749,53 @@ def _loop_numpy(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
             for name, val in (("x", X[0]), ("xdot", X[1]), ("phi", X[2]), ("phidot", X[3]), ("u_sat", us), ("x_meas", W[nz]), ("phi_meas", W[nz + 1])):
                 tr[name][k] = val
             tr["duty"][k] = 0 if duty is None else duty
-            tr["force"][k] = rhs(X, duty, us)[1]
+            if rl is None:
+                tr["force"][k] = rhs(X, duty, us)[1]
+            else:
+                eng = _engagement(delta, rl.hp, play)
+                tr["force"][k] = rhs_real(X, duty, us, stuck, rl.fc * dirn)[1]
         W[:nz] = out[2:] + Bu_col * us
         if k == n_ticks:
             break
         # --- plant: RK4 sub-steps with the duty (or force) held
+        if rl is not None:
+            if duty is not None:
+                mt = motor_true
+                v0 = (bridge_fraction(duty, mt) * mt["V_supply"]) * mt["r_wheel"] / (mt["kt"] * mt["gear"])
+            for _ in range(sub):
+                eng = _engagement(delta, rl.hp, play)
+                F0 = rhs_real(X, duty, us, stuck, rl.fc * dirn)[1]
+                sn, cs = np.sin(X[2]), np.cos(X[2])
+                fext = (F0 + (mL_ * cs) * ((mLg_ * sn) / J_)) - mL_ * X[3] * X[3] * sn
+                brk = stuck & (np.abs(fext) > rl.fs)
+                slide = rl.fric & ~stuck & (X[1] != 0.0)
+                dirn = np.where(brk, np.where(fext > 0.0, 1.0, -1.0), np.where(slide, np.where(X[1] > 0.0, 1.0, -1.0), dirn))
+                stuck = stuck & ~brk
+                ff = rl.fc * dirn
+                k1, F = rhs_real(X, duty, us, stuck, ff)
+                np.maximum(xdd_max, np.abs(k1[1]), out=xdd_max)
+                np.maximum(f_max, np.abs(F), out=f_max)
+                if sample >= w0:
+                    phi_sq += X[2] * X[2]
+                    f_sq += F * F
+                k2 = rhs_real(X + (0.5 * h) * k1, duty, us, stuck, ff)[0]
+                k3 = rhs_real(X + (0.5 * h) * k2, duty, us, stuck, ff)[0]
+                k4 = rhs_real(X + h * k3, duty, us, stuck, ff)[0]
+                Xn = X + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+                stop = rl.fric & ~stuck & (Xn[1] * dirn <= 0.0)  # stopped sliding: held by static friction
+                Xn[1] = np.where(stop, 0.0, Xn[1])
+                stuck = stuck | stop
+                dl = (delta + h * v0) - (Xn[0] - X[0])
+                delta = np.where(play, np.where(dl > rl.hp, rl.hp, np.where(dl < -rl.hp, -rl.hp, dl)), delta)
+                X = Xn
+                sample += 1
+                aphi = np.abs(X[2])
+                np.maximum(phi_max, aphi, out=phi_max)
+                np.maximum(x_max, np.abs(X[0]), out=x_max)
+                np.copyto(last_out, sample, where=aphi > settle_band)
+            if s.progress is not None and k % 100 == 0:
+                s.progress(k, n_ticks)
+            continue
         for _ in range(sub):
             k1, F = rhs(X, duty, us)
             np.maximum(xdd_max, np.abs(k1[1]), out=xdd_max)
@@ -708,6 +817,17 @@ def _loop_numpy(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
     acc = {"phi_max": phi_max, "x_max": x_max, "xddot_max": xdd_max, "force_max": f_max, "last_out": last_out,
            "phi_sq": phi_sq, "f_sq": f_sq}
     return acc, tr
+
+
+def _engagement(delta: np.ndarray, hp: np.ndarray, play: np.ndarray) -> np.ndarray:
+    # the gear's contact: +1 the forward flank, -1 the backward one, 0 free in the play, 2 no play
+    return np.where(play, np.where(delta >= hp, 1, np.where(delta <= -hp, -1, 0)), 2)
+
+
+def _gate(F: np.ndarray, eng: np.ndarray) -> np.ndarray:
+    # the motor force the gear passes: all of it without play, only a push into the flank in contact
+    return np.where(eng == 2, F, np.where(eng == 1, np.where(F > 0.0, F, 0.0),
+                                          np.where(eng == -1, np.where(F < 0.0, F, 0.0), 0.0)))
 
 
 def _per_run(v: Any, n: int) -> np.ndarray:
@@ -736,6 +856,14 @@ def _loop_numba(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
     sp, sf = s.sens_plant, s.sens_fw
     cpm_p, cpr_p = float(enc_counts_per_m(sp)), float(2.0 ** sp["adc_bits"] / sp["pot_range"])
     full_p = float(2 ** int(sp["adc_bits"]) - 1)
+    rl = s.real
+    if rl is not None:
+        amp_a, inl_w = inl_terms(sp)
+        rc = (_per_run(rl.fc, N), _per_run(rl.fs, N), _per_run(rl.hp, N), _per_run(mt["deadband"], N),
+              _per_run(mt["duty_min"], N), _per_run(amp_a, N), float(inl_w))
+    else:
+        zr = np.zeros(N)
+        rc = (zr, zr, zr, zr, zr, zr, 0.0)
     cpm_f, cpr_f = float(enc_counts_per_m(sf)), float(2.0 ** sf["adc_bits"] / sf["pot_range"])
     G = np.ascontiguousarray(s.Gs.transpose(0, 2, 1))  # (NG, nz+3, nz+2): a column contiguous
     Bu = np.ascontiguousarray(s.Bus.T)  # (nz, NG)
@@ -798,6 +926,7 @@ def _loop_numba(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
             accel, al,
             out["phi_max"], out["x_max"], out["xddot_max"], out["force_max"], lo, out["phi_sq"], out["f_sq"],
             s.record, tr_c,
+            rl is not None, *(a[z] for a in rc[:6]), rc[6],
         )
         return out, lo, tr_c
 
@@ -881,6 +1010,10 @@ def closed_loop_iosys(
     h = Ts / sub
     phys = {k: float(true[k]) for k in PLANT_KEYS}
     mot = {k: float(true[k]) for k in MOTOR_KEYS}
+    on = [k for k in REALISM_KEYS if float(true.get(k, 0.0)) != 0.0]
+    if on:
+        raise BatchError(f"closed_loop_iosys models the ideal robot; plant realism given: {', '.join(on)} "
+                         f"(use simulate_batch)")
     cpm = float(enc_counts_per_m(params))
 
     def update(t: float, s: np.ndarray, w: np.ndarray, _p: Any) -> np.ndarray:

@@ -71,7 +71,12 @@ DUTY_MAX = 32767.0
  _US, _DUTY, _VM, _Y1, _Y2, _Y3, _SN, _CS, _F, _PM, _XM, _AM, _FM, _PSQ, _FSQ, _UMAX) = range(32)
 _NX, _NPHI = 32, 33  # the noise of the current hold period
 _K1, _K2, _K3, _K4 = 34, 39, 44, 49
-_NROWS = 54
+# plant realism (sim.batch._Realism): the gear play's state and half width, friction, the
+# sliding direction and its force, stuck (1.0) or not, the gear's contact, the motor's
+# no-load speed, the pot's nonlinearity amplitude, the bridge's deadband and minimum duty,
+# the lane's flags (play, friction) and the cart position at the sub-step's start
+(_DL, _HP, _FC, _FS, _DIR, _FF, _STK, _ENG, _V0, _AMP, _DB, _DMIN, _PLAY, _FRIC, _XOLD) = range(54, 69)
+_NROWS = 69
 
 NOISE_NONE, NOISE_ARRAY, NOISE_DRAW = 0, 1, 2
 """Noise sources of :func:`run_chunk`: none, an ``(N, T, 2)`` array drawn beforehand, or drawn
@@ -265,6 +270,68 @@ if AVAILABLE:
             S[kr + 4, l] = F
 
     @njit(cache=True, inline="always")
+    def _gate(F, e):  # noqa: ANN001, ANN202
+        # the motor force the gear passes (sim.batch._gate): all of it without play (2), only a
+        # push into the flank in contact (+1, -1), nothing while free in the play (0)
+        if e == 2.0:
+            return F
+        if e == 1.0:
+            return F if F > 0.0 else 0.0
+        if e == -1.0:
+            return F if F < 0.0 else 0.0
+        return 0.0
+
+    @njit(cache=True, inline="always")
+    def _engagement(S, l):  # noqa: ANN001, ANN202
+        # sim.batch._engagement
+        if S[_PLAY, l] > 0.0:
+            d, hp = S[_DL, l], S[_HP, l]
+            return 1.0 if d >= hp else (-1.0 if d <= -hp else 0.0)
+        return 2.0
+
+    @njit(cache=True, inline="always")
+    def _force1_real(S, l, motor, accel, al):  # noqa: ANN001, ANN202
+        # _force1 through the gear play (the contact of the sub-step, row _ENG)
+        x1, x2, x3 = S[_X1, l], S[_X2, l], S[_X3, l]
+        F = _force(S, l, x1, motor)
+        if motor:
+            F = _gate(F, S[_ENG, l])
+        if accel:
+            F = _accel_clip(F, x1, x3, math.sin(x2), math.cos(x2), S, l, al)
+        return F
+
+    @njit(cache=True, inline="always")
+    def _stage_real(S, kr, motor, accel, al):  # noqa: ANN001, ANN202
+        # _stage with plant realism (sim.batch rhs_real): the motor force through the gear play,
+        # Coulomb friction -FF on a sliding cart, and a stuck cart's pendulum on a fixed pivot
+        for l in range(LANES):
+            y2 = S[_Y2, l]
+            S[_SN, l] = math.sin(y2)
+            S[_CS, l] = math.cos(y2)
+        for l in range(LANES):
+            F = _force(S, l, S[_Y1, l], motor)
+            S[_F, l] = _gate(F, S[_ENG, l]) if motor else F
+        if accel:
+            for l in range(LANES):
+                S[_F, l] = _accel_clip(S[_F, l], S[_Y1, l], S[_Y3, l], S[_SN, l], S[_CS, l], S, l, al)
+        for l in range(LANES):
+            x1, x3, s, c, F = S[_Y1, l], S[_Y3, l], S[_SN, l], S[_CS, l], S[_F, l]
+            Ft = F - S[_FF, l] if S[_FRIC, l] > 0.0 else F
+            rhs1 = Ft - S[_B, l] * x1 - S[_ML, l] * x3 * x3 * s
+            rhs2 = S[_MLG, l] * s
+            mLc = S[_ML, l] * c
+            det = S[_MMJ, l] - mLc * mLc
+            S[kr, l] = x1
+            S[kr + 2, l] = x3
+            S[kr + 4, l] = F
+            if S[_STK, l] > 0.0:
+                S[kr + 1, l] = 0.0
+                S[kr + 3, l] = S[_MLG, l] * s / S[_J, l]
+            else:
+                S[kr + 1, l] = (S[_J, l] * rhs1 + mLc * rhs2) / det
+                S[kr + 3, l] = (mLc * rhs1 + S[_MM, l] * rhs2) / det
+
+    @njit(cache=True, inline="always")
     def _stage_input(S, kr, step):  # noqa: ANN001, ANN202
         # the next RK4 stage's input for every lane: state + step x the derivatives in rows
         # kr+1 .. kr+3 (x itself is not an input of rhs())
@@ -286,6 +353,7 @@ if AVAILABLE:
         accel, al,
         phi_max, x_max, xdd_max, f_max, last_out, phi_sq, f_sq,
         record, tr,
+        real, fc, fs, hp, db, dmin, amp, inl_w,
     ):  # noqa: ANN001
         """Simulate the runs of one chunk (arrays of length ``N`` = the chunk's runs).
 
@@ -298,7 +366,10 @@ if AVAILABLE:
         (``n_off + n_scl * u`` if ``n_affine`` else ``u * n_scl``, times the channel's mask).
         Outputs: the metric accumulators (N,) and, with ``record``, ``tr`` (9, T, N) = x, xdot,
         phi, phidot, u_sat, force, duty, x_meas, phi_meas.  ``vmeas``: the firmware inverts the
-        motor with the run's true supply (measured) instead of ``Vs_n``.
+        motor with the run's true supply (measured) instead of ``Vs_n``.  ``real``: plant realism
+        (per run: Coulomb ``fc`` and breakaway ``fs`` friction, half the gear play ``hp``, the
+        bridge's deadband ``db`` and minimum duty ``dmin``, the pot's nonlinearity ``amp`` in
+        counts at ``inl_w`` rad per count), the scheme of ``sim.batch``'s numpy reference.
 
         The runs go in groups of ``LANES``, advanced together stage by stage: each run is a
         long chain of dependent operations (sin -> det -> division -> next RK4 stage), and
@@ -353,8 +424,19 @@ if AVAILABLE:
                 # expressions ((M + m) * J - ..., mL * g * s): the same values, once
                 S[_MMJ, l] = Mm[i] * J[i]
                 S[_MLG, l] = mL[i] * g[i]
+                S[_FC, l], S[_FS, l], S[_HP, l] = fc[i], fs[i], hp[i]
+                S[_DB, l], S[_DMIN, l], S[_AMP, l] = db[i], dmin[i], amp[i]
+                S[_PLAY, l] = 1.0 if (real and motor and hp[i] > 0.0) else 0.0
+                S[_FRIC, l] = 1.0 if (real and fs[i] > 0.0) else 0.0
+                S[_DL, l] = 0.0
+                S[_DIR, l] = 1.0 if S[_X1, l] >= 0.0 else -1.0
+                S[_STK, l] = 1.0 if (S[_FRIC, l] > 0.0 and S[_X1, l] == 0.0) else 0.0
+                S[_ENG, l] = 2.0
                 e0 = np.int64(np.rint((S[_X0, l] + 0.0) * cpm_p)) % ENC_MODULUS
-                a0 = np.int64(_clip(np.rint(off_p + (S[_X2, l] + 0.0) * cpr_p), 0.0, full_p))
+                lin = off_p + (S[_X2, l] + 0.0) * cpr_p
+                if real and S[_AMP, l] != 0.0:
+                    lin = lin + S[_AMP, l] * math.sin(inl_w * lin)
+                a0 = np.int64(_clip(np.rint(lin), 0.0, full_p))
                 for q in range(delay[i] + 1):
                     ring_e[l, q] = e0
                     ring_a[l, q] = a0
@@ -390,8 +472,13 @@ if AVAILABLE:
                         nx = S[_NX, l]
                         nphi = S[_NPHI, l]
                     p = pos[l]
-                    ring_e[l, p] = np.int64(np.rint((S[_X0, l] + nx) * cpm_p)) % ENC_MODULUS
-                    ring_a[l, p] = np.int64(_clip(np.rint(off_p + (S[_X2, l] + nphi) * cpr_p), 0.0, full_p))
+                    # the motor encoder reads the motor side of the gear play
+                    xe = S[_X0, l] + S[_DL, l] if S[_PLAY, l] > 0.0 else S[_X0, l]
+                    ring_e[l, p] = np.int64(np.rint((xe + nx) * cpm_p)) % ENC_MODULUS
+                    lin = off_p + (S[_X2, l] + nphi) * cpr_p
+                    if real and S[_AMP, l] != 0.0:  # the pot's nonlinearity (sim.sensors.phi_to_adc)
+                        lin = lin + S[_AMP, l] * math.sin(inl_w * lin)
+                    ring_a[l, p] = np.int64(_clip(np.rint(lin), 0.0, full_p))
                     p = p + 1 if p < delay[i] else 0  # (k - delay) % (delay + 1) == (k + 1) % (delay + 1)
                     pos[l] = p
                     seen_e = ring_e[l, p]
@@ -435,7 +522,18 @@ if AVAILABLE:
                         vf = S[_VS, l] if vmeas else Vs_n
                         S[_DUTY, l] = float(np.int64(_clip(np.rint(V / vf * DUTY_MAX), -DUTY_MAX, DUTY_MAX)))
                         # the true motor's voltage, held over the tick (sim.motor.current_from_duty)
-                        S[_VM, l] = _clip(S[_DUTY, l], -DUTY_MAX, DUTY_MAX) / DUTY_MAX * S[_VS, l]
+                        if real:  # through the bridge's minimum duty and deadband (sim.motor.bridge_fraction)
+                            u = _clip(S[_DUTY, l], -DUTY_MAX, DUTY_MAX) / DUTY_MAX
+                            a = abs(u)
+                            if a < S[_DMIN, l]:
+                                a = 0.0
+                            a = a - S[_DB, l]
+                            a = a if a > 0.0 else 0.0
+                            S[_VM, l] = math.copysign(a, u) * S[_VS, l]
+                            # the motor's no-load speed (m/s of cart travel)
+                            S[_V0, l] = S[_VM, l] * S[_RW, l] / (S[_KT, l] * S[_GEAR, l])
+                        else:
+                            S[_VM, l] = _clip(S[_DUTY, l], -DUTY_MAX, DUTY_MAX) / DUTY_MAX * S[_VS, l]
                 if record:
                     for l in range(nl):
                         i = run[l]
@@ -444,7 +542,11 @@ if AVAILABLE:
                         tr[2, k, i] = S[_X2, l]
                         tr[3, k, i] = S[_X3, l]
                         tr[4, k, i] = S[_US, l]
-                        tr[5, k, i] = _force1(S, l, motor, accel, al)
+                        if real:
+                            S[_ENG, l] = _engagement(S, l)
+                            tr[5, k, i] = _force1_real(S, l, motor, accel, al)
+                        else:
+                            tr[5, k, i] = _force1(S, l, motor, accel, al)
                         tr[6, k, i] = S[_DUTY, l]
                         tr[7, k, i] = W[nz, l]
                         tr[8, k, i] = W[nz + 1, l]
@@ -454,6 +556,64 @@ if AVAILABLE:
                 if k == n_ticks:
                     break
                 # --- plant: RK4 sub-steps with the duty (or force) held, stage by stage over the lanes
+                if real:
+                    for _ in range(sub):
+                        # the gear's contact, sticking or sliding, the sliding direction: decided
+                        # at the sub-step's start and held over it (sim.batch's numpy reference)
+                        for l in range(K):
+                            S[_ENG, l] = _engagement(S, l)
+                            F0 = _force1_real(S, l, motor, accel, al)
+                            if S[_FRIC, l] > 0.0:
+                                if S[_STK, l] > 0.0:
+                                    x2, x3 = S[_X2, l], S[_X3, l]
+                                    sn = math.sin(x2)
+                                    cs = math.cos(x2)
+                                    fext = (F0 + (S[_ML, l] * cs) * ((S[_MLG, l] * sn) / S[_J, l])) \
+                                        - S[_ML, l] * x3 * x3 * sn
+                                    if abs(fext) > S[_FS, l]:
+                                        S[_STK, l] = 0.0
+                                        S[_DIR, l] = 1.0 if fext > 0.0 else -1.0
+                                elif S[_X1, l] != 0.0:
+                                    S[_DIR, l] = 1.0 if S[_X1, l] > 0.0 else -1.0
+                            S[_FF, l] = S[_FC, l] * S[_DIR, l]
+                            S[_Y1, l], S[_Y2, l], S[_Y3, l] = S[_X1, l], S[_X2, l], S[_X3, l]
+                            S[_XOLD, l] = S[_X0, l]
+                        _stage_real(S, _K1, motor, accel, al)
+                        _stage_input(S, _K1, hh)
+                        _stage_real(S, _K2, motor, accel, al)
+                        _stage_input(S, _K2, hh)
+                        _stage_real(S, _K3, motor, accel, al)
+                        _stage_input(S, _K3, h)
+                        _stage_real(S, _K4, motor, accel, al)
+                        for l in range(K):
+                            F = S[_K1 + 4, l]
+                            S[_AM, l] = _max(S[_AM, l], abs(S[_K1 + 1, l]))
+                            S[_FM, l] = _max(S[_FM, l], abs(F))
+                        if sample >= w0:
+                            for l in range(K):
+                                F = S[_K1 + 4, l]
+                                S[_PSQ, l] = S[_PSQ, l] + S[_X2, l] * S[_X2, l]
+                                S[_FSQ, l] = S[_FSQ, l] + F * F
+                        for c in range(4):
+                            for l in range(K):
+                                S[_X0 + c, l] = S[_X0 + c, l] + h6 * (
+                                    S[_K1 + c, l] + 2 * S[_K2 + c, l] + 2 * S[_K3 + c, l] + S[_K4 + c, l])
+                        for l in range(K):
+                            if S[_FRIC, l] > 0.0 and S[_STK, l] == 0.0 and S[_X1, l] * S[_DIR, l] <= 0.0:
+                                S[_X1, l] = 0.0  # stopped sliding: held by static friction
+                                S[_STK, l] = 1.0
+                            if S[_PLAY, l] > 0.0:
+                                dl = (S[_DL, l] + h * S[_V0, l]) - (S[_X0, l] - S[_XOLD, l])
+                                hpl = S[_HP, l]
+                                S[_DL, l] = hpl if dl > hpl else (-hpl if dl < -hpl else dl)
+                        sample += 1
+                        for l in range(K):
+                            ap = abs(S[_X2, l])
+                            S[_PM, l] = _max(S[_PM, l], ap)
+                            S[_XM, l] = _max(S[_XM, l], abs(S[_X0, l]))
+                            if ap > band:
+                                lo[l] = sample
+                    continue
                 for _ in range(sub):
                     for l in range(K):
                         S[_Y1, l], S[_Y2, l], S[_Y3, l] = S[_X1, l], S[_X2, l], S[_X3, l]

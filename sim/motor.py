@@ -10,7 +10,16 @@ constant << control period), so the current follows the voltage instantly::
     i  = (V - kt * w) / R                 armature current (A), back-EMF kt*w
     F  = n_motors * gear * kt * i / r_wheel   force on the cart (N)
 
-``kt`` is both the torque constant (N m/A) and the back-EMF constant (V s/rad).  Every
+``kt`` is both the torque constant (N m/A) and the back-EMF constant (V s/rad).
+
+Plant realism (``docs/parameters.md``, "Plant realism"): the bridge's deadband ``deadband``
+and minimum duty ``duty_min`` (fractions of full duty) act on the applied voltage
+(:func:`bridge_fraction`)::
+
+    u = duty / DUTY_MAX ;  a = |u| if |u| >= duty_min else 0 ;  V = sign(u) max(a - deadband, 0) V_supply
+
+Both default to 0 (the ideal bridge: ``V = duty / DUTY_MAX * V_supply``).  The gear backlash
+(``backlash``) needs a state and lives in the simulators (:mod:`sim.plantsim`, :mod:`sim.batch`).  Every
 function is numpy-broadcast: ``duty`` and ``xdot`` may be scalars or arrays of any
 (broadcast-compatible) shape, and ``params`` may be a :class:`~sim.params.RobotParams` or a
 mapping whose motor entries are scalars *or arrays* (one value per batch member), which is
@@ -40,12 +49,17 @@ __all__ = [
     "no_load_speed",
     "back_emf_damping",
     "current_from_duty",
+    "bridge_fraction",
+    "BRIDGE_KEYS",
 ]
 
 DUTY_MAX = 32767
 """Full-scale PWM duty: ``duty`` is an int in ``[-DUTY_MAX, DUTY_MAX]`` (fraction of V_supply)."""
 
 MOTOR_KEYS = ("V_supply", "R", "kt", "gear", "r_wheel", "n_motors")
+
+BRIDGE_KEYS = ("deadband", "duty_min")
+"""The H-bridge's realism parameters (fractions of full duty; absent from a mapping = 0)."""
 
 ParamsLike = Union[RobotParams, Mapping[str, "float | np.ndarray"]]
 
@@ -82,6 +96,38 @@ def _force_per_amp(c: Mapping[str, np.ndarray | float]) -> np.ndarray | float:
     return c["n_motors"] * c["gear"] * c["kt"] / c["r_wheel"]
 
 
+def _bridge(params: ParamsLike) -> tuple[np.ndarray | float, np.ndarray | float]:
+    if isinstance(params, RobotParams):
+        return params.values["motor.deadband"], params.values["motor.duty_min"]
+    return params.get("deadband", 0.0), params.get("duty_min", 0.0)
+
+
+def bridge_fraction(duty: np.ndarray | int, params: ParamsLike) -> np.ndarray:
+    """The fraction of the supply the H-bridge applies at ``duty`` (in ``[-1, 1]``).
+
+    ``u = clip(duty, +-DUTY_MAX) / DUTY_MAX``; with a minimum duty a pulse narrower than
+    ``duty_min`` applies nothing, and the deadband takes ``deadband`` off every pulse:
+    ``sign(u) * max(a - deadband, 0)`` with ``a = |u|`` if ``|u| >= duty_min`` else 0.  Without
+    them (the defaults) exactly ``u``.
+
+    Parameters
+    ----------
+    duty : int or array_like
+        PWM duty in ``[-32767, 32767]`` (clipped to that range).
+    params : RobotParams or mapping
+        ``deadband`` and ``duty_min`` (scalars or per-batch arrays; absent = 0).
+    """
+    u = np.clip(np.asarray(duty, dtype=float), -DUTY_MAX, DUTY_MAX) / DUTY_MAX
+    db, dmin = _bridge(params)
+    if np.any(np.asarray(db) != 0) or np.any(np.asarray(dmin) != 0):
+        a = np.abs(u)
+        a = np.where(a < dmin, 0.0, a)
+        a = a - db
+        a = np.where(a > 0.0, a, 0.0)
+        u = np.copysign(a, u)
+    return u
+
+
 def current_from_duty(duty: np.ndarray | int, xdot: np.ndarray | float, params: ParamsLike) -> np.ndarray:
     """Armature current of each motor (A) for a duty and a cart speed.
 
@@ -89,7 +135,8 @@ def current_from_duty(duty: np.ndarray | int, xdot: np.ndarray | float, params: 
     ----------
     duty : int or array_like
         PWM duty in ``[-DUTY_MAX, DUTY_MAX]``; values outside are clipped (the bridge
-        cannot apply more than the supply).
+        cannot apply more than the supply); the bridge's deadband and minimum duty
+        (:func:`bridge_fraction`) apply.
     xdot : float or array_like
         Cart speed (m/s).
     params : RobotParams or mapping
@@ -101,8 +148,7 @@ def current_from_duty(duty: np.ndarray | int, xdot: np.ndarray | float, params: 
         Current per motor (A), broadcast shape of the inputs.
     """
     c = motor_constants(params)
-    d = np.clip(np.asarray(duty, dtype=float), -DUTY_MAX, DUTY_MAX)
-    V = d / DUTY_MAX * c["V_supply"]
+    V = bridge_fraction(duty, params) * c["V_supply"]
     w = c["gear"] * np.asarray(xdot, dtype=float) / c["r_wheel"]
     return (V - c["kt"] * w) / c["R"]
 

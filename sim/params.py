@@ -6,6 +6,11 @@ error that names the offending key (``ParamError.key``).
 
 The default file ``sim/robot.toml`` describes the report's robot with the values that
 reproduce the report's numerical results (see ``docs/parameters.md``).
+
+The plant-realism keys (``cart.coulomb``, ``cart.stiction``, ``motor.backlash``,
+``motor.deadband``, ``motor.duty_min``, ``sensors.pot_inl``, ``sensors.pot_inl_cycles``) are
+optional and default to the report's ideal robot; :data:`REALISM_KEYS` lists them and
+``docs/parameters.md`` ("Plant realism") gives their equations.
 """
 
 from __future__ import annotations
@@ -18,7 +23,8 @@ from typing import Any, Mapping
 
 DEFAULT_PATH = Path(__file__).with_name("robot.toml")
 
-__all__ = ["ParamError", "Spec", "SCHEMA", "RobotParams", "load_params", "params_from_dict", "plant_params", "DEFAULT_PATH"]
+__all__ = ["ParamError", "Spec", "SCHEMA", "REALISM_KEYS", "RobotParams", "load_params", "params_from_dict",
+           "plant_params", "DEFAULT_PATH"]
 
 
 class ParamError(ValueError):
@@ -57,6 +63,10 @@ _P = Spec  # short alias for the table below
 SCHEMA: dict[str, Spec] = {
     "cart.M": _P("kg", "mass of the cart", 0.0),
     "cart.b": _P("N/(m/s)", "viscous friction coefficient cart-ground", 0.0, lo_open=False),
+    "cart.coulomb": _P("N", "Coulomb (sliding) friction force on the moving cart", 0.0, 100.0, lo_open=False,
+                       default=0.0),
+    "cart.stiction": _P("N", "static friction: the force that breaks the cart loose (below cart.coulomb: "
+                             "cart.coulomb)", 0.0, 100.0, lo_open=False, default=0.0),
     "pendulum.m_cam": _P("kg", "mass of the camera head", 0.0),
     "pendulum.m_shaft": _P("kg", "mass of the shaft", 0.0),
     "pendulum.L_shaft": _P("m", "length of the shaft", 0.0),
@@ -70,9 +80,19 @@ SCHEMA: dict[str, Spec] = {
     "motor.gear": _P("-", "gear reduction, motor turns per wheel turn", 0.0),
     "motor.r_wheel": _P("m", "wheel radius", 0.0),
     "motor.n_motors": _P("-", "motors driving the cart in parallel", 0.0, integer=True),
+    "motor.backlash": _P("m", "gear backlash, total play between motor and wheel in metres of cart travel",
+                         0.0, 0.05, lo_open=False, default=0.0),
+    "motor.deadband": _P("-", "H-bridge deadband (dead time x PWM frequency), fraction of full duty "
+                              "subtracted from every pulse", 0.0, 0.5, lo_open=False, default=0.0),
+    "motor.duty_min": _P("-", "minimum duty the H-bridge switches at, fraction of full duty (narrower pulses "
+                              "apply nothing)", 0.0, 0.5, lo_open=False, default=0.0),
     "sensors.adc_bits": _P("bit", "resolution of the angle ADC", 1, 16, lo_open=False, integer=True),
     "sensors.pot_range": _P("rad", "electrical travel of the angle potentiometer", 0.0),
     "sensors.pot_offset": _P("count", "ADC counts read with the pendulum upright", 0, lo_open=False, integer=True),
+    "sensors.pot_inl": _P("-", "potentiometer integral nonlinearity, amplitude of a sine over the travel, "
+                               "fraction of the ADC full scale", -0.1, 0.1, lo_open=False, default=0.0),
+    "sensors.pot_inl_cycles": _P("-", "periods of the nonlinearity's sine over the ADC full scale (0.5: a bow)",
+                                 0.0, 20.0, default=1.0),
     "sensors.enc_cpr": _P("count/rev", "encoder counts per wheel revolution", 0, integer=True),
     "sensors.delay": _P("s", "measurement delay", 0.0, 0.1, lo_open=False),
     "loop.rate": _P("Hz", "control loop rate", 0.0, 10000.0, integer=True),
@@ -81,6 +101,11 @@ SCHEMA: dict[str, Spec] = {
     "loop.phi_max": _P("rad", "tilt constraint", 0.0, math.pi / 2),
     "loop.t_settle": _P("s", "settling-time constraint", 0.0),
 }
+
+
+REALISM_KEYS = ("cart.coulomb", "cart.stiction", "motor.backlash", "motor.deadband", "motor.duty_min",
+                "sensors.pot_inl", "sensors.pot_inl_cycles")
+"""The plant-realism keys (docs/parameters.md, "Plant realism"); all optional, the defaults are the ideal robot."""
 
 
 def _check(key: str, value: Any, spec: Spec) -> float:
@@ -147,6 +172,18 @@ class RobotParams:
     def physical(self) -> dict[str, float]:
         """The parameters of the equations of motion: M, m, L, I, b, g."""
         return {"M": self.M, "m": self.m, "L": self.L, "I": self.I, "b": self.b, "g": self.g}
+
+    @property
+    def realism(self) -> dict[str, float]:
+        """The plant-realism values by bare name (``coulomb, stiction, backlash, deadband, duty_min,
+        pot_inl, pot_inl_cycles``)."""
+        return {k.split(".", 1)[1]: self.values[k] for k in REALISM_KEYS}
+
+    @property
+    def ideal(self) -> bool:
+        """True when no plant-realism effect is on (the report's ideal robot)."""
+        v = self.values
+        return all(v[k] == 0.0 for k in REALISM_KEYS if k != "sensors.pot_inl_cycles")
 
     def replace(self, **changes: float) -> "RobotParams":
         """Return a copy with some values changed (keys dotted or bare), re-validated."""

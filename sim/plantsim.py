@@ -21,6 +21,14 @@ The HIL runner calls ``read()`` -> sends the frame -> gets the duty -> ``step(du
 Every tick is logged; :meth:`PlantSim.result` returns the log as arrays (:data:`LOG_COLUMNS`),
 the input of :mod:`sim.metrics` and :mod:`sim.plots`.
 
+Plant realism (the robot file's ``cart.coulomb``, ``cart.stiction``, ``motor.backlash``,
+``motor.deadband``, ``motor.duty_min``, ``sensors.pot_inl``; docs/parameters.md, "Plant
+realism"): off on the ideal robot (the defaults), whose ticks run the plain code below; with any
+of them on, :meth:`PlantSim._integrate_real` decides the gear's contact and stuck/sliding at each
+sub-step's start (the scheme of :mod:`sim.batch`, which it agrees with to rounding), the encoder
+reads the motor side of the gear play and the ADC the pot's nonlinearity.  :attr:`PlantSim.stuck`
+and :attr:`PlantSim.gear_play` show the extra state.
+
 For speed (the lockstep HIL budget is a fraction of a millisecond per tick) the per-tick
 integration uses scalar ``math`` versions of the plant and motor equations; a test checks
 them against :func:`sim.plant.dynamics` and :func:`sim.motor.force_from_duty`.
@@ -131,6 +139,18 @@ class PlantSim:
         fpa = p.n_motors * p.gear * p.kt / p.r_wheel
         self._a_duty = fpa * p.V_supply / (motor.DUTY_MAX * p.R)
         self._c_emf = fpa * p.kt * p.gear / (p.r_wheel * p.R)
+        # plant realism (docs/parameters.md, "Plant realism"): off on the ideal robot, whose
+        # code path is the plain one below
+        r = p.realism
+        self._real = not p.ideal
+        self._fc = r["coulomb"]
+        self._fs = max(r["stiction"], r["coulomb"])
+        self._fric = self._fs > 0.0
+        self._half_play = 0.5 * r["backlash"]
+        self._db, self._dmin = r["deadband"] * motor.DUTY_MAX, r["duty_min"] * motor.DUTY_MAX
+        self._delta = 0.0  # motor side minus wheel side of the gear play (m of cart travel)
+        self._stuck = self._fric and x[1] == 0.0  # a cart at rest is held by static friction
+        self._dir = 1.0 if x[1] >= 0.0 else -1.0  # direction of sliding (Coulomb friction opposes it)
         self._dist = self._disturbance_fn()
         self._has_dist = any(not f.is_dirac for f in scenario.forces)
         self._diracs = sorted((t, imp) for t, imp in scenario.dirac_impulses(0.0, math.inf))
@@ -158,10 +178,47 @@ class PlantSim:
 
         return dist
 
+    def _duty_eff(self, d: float) -> float:
+        # the H-bridge's minimum duty and deadband (sim.motor.bridge_fraction, in duty counts)
+        a = abs(d)
+        if a < self._dmin:
+            a = 0.0
+        a = a - self._db
+        return math.copysign(a if a > 0.0 else 0.0, d)
+
+    def _engagement(self) -> int:
+        # gear play: +1 motor against the wheel's forward flank, -1 the backward one, 0 free, 2 no play
+        hp = self._half_play
+        if hp == 0.0:
+            return 2
+        return 1 if self._delta >= hp else (-1 if self._delta <= -hp else 0)
+
+    @staticmethod
+    def _gate(F: float, eng: int) -> float:
+        # the motor force the gear passes: all of it without play, only a push into the flank in contact
+        if eng == 2:
+            return F
+        if eng == 1:
+            return F if F > 0.0 else 0.0
+        if eng == -1:
+            return F if F < 0.0 else 0.0
+        return 0.0
+
+    def _drive_force(self, duty: float, xd: float) -> float:
+        # the motor force on the cart at speed xd, through the bridge and the gear play
+        if not self._real:
+            return self._a_duty * duty - self._c_emf * xd
+        return self._gate(self._a_duty * self._duty_eff(duty) - self._c_emf * xd, self._engagement())
+
     def _rhs(self, x: list[float], duty: float, t: float) -> tuple[float, float, float, float]:
         # sim.plant.dynamics for one state, with the motor force evaluated at this speed
         xd, phi, phid = x[1], x[2], x[3]
-        F = self._a_duty * duty - self._c_emf * xd + self._dist(t)
+        if self._real:
+            if self._stuck:
+                return 0.0, 0.0, phid, self._mL * self._g * math.sin(phi) / self._J
+            F = self._drive_force(duty, xd) + self._dist(t) - (self._fc * self._dir if self._fric else 0.0)
+        else:
+            F = self._a_duty * duty - self._c_emf * xd + self._dist(t)
         s, c = math.sin(phi), math.cos(phi)
         mL, J = self._mL, self._J
         rhs1 = F - self._b * xd - mL * phid * phid * s
@@ -175,6 +232,9 @@ class PlantSim:
 
     def _integrate(self, duty: float, t0: float) -> None:
         # classical RK4, unrolled on scalars (the same equations as _rhs / sim.plant.dynamics)
+        if self._real:
+            self._integrate_real(duty, t0)
+            return
         x, xd, ph, phd = self._x
         h = self.h
         h2, h6 = 0.5 * h, h / 6.0
@@ -217,8 +277,92 @@ class PlantSim:
                 self.fallen = True
         self._x = [x, xd, ph, phd]
 
+    def _integrate_real(self, duty: float, t0: float) -> None:
+        # RK4 with plant realism (docs/parameters.md, "Plant realism"), the same scheme as
+        # sim.batch: the discontinuous parts are decided at each sub-step's start and held over it
+        # (as the duty is over the tick) -- the gear's contact, sticking or sliding and the
+        # sliding direction -- so that RK4 integrates a smooth right-hand side:
+        #   stuck: the cart stands (x, xdot fixed), the pendulum swings about a fixed pivot; it
+        #          breaks loose when the force static friction must hold exceeds the stiction;
+        #   sliding: Coulomb friction -coulomb*dir; a sub-step that ends with the speed reversed
+        #          (or zero) ends stuck at xdot = 0;
+        #   gear play: the motor side moves at the motor's no-load speed while free (massless
+        #          motor), delta += h*v0 - dx, clamped to the play; it pushes only while in contact.
+        x, xd, ph, phd = self._x
+        h = self.h
+        h2, h6 = 0.5 * h, h / 6.0
+        Mt, mL, J, b, g = self._M + self._m, self._mL, self._J, self._b, self._g
+        mLg = mL * g
+        fu = self._a_duty * self._duty_eff(duty)
+        ce = self._c_emf
+        v0 = fu / ce  # the motor's no-load speed (m/s of cart travel): its force is ce * (v0 - xdot)
+        hp = self._half_play
+        fric, fc, fs = self._fric, self._fc, self._fs
+        dist = self._dist if self._has_dist else None
+        sin, cos = math.sin, math.cos
+        gate = self._gate
+
+        for i in range(self.substeps):
+            t = t0 + i * h
+            while self._diracs and self._diracs[0][0] < t + h - 1e-12:
+                x, xd, ph, phd = self._apply_impulse([x, xd, ph, phd], self._diracs.pop(0)[1])
+                if fric and xd != 0.0:
+                    self._stuck, self._dir = False, (1.0 if xd > 0.0 else -1.0)
+            eng = 2 if hp == 0.0 else (1 if self._delta >= hp else (-1 if self._delta <= -hp else 0))
+            if fric:
+                if self._stuck:
+                    # the force friction must hold for the cart to stay (xdd = 0, pivot fixed)
+                    s, c = sin(ph), cos(ph)
+                    fext = (gate(fu - ce * xd, eng) + (dist(t) if dist is not None else 0.0)
+                            + mL * c * (mLg * s / J) - mL * phd * phd * s)
+                    if abs(fext) > fs:
+                        self._stuck, self._dir = False, (1.0 if fext > 0.0 else -1.0)
+                elif xd != 0.0:
+                    self._dir = 1.0 if xd > 0.0 else -1.0
+            stuck = self._stuck
+            ff = fc * self._dir if fric else 0.0
+
+            def acc(v: float, p: float, w: float, tt: float) -> tuple[float, float]:
+                s = sin(p)
+                if stuck:
+                    return 0.0, mLg * s / J
+                F = gate(fu - ce * v, eng) + (dist(tt) if dist is not None else 0.0) - ff
+                c = cos(p)
+                r1 = F - b * v - mL * w * w * s
+                r2 = mLg * s
+                mc = mL * c
+                det = Mt * J - mc * mc
+                return (J * r1 + mc * r2) / det, (mc * r1 + Mt * r2) / det
+
+            x_old = x
+            a1, b1 = acc(xd, ph, phd, t)
+            v2, w2 = xd + h2 * a1, phd + h2 * b1
+            a2, b2 = acc(v2, ph + h2 * phd, w2, t + h2)
+            v3, w3 = xd + h2 * a2, phd + h2 * b2
+            a3, b3 = acc(v3, ph + h2 * w2, w3, t + h2)
+            v4, w4 = xd + h * a3, phd + h * b3
+            a4, b4 = acc(v4, ph + h * w3, w4, t + h)
+            x += h6 * (xd + 2.0 * v2 + 2.0 * v3 + v4)
+            ph += h6 * (phd + 2.0 * w2 + 2.0 * w3 + w4)
+            xd += h6 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+            phd += h6 * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
+            if fric and not stuck and xd * self._dir <= 0.0:
+                xd = 0.0  # the sliding cart stopped during the sub-step: static friction holds it
+                self._stuck = True
+            if hp > 0.0:
+                d = self._delta + h * v0 - (x - x_old)
+                self._delta = hp if d > hp else (-hp if d < -hp else d)
+            if self.ground_stop and abs(ph) >= _HALF_PI:
+                ph = math.copysign(_HALF_PI, ph)
+                if phd * ph > 0:
+                    phd = 0.0
+                self.fallen = True
+        self._x = [x, xd, ph, phd]
+
     def _measure(self) -> tuple[int, int]:
-        adc, enc = self.sensor_model.measure(self._x[0], self._x[2])
+        # the encoder is on the motor shaft: it reads the motor side of the gear play
+        xe = self._x[0] + self._delta if self._half_play else self._x[0]
+        adc, enc = self.sensor_model.measure(xe, self._x[2])
         return int(adc), int(enc)
 
     # ------------------------------------------------------------------ public
@@ -231,6 +375,16 @@ class PlantSim:
     def state(self) -> np.ndarray:
         """True state ``[x, xdot, phi, phidot]`` at the current tick (a copy)."""
         return np.array(self._x)
+
+    @property
+    def stuck(self) -> bool:
+        """True while static friction holds the cart (plant realism; always False without friction)."""
+        return self._stuck
+
+    @property
+    def gear_play(self) -> float:
+        """Motor side minus wheel side of the gear play (m of cart travel, in +-backlash/2; 0 without it)."""
+        return self._delta
 
     @property
     def done(self) -> bool:
@@ -272,7 +426,7 @@ class PlantSim:
         d = min(max(int(duty), -motor.DUTY_MAX), motor.DUTY_MAX)
         t = self.t
         x = self._x
-        fm = self._a_duty * d - self._c_emf * x[1]
+        fm = self._drive_force(d, x[1])
         fd = self._dist(t)
         log = self._log
         for name, v in (("t", t), ("x", x[0]), ("xdot", x[1]), ("phi", x[2]), ("phidot", x[3]),

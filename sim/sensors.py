@@ -4,6 +4,18 @@ Angle potentiometer -> 12-bit ADC (the agreed interface)::
 
     adc = clip(round(pot_offset + (phi + n_phi) * 2**adc_bits / pot_range), 0, 2**adc_bits - 1)
 
+with the potentiometer's integral nonlinearity (plant realism, ``sensors.pot_inl``, default 0)
+added to the ideal count ``c = pot_offset + (phi + n_phi) * 2**adc_bits / pot_range`` before the
+rounding::
+
+    c' = c + pot_inl * 2**adc_bits * sin(2*pi * pot_inl_cycles * c / 2**adc_bits)
+
+(a sine over the wiper's position on the track, in fractions of the full scale; ``pot_inl_cycles``
+= 0.5 is a bow, zero at both ends; 1 an S, the classic pot linearity error).  The firmware decodes
+the counts as if the pot were linear.  With the motor encoder on the motor shaft, the encoder
+reads the motor side of the gear play (``sim.plantsim``, ``sim.batch``): the caller passes that
+position as ``x``.
+
 Cart encoder -> quadrature counts in a 16-bit hardware counter::
 
     enc = round((x + n_x) / (2*pi*r_wheel) * enc_cpr)  mod 65536
@@ -66,6 +78,7 @@ __all__ = [
     "x_to_encoder",
     "encoder_to_x",
     "encoder_delta",
+    "inl_terms",
     "EncoderUnwrapper",
     "delay_steps",
     "NoiseModel",
@@ -86,9 +99,21 @@ ParamsLike = Union[RobotParams, Mapping[str, "float | np.ndarray"]]
 _DOTTED = {k.split(".", 1)[1]: k for k in SCHEMA}
 
 
+_OPTIONAL = {"pot_inl": 0.0, "pot_inl_cycles": 1.0}  # realism keys a mapping may leave out
+
+
 def _get(params: ParamsLike, key: str):  # noqa: ANN202 - float or ndarray
     # direct dotted lookup for RobotParams (its __getattr__ scans every key)
-    return params.values[_DOTTED[key]] if isinstance(params, RobotParams) else params[key]
+    if isinstance(params, RobotParams):
+        return params.values[_DOTTED[key]]
+    return params[key] if key in params or key not in _OPTIONAL else _OPTIONAL[key]
+
+
+def inl_terms(params: ParamsLike) -> tuple[float | np.ndarray, float | np.ndarray]:
+    """``(amplitude in counts, angular rate in rad per count)`` of the pot's nonlinearity:
+    ``pot_inl * 2**adc_bits`` and ``2*pi * pot_inl_cycles / 2**adc_bits``."""
+    full = 2.0 ** _get(params, "adc_bits")
+    return _get(params, "pot_inl") * full, 2.0 * math.pi * _get(params, "pot_inl_cycles") / full
 
 
 def adc_counts_per_rad(params: ParamsLike) -> float | np.ndarray:
@@ -107,11 +132,15 @@ def phi_to_adc(phi: np.ndarray | float, params: ParamsLike, noise: np.ndarray | 
     Returns
     -------
     ndarray of int64
-        ``clip(round(pot_offset + (phi + noise) * 2**adc_bits / pot_range), 0, 2**adc_bits - 1)``.
+        ``clip(round(pot_offset + (phi + noise) * 2**adc_bits / pot_range), 0, 2**adc_bits - 1)``,
+        with the pot's nonlinearity (``pot_inl``) added before the rounding.
     """
     full = 2 ** np.asarray(_get(params, "adc_bits"), dtype=np.int64)
-    raw = np.rint(_get(params, "pot_offset") + (np.asarray(phi, dtype=float) + noise) * adc_counts_per_rad(params))
-    return np.clip(raw, 0, full - 1).astype(np.int64)
+    lin = _get(params, "pot_offset") + (np.asarray(phi, dtype=float) + noise) * adc_counts_per_rad(params)
+    amp, w = inl_terms(params)
+    if np.any(np.asarray(amp) != 0):
+        lin = np.where(np.asarray(amp) != 0, lin + amp * np.sin(w * lin), lin)
+    return np.clip(np.rint(lin), 0, full - 1).astype(np.int64)
 
 
 def adc_to_phi(adc: np.ndarray | int, params: ParamsLike) -> np.ndarray:
@@ -385,6 +414,8 @@ class SensorModel:
         self._off = float(params.pot_offset)
         self._full = 2 ** int(params.adc_bits) - 1
         self._noisy = self.noise_model.kind != "none"
+        amp, w = inl_terms(params)
+        self._inl, self._inl_w = float(amp), float(w)
 
     def quantise(self, x: np.ndarray | float, phi: np.ndarray | float, noise: np.ndarray | None = None) -> Any:
         """Counts ``[enc, adc]`` for a state, without delay.
@@ -394,7 +425,10 @@ class SensorModel:
         """
         nx, nphi = (0.0, 0.0) if noise is None else (noise[0], noise[1])
         if self._scalar:
-            adc = round(self._off + (float(phi) + float(nphi)) * self._cpr)
+            c = self._off + (float(phi) + float(nphi)) * self._cpr
+            if self._inl:
+                c = c + self._inl * math.sin(self._inl_w * c)
+            adc = round(c)
             adc = 0 if adc < 0 else (self._full if adc > self._full else adc)
             return round((float(x) + float(nx)) * self._cpm) % ENC_MODULUS, adc
         return np.stack([x_to_encoder(x, self.params, nx), phi_to_adc(phi, self.params, nphi)])

@@ -4,6 +4,13 @@ Loaded from ``sim/uncertainty.toml`` (:data:`UNCERTAINTY_FILE`) or a file that r
 (:func:`load_uncertainty`); a bad file is refused with the offending key named
 (:class:`UncertaintyError`).  :meth:`UncertaintySet.points` gives the robots a design is scored
 on: the nominal one, every vertex of the box and seeded random points inside it.
+
+An optional ``[realism]`` table gives plant-realism ranges in the robot file's own units
+(``sim/uncertainty_realistic.toml``; docs/parameters.md, "Plant realism"): absolute values, not
+factors (the ideal model's are 0).  The nominal point takes every realism value nearest to 0 in
+its range, each vertex at its high end (``realism_vertices = "hi"``, the default: the roughest
+robot at every corner of the box; ``"all"`` makes each realism range one more axis of the box),
+and the random points draw them uniformly.
 """
 
 from __future__ import annotations
@@ -11,19 +18,22 @@ from __future__ import annotations
 import itertools
 import math
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
-from sim.params import RobotParams
+from sim.params import SCHEMA, RobotParams
 
 __all__ = ["UNCERTAINTY_FILE", "FACTORS", "UncertaintyError", "Point", "UncertaintySet", "uncertainty_from_dict",
-           "load_uncertainty"]
+           "load_uncertainty", "REALISM", "UNCERTAINTY_REALISTIC"]
 
 UNCERTAINTY_FILE = Path(__file__).resolve().parents[2] / "sim" / "uncertainty.toml"
 """The default uncertainty set."""
+
+UNCERTAINTY_REALISTIC = UNCERTAINTY_FILE.with_name("uncertainty_realistic.toml")
+"""Today's set with plant realism (``[realism]``): ``--uncertainty sim/uncertainty_realistic.toml``."""
 
 FACTORS: dict[str, tuple[str, str]] = {
     "inertia": ("I", "pendulum inertia about the pivot"),
@@ -35,7 +45,12 @@ FACTORS: dict[str, tuple[str, str]] = {
 }
 """Factor keys of an uncertainty file -> (batch parameter, meaning)."""
 
-_OTHER_KEYS = ("delay", "random", "seed", "push_points", "supply_measured")
+REALISM: dict[str, str] = {"coulomb": "cart.coulomb", "stiction": "cart.stiction", "backlash": "motor.backlash",
+                           "deadband": "motor.deadband", "duty_min": "motor.duty_min", "pot_inl": "sensors.pot_inl"}
+"""Keys of an uncertainty file's ``[realism]`` table -> robot-file key (the batch parameter is the bare
+name, :data:`sim.batch.REALISM_KEYS`); ranges in the robot file's units."""
+
+_OTHER_KEYS = ("delay", "random", "seed", "push_points", "supply_measured", "realism", "realism_vertices")
 
 
 class UncertaintyError(ValueError):
@@ -53,10 +68,12 @@ class Point:
     factors: Mapping[str, float]
     delay_ticks: int
     vertex: bool
+    realism: Mapping[str, float] = field(default_factory=dict)
 
     def label(self, rate: float) -> str:
         """Compact text, e.g. ``inertia x0.5 cart_mass x1.2 ... delay 20 ms``."""
         parts = [f"{k} x{v:.3g}" for k, v in self.factors.items() if v != 1.0]
+        parts += [f"{k} {v:.3g}" for k, v in self.realism.items() if v != 0.0]
         parts.append(f"delay {1e3 * self.delay_ticks / rate:.0f} ms")
         return " ".join(parts)
 
@@ -73,16 +90,19 @@ class Point:
             "cart.b": params.b * f.get("friction", 1.0),
             "motor.V_supply": params.V_supply * f.get("supply", 1.0),
             "motor.kt": params.kt * f.get("motor_constant", 1.0),
+            **{REALISM[k]: float(v) for k, v in self.realism.items()},
         }
 
     def values(self, params: RobotParams) -> dict[str, float]:
         """Batch parameter values (:data:`sim.batch.VARIED_KEYS`) of this robot."""
-        return {name: float(getattr(params, name)) * self.factors.get(k, 1.0) for k, (name, _) in FACTORS.items()}
+        out = {name: float(getattr(params, name)) * self.factors.get(k, 1.0) for k, (name, _) in FACTORS.items()}
+        out.update({k: float(v) for k, v in self.realism.items()})
+        return out
 
     def as_dict(self, rate: float) -> dict[str, Any]:
         """JSON-friendly description."""
-        return {**{k: float(v) for k, v in self.factors.items()}, "delay_s": self.delay_ticks / rate,
-                "vertex": self.vertex}
+        return {**{k: float(v) for k, v in self.factors.items()}, **{k: float(v) for k, v in self.realism.items()},
+                "delay_s": self.delay_ticks / rate, "vertex": self.vertex}
 
 
 @dataclass(frozen=True)
@@ -117,6 +137,8 @@ class UncertaintySet:
     push_points: int = 6
     supply_measured: bool = True
     source: str = "<defaults>"
+    realism: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    realism_vertices: str = "hi"
 
     def delay_ticks(self, rate: float) -> tuple[int, int]:
         """The delay bounds in control ticks at ``rate``.
@@ -140,12 +162,24 @@ class UncertaintySet:
         d_lo, d_hi = self.delay_ticks(rate)
         keys = list(FACTORS)
         axes = [sorted({float(v) for v in self.factors[k]}) for k in keys] + [sorted({d_lo, d_hi})]
-        pts = [Point({k: 1.0 for k in keys}, int(round(nominal_delay * rate)), False)]
-        pts += [Point(dict(zip(keys, combo[:-1])), int(combo[-1]), True) for combo in itertools.product(*axes)]
+        rk = list(self.realism)
+        lo_r = {k: float(self.realism[k][0]) for k in rk}
+        hi_r = {k: float(self.realism[k][1]) for k in rk}
+        nf = len(keys)
+        if self.realism_vertices == "all":
+            axes += [sorted({lo_r[k], hi_r[k]}) for k in rk]
+        nom_r = {k: min(max(0.0, lo_r[k]), hi_r[k]) for k in rk}  # the value nearest the ideal robot's 0
+        pts = [Point({k: 1.0 for k in keys}, int(round(nominal_delay * rate)), False, nom_r)]
+        for combo in itertools.product(*axes):
+            real = dict(zip(rk, combo[nf + 1:])) if self.realism_vertices == "all" else dict(hi_r)
+            pts.append(Point(dict(zip(keys, combo[:nf])), int(combo[nf]), True, real))
         rng = np.random.default_rng(self.seed)
+        rng_r = np.random.default_rng([self.seed, 1])  # realism from its own stream: the box's draws stay today's
         for _ in range(self.random):
             f = {k: float(lo + (hi - lo) * rng.random()) for k, (lo, hi) in self.factors.items()}
-            pts.append(Point(f, int(rng.integers(d_lo, d_hi + 1)), False))
+            d = int(rng.integers(d_lo, d_hi + 1))
+            real = {k: float(lo + (hi - lo) * rng_r.random()) for k, (lo, hi) in self.realism.items()}
+            pts.append(Point(f, d, False, real))
         return pts
 
 
@@ -172,6 +206,27 @@ def _flag(data: Mapping[str, Any], key: str, default: bool, src: str) -> bool:
     if not isinstance(v, bool):
         raise UncertaintyError(key, f"expected true or false, got {v!r} (in {src})")
     return v
+
+
+def _realism(v: Any, src: str, base: Mapping[str, tuple[float, float]]) -> dict[str, tuple[float, float]]:
+    if not isinstance(v, Mapping):
+        raise UncertaintyError("realism", f"expected a table of [lo, hi] ranges, got {v!r} (in {src})")
+    out = dict(base)
+    for k, r in v.items():
+        key = f"realism.{k}"
+        if k not in REALISM:
+            raise UncertaintyError(key, f"unknown key (known: {', '.join(REALISM)}) (in {src})")
+        sp = SCHEMA[REALISM[k]]
+        ok = isinstance(r, list) and len(r) == 2 and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                         for x in r)
+        if not ok:
+            raise UncertaintyError(key, f"expected [lo, hi] (two numbers, {sp.unit}), got {r!r} (in {src})")
+        lo, hi = float(r[0]), float(r[1])
+        if not (math.isfinite(lo) and math.isfinite(hi) and sp.lo <= lo <= hi <= sp.hi):
+            raise UncertaintyError(key, f"expected {sp.lo:g} <= lo <= hi <= {sp.hi:g} {sp.unit} ({sp.doc}), "
+                                        f"got [{lo:g}, {hi:g}] (in {src})")
+        out[k] = (lo, hi)
+    return out
 
 
 def uncertainty_from_dict(data: Mapping[str, Any], source: str = "<dict>", base: "UncertaintySet | None" = None) -> UncertaintySet:
@@ -202,7 +257,17 @@ def uncertainty_from_dict(data: Mapping[str, Any], source: str = "<dict>", base:
         push_points=_count(data, "push_points", b.push_points if b else 6, source, 100_000),
         supply_measured=_flag(data, "supply_measured", b.supply_measured if b else True, source),
         source=source,
+        realism=_realism(data["realism"], source, b.realism if b else {}) if "realism" in data
+        else (dict(b.realism) if b else {}),
+        realism_vertices=_choice(data, "realism_vertices", b.realism_vertices if b else "hi", ("hi", "all"), source),
     )
+
+
+def _choice(data: Mapping[str, Any], key: str, default: str, options: tuple[str, ...], src: str) -> str:
+    v = data.get(key, default)
+    if v not in options:
+        raise UncertaintyError(key, f"expected one of {', '.join(repr(o) for o in options)}, got {v!r} (in {src})")
+    return v
 
 
 def load_uncertainty(path: str | Path | None = None) -> UncertaintySet:
