@@ -427,6 +427,16 @@ class EmulatedBoard:
         CTR_HIT/CTR_ACC), ``misses``, ``stall_cycles`` (cycles the misses added), ``flushes``."""
         return dict(self._request({"cmd": "xip"})["xip"])
 
+    def xip_config(self, on: bool | None = None, miss_cycles: float | None = None, flush: bool = False) -> dict[str, Any]:
+        """Switch the XIP cache model on/off or change its miss penalty at run time (``None``:
+        unchanged; ``flush``: empty the cache); returns :meth:`xip_stats`."""
+        req: dict[str, Any] = {"cmd": "xip", "flush": bool(flush)}
+        if on is not None:
+            req["on"] = bool(on)
+        if miss_cycles is not None:
+            req["miss"] = float(miss_cycles)
+        return dict(self._request(req)["xip"])
+
     def flash_ops(self) -> int:
         """Flash erase/program operations the board has done since power-on."""
         return int(self._request({"cmd": "state"})["flash_ops"])
