@@ -693,7 +693,7 @@ function romServe(code) {
   } else if (name === 'flash_range_program') {
     if (r[2] > 0 && !flashOp('program', r[0] >>> 0, r[2] >>> 0, r[1] >>> 0)) return true;
   } else if (name === 'flash_flush_cache') {
-    xipFlush();
+    xipFlush(true);
   }
   core.PC = r[14] & ~1; // return to the caller
   return true;
@@ -709,7 +709,8 @@ function romServe(code) {
 // datasheet (2.6.3.1): 0x10 check + allocate, 0x11 check, no allocate, 0x12 no check (always a
 // flash read) but allocate, 0x13 neither.  XIP_CTRL (0x14000000) is served: CTRL.EN (0: every
 // access goes to flash), FLUSH, STAT, and the CTR_HIT/CTR_ACC counters (0x0c/0x10; write clears).
-// The cache is flushed on every flash erase/program, on flash_flush_cache and on a chip reset.
+// The cache is flushed on every flash erase/program, on flash_flush_cache and on a chip reset; a
+// flush the firmware asks for (FLUSH, flash_flush_cache) stalls the core XIP_FLUSH_CYCLES.
 //
 // Miss penalty (--xip-miss CYCLES, default XIP_MISS_DEFAULT): the Pico's boot2 (W25Q080) runs the
 // SSI in quad-I/O continuous read (0xEB with mode bits 0xA0, no command phase) at SCK = clk_sys/2.
@@ -724,6 +725,7 @@ const XIP_MISS_FLASH = 56; // 28 SCK at clkdiv 2
 const XIP_MISS_OVERHEAD = 8;
 const XIP_MISS_DEFAULT = XIP_MISS_FLASH + XIP_MISS_OVERHEAD;
 const XIP_SETS = 1024;
+const XIP_FLUSH_CYCLES = 2000; // datasheet 2.6.3.2: a flush zeroes the tags in "around 2000 clock cycles"; the core stalls
 const xip = {
   on: (args['xip-cache'] ?? 'on') !== 'off',
   miss: Number(args['xip-miss'] ?? XIP_MISS_DEFAULT),
@@ -737,7 +739,10 @@ const xip = {
   misses: 0, stallTotal: 0, flushes: 0, // statistics since power-on
 };
 if (!Number.isFinite(xip.miss) || xip.miss < 0) throw new Error(`--xip-miss must be a cycle count >= 0, got ${args['xip-miss']}`);
-function xipFlush() {
+function xipFlush(stall = false) {
+  // stall: a flush the firmware asked for (FLUSH register, the ROM's flash_flush_cache), which
+  // holds the bus while the tags are cleared
+  if (stall && xip.on) xip.stall += XIP_FLUSH_CYCLES;
   xip.tags.fill(-1);
   xip.lru.fill(0);
   xip.last = -1;
@@ -786,7 +791,7 @@ class XipCtrl extends BasePeripheral {
   writeUint32(offset, value) {
     switch (offset) {
       case 0x00: xip.enabled = !!(value & 1); xip.last = -1; break;
-      case 0x04: if (value & 1) xipFlush(); break;
+      case 0x04: if (value & 1) xipFlush(true); break;
       case 0x0c: xip.hit = 0; break;
       case 0x10: xip.acc = 0; break;
     }
