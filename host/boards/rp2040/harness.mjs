@@ -801,29 +801,35 @@ mcu.peripherals[0x14000] = new XipCtrl(mcu, 'XIP_CTRL');
 function xipInstall() {
   // route the core's reads through the model (the core's own methods: DMA reads are not CPU
   // stalls) and add each instruction's miss cycles to what it returns
+  // (XIP reads are served here from the flash array, any alias: what rp2040js does, without
+  // its range checks)
   const m = mcu;
+  const fv = mcu.flashView;
+  const size = mcu.flash.length;
   core.readUint16 = (a) => {
-    if (xip.on && a >>> 26 === 4) {
+    if (a >>> 26 !== 4 || !xip.on) return m.readUint16(a);
+    const pc = core.PC & ~1;
+    if (a === pc || a === pc + 2) {
+      // an instruction fetch (a 32-bit instruction's second halfword too): one access per word
       const wd = a >>> 2;
-      const pc = core.PC & ~1;
-      if (a === pc || a === pc + 2) {
-        // an instruction fetch (a 32-bit instruction's second halfword too): one access per word
-        if (wd !== xip.lastWord) {
-          xip.lastWord = wd;
-          xipAccess(a);
-        }
-      } else {
+      if (wd !== xip.lastWord) {
+        xip.lastWord = wd;
         xipAccess(a);
       }
+    } else {
+      xipAccess(a);
     }
-    return m.readUint16(a);
+    const o = a & 0xffffff;
+    return o + 1 < size ? fv.getUint16(o, true) : m.readUint16(a);
   };
   core.readUint32 = (a) => {
-    if (xip.on && a >>> 26 === 4) xipAccess(a);
+    if (a >>> 26 !== 4 || !xip.on) return m.readUint32(a);
+    xipAccess(a);
     return m.readUint32(a);
   };
   core.readUint8 = (a) => {
-    if (xip.on && a >>> 26 === 4) xipAccess(a);
+    if (a >>> 26 !== 4 || !xip.on) return m.readUint8(a);
+    xipAccess(a);
     return m.readUint8(a);
   };
   const exec = core.executeInstruction.bind(core);
