@@ -2,6 +2,7 @@
 // process over stdin/stdout (JSON lines).  Used by host/boards/rp2040/board.py (EmulatedBoard).
 //
 //   node harness.mjs --bootrom B.bin --firmware firmware.bin [--fs fs.img --fs-offset 0xA0000]
+//                    [--xip-cache on|off] [--xip-miss CYCLES]   (the XIP flash cache model, below)
 //
 // Requests (one JSON object a line; every request gets exactly one JSON answer line):
 //   {"cmd":"adc","ch":0,"value":2048,"open":false}  ADC input channel (12-bit value); open: the
@@ -25,6 +26,9 @@
 //                                           programming"); "op":null disarms
 //   {"cmd":"flash","offset":O,"length":L}   read the flash array (base64 "data")
 //   {"cmd":"flash_log","on":true}           log flash operations from now; answers the log so far
+//   {"cmd":"xip","on":true,"miss":64,"flush":false}  switch the XIP cache model, change its miss
+//                                           penalty, flush it; answers its state ("xip", also in
+//                                           every run/state answer)
 //   {"cmd":"quit"}
 // Answers: {"ok":true,...} or {"ok":false,"error":"..."}.  A "run" answer holds the cycle count,
 // the PWM slice of the PWM pin (raw registers and the double-buffered values in force), DIR/EN
