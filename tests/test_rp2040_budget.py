@@ -132,7 +132,7 @@ def test_whole_loop_iteration_within_a_generous_budget(board: EmulatedBoard) -> 
     # with main.py's telemetry rate (every 10th tick), arming and balancing: measured 436 us
     # mean, 893 us max with the telemetry pair in ideal cycles (the viper emitter's fused
     # step, issue 12; it was 768 / 1252 us before the slot arrays); predicted for a real Pico
-    # (XIP cache model): about 540 us mean, 1130 us max once warm, 1850 us for the first
+    # (XIP cache model): about 575 us mean, 1130 us max once warm, 1850 us for the first
     # ticks after the REPL's compile left the flash cache cold.  `make bench` prints the
     # figures and the <= 500 us / <= 70 % targets.  Generous for code added later, tight
     # enough to catch the step losing its slot arrays: the mean within 30 % of the 2 ms period
