@@ -2,8 +2,10 @@
 serial link on machine.UART and the real HalPico) allocates nothing per tick; the heap-locked
 loop does not latch its allocation fault; the encoder read returns in bounded time while the
 PIO pushes continuously; the whole loop iteration within a generous per-tick bound (mean
-< 30 % of the period, none over 70 %; the <= 500 us and <= 70 % targets are `make
-bench` figures, host/bench/rp2040.py, not tests).
+< 30 % of the period, none over 70 % once the flash cache is warm, none late before; the
+<= 500 us and <= 70 % targets are `make bench` figures, host/bench/rp2040.py, not tests).
+Timed with the harness's XIP flash-cache model on (``xip_cache=True``): the cycles a real Pico
+is predicted to take (docs/firmware.md, "Board timing"), not the ideal ones.
 
 One board (REPL, bundle importable) shared by the module; about 30-40 s of wall time.
 """
@@ -63,6 +65,9 @@ print(d, app.sup.state, app.sup.faults)
 """
 
 
+WARMUP = 6  # loop iterations the flash cache takes to hold the loop's code again (measured: 3)
+
+
 def _frames(*msgs: M.Message) -> bytes:
     return b"".join(M.encode_serial(m, i) for i, m in enumerate(msgs))
 
@@ -70,7 +75,7 @@ def _frames(*msgs: M.Message) -> bytes:
 @pytest.fixture(scope="module")
 def board(tmp_path_factory: pytest.TempPathFactory):
     bundle = build_bundle(tmp_path_factory.mktemp("bundle"))
-    with EmulatedBoard(bundle, main=False) as b:
+    with EmulatedBoard(bundle, main=False, xip_cache=True) as b:
         b.set_adc(int(round(load_params().pot_offset)))  # upright: the loop balances
         b.exec(SETUP, timeout=5.0)
         yield b
@@ -125,12 +130,15 @@ def test_encoder_read_is_bounded_while_the_pio_pushes(board: EmulatedBoard) -> N
 
 def test_whole_loop_iteration_within_a_generous_budget(board: EmulatedBoard) -> None:
     # with main.py's telemetry rate (every 10th tick), arming and balancing: measured 436 us
-    # mean, 893 us max with the telemetry pair (the viper emitter's fused step, issue 12; it
-    # was 768 / 1252 us before the slot arrays; `make bench` prints the figures and the
-    # <= 500 us / <= 70 % targets).  Generous for code added later, tight enough to catch
-    # the step losing its slot arrays: the mean within 30 % of the 2 ms period (600 us), no
-    # iteration over 70 % (emulated cycles: the host's load does not change them), and the
-    # firmware's own clock saw no late tick and no overrun
+    # mean, 893 us max with the telemetry pair in ideal cycles (the viper emitter's fused
+    # step, issue 12; it was 768 / 1252 us before the slot arrays); predicted for a real Pico
+    # (XIP cache model): about 575 us mean, 1130 us max once warm, 1850 us for the first
+    # ticks after the REPL's compile left the flash cache cold.  `make bench` prints the
+    # figures and the <= 500 us / <= 70 % targets.  Generous for code added later, tight
+    # enough to catch the step losing its slot arrays: the mean within 30 % of the 2 ms period
+    # (600 us), no warm iteration over 70 % (emulated cycles: the host's load does not change
+    # them), the cold first ticks within the period, and the firmware's own clock saw no late
+    # tick and no overrun
     board.exec("mk(10)", timeout=2.0)
     board.uart_write(_frames(M.BY_NAME["arm"](epoch=0)))
     board.loop_probe(gap_us=50.0)
@@ -139,10 +147,15 @@ def test_whole_loop_iteration_within_a_generous_budget(board: EmulatedBoard) -> 
     board.loop_probe(False)
     state, overruns, late, period = (int(v) for v in out.split())
     # the probe's first iterations run from the exec's start (the REPL compiling the code),
-    # not from a wait of the loop: dropped, as host/bench/rp2040.py does
-    it = np.array([(e - s) / 125.0 for s, e in board.loop_iters])[2:]
+    # not from a wait of the loop: dropped, as host/bench/rp2040.py does; so is the last (it
+    # runs on into run()'s return to the REPL)
+    it = np.array([(e - s) / 125.0 for s, e in board.loop_iters])[2:-1]
     assert it.size >= 200, out
     assert state == 2 and period == 2000, out
-    assert 100.0 < it.mean() < 0.3 * period, f"mean loop iteration {it.mean():.0f} us"
-    assert it.max() < 0.7 * period, f"longest loop iteration {it.max():.0f} us"
+    # the first ticks run on a cold flash cache (the REPL's compile evicted the loop's code):
+    # on a real board too, so they must fit the period, but the 70 % budget is the warm one
+    warm, cold = it[WARMUP:], it[:WARMUP]
+    assert 100.0 < warm.mean() < 0.3 * period, f"mean loop iteration {warm.mean():.0f} us"
+    assert warm.max() < 0.7 * period, f"longest loop iteration {warm.max():.0f} us"
+    assert cold.max() < period, f"first iterations {np.round(cold)} us"
     assert overruns == 0 and late == 0, out

