@@ -1,0 +1,33 @@
+"""Numbers the README and the docs quote about the firmware are the firmware's own.
+
+A figure in prose that no test ties to the code drifts (issue 25: the stall threshold was quoted as
+2000 in one place and 800 in the code).  Each check reads the sentence from the document and the
+constant from the module.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from firmware import app
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _text(name: str) -> str:
+    return " ".join((ROOT / name).read_text().split())
+
+
+def test_the_stall_thresholds_quoted_are_the_firmwares() -> None:
+    readme = _text("README.md")
+    m = re.search(r"a duty of at least (\d+) counts \(about [\d.]+ N at rest\) moves nothing for (\d+) ms", readme)
+    assert m, "README no longer states the stall thresholds"
+    assert (int(m.group(1)), int(m.group(2))) == (app.STALL_DUTY, app.STALL_MS)
+    fw = _text("docs/firmware.md")
+    m = re.search(r"`stall_ms` \(default (\d+);.*?`stall_duty` \(default (\d+)\)", fw)
+    assert m, "docs/firmware.md no longer gives the config defaults"
+    assert (int(m.group(1)), int(m.group(2))) == (app.STALL_MS, app.STALL_DUTY)
+    for doc in ("docs/firmware.md", "docs/reliability.md"):
+        for n in re.findall(r"`stall_duty` \(default (\d+)", _text(doc)) + re.findall(r"`stall_duty` \((\d+),", _text(doc)):
+            assert int(n) == app.STALL_DUTY, (doc, n)
