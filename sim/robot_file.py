@@ -199,8 +199,8 @@ class SectionGuard(Mapping[str, float]):
         """The error for a read of ``key`` (dotted) of a missing section."""
         sec = key.split(".", 1)[0]
         return self._error(sec, f"section [{sec}] is not in {self.source}, and this needs it ({key}: "
-                                f"{_NEEDED_FOR.get(sec, sec)}); analysis and design do without it, export, the "
-                                f"firmware and HIL need it (docs/parameters.md)")
+                                f"{_NEEDED_FOR.get(sec, sec)}); the analysis and the design flags of upright design "
+                                f"do without it, export, simulation, the firmware and HIL need it (docs/parameters.md)")
 
     def __getitem__(self, key: str) -> float:
         if key.split(".", 1)[0] in self.missing:

@@ -1,0 +1,492 @@
+"""The design toolkit for any cart-pole, as python-control objects (``upright design --json``).
+
+One function per design step, each taking the robot (:class:`sim.params.RobotParams`, from
+a robot file in either form) and returning python-control objects or plain arrays, so a
+user can go on in python-control::
+
+    from sim.params import load_params
+    from host.design import toolkit as tk
+
+    p = load_params("my_robot.toml")           # M, m, b, L_cm, I_cm or I_pivot, g
+    G = tk.plant(p)                           # control.StateSpace, states x, xdot, phi, phidot
+    K = tk.lqr(p, Q=[1, 0, 10, 0], R=0.01).K  # u = -K x + Nbar r
+    L = tk.observer(p, [-20, -21, -22, -23]).L
+    ctrl = tk.observer_controller(p, K, L)    # control.StateSpace, inputs x, phi, r; output F
+    Gd = tk.discrete_plant(p, rate=500)        # control.StateSpace, dt = 1/500 (ZOH)
+
+:func:`design` runs every requested step and returns the JSON-ready dictionary that
+``upright design --json`` writes.  :data:`CONVENTIONS` states the conversions (state order,
+signs, ``theta = pi + phi``, units) and goes into every output.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import control as ct
+import numpy as np
+
+from host.design import analysis
+from host.design import controllers as _ctl
+from host.design.discrete import delayed_plant
+from host.design.reduced import ReducedObserver, discrete_reduced_observer, reduced_controller, reduced_observer
+from sim.params import RobotParams
+from sim.plant import STATES, linear_model, make_nlsys
+from sim.robot_file import missing_sections
+
+__all__ = [
+    "CONVENTIONS", "StateFeedback", "Observer", "plant", "plant_nonlinear", "transfer_functions", "poles_from_spec",
+    "lqr", "place", "precompensator", "observer", "kalman", "reduced", "pid", "state_feedback_loop",
+    "observer_controller", "reduced_controller_ss", "margins", "discrete_plant", "dlqr", "dplace", "dobserver",
+    "dkalman", "design", "complex_list",
+]
+
+CONVENTIONS: dict[str, str] = {
+    "state": "[x, xdot, phi, phidot]: cart position (m), cart velocity (m/s), tilt from upright (rad), tilt rate (rad/s)",
+    "angle": "theta = pi + phi: theta is the report's angle from the downward vertical, phi = 0 upright; phi > 0 "
+             "leans the pendulum towards -x (a force F > 0 on the cart makes phi grow)",
+    "input": "F (N): horizontal force on the cart, positive towards +x (no drive model: the motor section is not used)",
+    "outputs": "y = [x, phi] (C selects them; D = 0)",
+    "state_feedback": "u = -K x + Nbar r, r the cart-position reference (m); Nbar gives unit DC gain from r to x",
+    "observer": "xhat' = A xhat + B u + L (y - C xhat) (continuous; discrete: xhat[k+1] = Ad xhat[k] + Bd u[k] + "
+                "Ld (y[k] - C xhat[k]), the predictor form)",
+    "reduced_observer": "z' = F z + G y + H u, [xdot, phidot]_hat = z + Lr y; x and phi from the sensors",
+    "kalman": "process noise: a white force on the cart (sigma_force, N); measurement noise sigma_x (m), sigma_phi "
+              "(rad); continuous: control.lqe(A, B, C, sigma_force^2, diag(sigma^2)); discrete: control.dlqe with "
+              "the same numbers as per-sample variances",
+    "inertia": "the equations use I_cm (about the centre of mass); I_pivot = I_cm + m L_cm^2",
+    "discrete": "zero-order hold at Ts = 1/rate (control.c2d(..., 'zoh')); dlqr weights Q Ts, R Ts; poles placed at "
+                "exp(s Ts) of the continuous ones; a delay of d ticks: y[k] = C x[k-d]",
+    "margins": "control.stability_margins of the loop broken at the plant input, negative feedback: gain margin "
+               "(factor; < 1 means the loop tolerates a gain reduction down to it), phase margin (deg), crossover "
+               "frequencies (rad/s); null where there is no crossover (an infinite margin)",
+    "transfer_functions": "num/den coefficients, highest power of s first",
+    "pid": "u = -C(s) phi with C(s) = Kp + Ki/s + Kd s/(1 + s/N): the loop L = P_phi C, negative feedback",
+    "complex": "complex numbers as [re, im]",
+}
+
+
+def complex_list(values: Sequence[complex] | np.ndarray) -> list[list[float]]:
+    """Complex numbers as ``[[re, im], ...]`` sorted by real part then imaginary (JSON)."""
+    vals = sorted((complex(v) for v in np.ravel(values)), key=lambda z: (round(z.real, 9), z.imag))
+    return [[z.real, z.imag] for z in vals]
+
+
+def _mat(a: Any) -> list:
+    return np.asarray(a, float).tolist()
+
+
+# ---------------------------------------------------------------- the plant
+def plant(params: RobotParams) -> ct.StateSpace:
+    """The linearised plant about upright as ``control.StateSpace`` (input F, outputs x, phi)."""
+    A, B, C, D = linear_model(params)
+    return ct.ss(A, B, C, D, inputs=["F"], outputs=["x", "phi"], states=list(STATES), name="cartpole")
+
+
+def plant_nonlinear(params: RobotParams) -> ct.NonlinearIOSystem:
+    """The nonlinear plant as ``control.nlsys`` (``updfcn(t, x, u, params)``; :func:`sim.plant.dynamics`).
+
+    ``control.linearize(plant_nonlinear(p), [0, 0, 0, 0], [0])`` gives :func:`plant`.
+    """
+    return make_nlsys(params, name="cartpole")
+
+
+def transfer_functions(params: RobotParams) -> dict[str, ct.TransferFunction]:
+    """``{"x": X/F, "phi": Phi/F}``, numerically cleaned (:func:`host.design.analysis.clean_tf`)."""
+    return analysis.transfer_functions(params)
+
+
+def poles_from_spec(overshoot: float, settling: float, extra: Sequence[float] = (2.1, 2.14)) -> np.ndarray:
+    """Four closed-loop poles from a step spec: the dominant pair for ``overshoot`` (fraction) and
+    ``settling`` (2 %, s; ``Ts = 4 / (zeta omega)``) plus two real poles ``extra`` times deeper (report §3.2)."""
+    zeta, omega = _ctl.zeta_omega_from_spec(overshoot, settling)
+    return _ctl.dominant_poles(zeta, omega, extra)
+
+
+# ---------------------------------------------------------------- state feedback
+@dataclass(frozen=True)
+class StateFeedback:
+    """A state-feedback design ``u = -K x + Nbar r``.
+
+    Attributes
+    ----------
+    K : ndarray (4,)
+    Nbar : float
+    poles : ndarray
+        Closed-loop poles, eigenvalues of ``A - B K`` (``Ad - Bd K`` if discrete).
+    Ts : float
+        0 for continuous.
+    """
+
+    K: np.ndarray
+    Nbar: float
+    poles: np.ndarray
+    Ts: float = 0.0
+
+    def as_ss(self) -> ct.StateSpace:
+        """The static controller: inputs ``[x, xdot, phi, phidot, r]``, output ``F``."""
+        D = np.hstack([-self.K, [self.Nbar]])[None, :]
+        return ct.ss([], [], [], D, self.Ts if self.Ts else 0, inputs=[*STATES, "r"], outputs=["F"],
+                     name="state_feedback")
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready."""
+        return {"K": _mat(self.K), "Nbar": self.Nbar, "poles": complex_list(self.poles)}
+
+
+def precompensator(A: np.ndarray, B: np.ndarray, K: np.ndarray, Ts: float = 0.0) -> float:
+    """``Nbar`` for unit DC gain from ``r`` to ``x``: ``-1 / (C_x (A - B K)^-1 B)``, or
+    ``1 / (C_x (I - Ad + Bd K)^-1 Bd)`` in discrete time."""
+    cx = np.array([[1.0, 0.0, 0.0, 0.0]])
+    Acl = np.asarray(A) - np.asarray(B) @ np.atleast_2d(K)
+    if Ts:
+        return float(1.0 / (cx @ np.linalg.solve(np.eye(4) - Acl, B))[0, 0])
+    return float(-1.0 / (cx @ np.linalg.solve(Acl, B))[0, 0])
+
+
+def _weights(Q: Sequence[float] | np.ndarray, R: float) -> tuple[np.ndarray, np.ndarray]:
+    q = np.asarray(Q, float)
+    q = np.diag(q) if q.shape == (4,) else q
+    if q.shape != (4, 4) or not np.all(np.isfinite(q)) or np.any(np.linalg.eigvalsh(0.5 * (q + q.T)) < -1e-12):
+        raise ValueError(f"Q must be 4 non-negative weights (the diagonal) or a 4x4 positive semidefinite matrix, got {Q!r}")
+    r = float(R)
+    if not (math.isfinite(r) and r > 0):
+        raise ValueError(f"R must be > 0, got {R!r}")
+    return q, np.array([[r]])
+
+
+def lqr(params: RobotParams, Q: Sequence[float] | np.ndarray, R: float) -> StateFeedback:
+    """Continuous LQR (``control.lqr``) for ``Q`` (4 weights or 4x4) and ``R``."""
+    A, B, _, _ = linear_model(params)
+    q, r = _weights(Q, R)
+    K, _, E = ct.lqr(A, B, q, r)
+    K = np.asarray(K, float).ravel()
+    return StateFeedback(K=K, Nbar=precompensator(A, B, K), poles=np.asarray(E))
+
+
+def _poles(poles: Sequence[complex], n: int, what: str) -> np.ndarray:
+    p = np.asarray(poles, dtype=complex).ravel()
+    if p.shape != (n,) or not np.all(np.isfinite(p)):
+        raise ValueError(f"{what}: expected {n} poles, got {list(poles)!r}")
+    if np.any(p.real >= 0):
+        raise ValueError(f"{what}: every pole must have a negative real part, got {list(poles)!r}")
+    if not np.allclose(np.sort_complex(p), np.sort_complex(np.conj(p))):
+        raise ValueError(f"{what}: complex poles must come in conjugate pairs, got {list(poles)!r}")
+    return p.real.copy() if np.all(p.imag == 0) else p
+
+
+def place(params: RobotParams, poles: Sequence[complex]) -> StateFeedback:
+    """Pole placement (``control.place``) of ``A - B K`` at 4 ``poles``."""
+    A, B, _, _ = linear_model(params)
+    p = _poles(poles, 4, "poles")
+    K = np.asarray(ct.place(A, B, p), float).ravel()
+    return StateFeedback(K=K, Nbar=precompensator(A, B, K), poles=np.linalg.eigvals(A - B @ K[None, :]))
+
+
+# ---------------------------------------------------------------- estimators
+@dataclass(frozen=True)
+class Observer:
+    """A full-order observer gain ``L`` (4, 2) and its poles (eigenvalues of ``A - L C``)."""
+
+    L: np.ndarray
+    poles: np.ndarray
+    Ts: float = 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready."""
+        return {"L": _mat(self.L), "poles": complex_list(self.poles)}
+
+
+def observer(params: RobotParams, poles: Sequence[complex]) -> Observer:
+    """Luenberger observer for ``y = [x, phi]``: ``control.place(A.T, C.T, poles).T``."""
+    A, _, C, _ = linear_model(params)
+    p = _poles(poles, 4, "observer poles")
+    L = np.asarray(ct.place(A.T, C.T, p), float).T
+    return Observer(L=L, poles=np.linalg.eigvals(A - L @ C))
+
+
+def _noise(sigma_force: float, sigma_meas: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    s = [float(sigma_force), *(float(v) for v in sigma_meas)]
+    if len(s) != 3 or not all(math.isfinite(v) and v > 0 for v in s):
+        raise ValueError(f"Kalman noises must be 3 numbers > 0 (sigma_force, sigma_x, sigma_phi), got {s!r}")
+    return np.array([[s[0] ** 2]]), np.diag([s[1] ** 2, s[2] ** 2])
+
+
+def kalman(params: RobotParams, sigma_force: float, sigma_meas: Sequence[float]) -> Observer:
+    """Steady-state Kalman-Bucy gain (``control.lqe(A, B, C, QN, RN)``): a white force on the cart."""
+    A, B, C, _ = linear_model(params)
+    QN, RN = _noise(sigma_force, sigma_meas)
+    L, _, E = ct.lqe(A, B, C, QN, RN)
+    return Observer(L=np.asarray(L, float), poles=np.asarray(E))
+
+
+def reduced(params: RobotParams, poles: Sequence[complex]) -> ReducedObserver:
+    """The continuous reduced-order observer of ``[xdot, phidot]`` (:mod:`host.design.reduced`)."""
+    return reduced_observer(params, poles)
+
+
+# ---------------------------------------------------------------- controllers as systems
+def pid(kp: float, ki: float, kd: float, n: float = _ctl.DERIVATIVE_FILTER) -> ct.TransferFunction:
+    """PID on the angle, ``Kp + Ki/s + Kd s / (1 + s/n)``, acting as ``u = -C(s) phi``: the loop
+    ``L = P_phi C`` closed with negative feedback, as in the report (the cart drifts: x is not fed back)."""
+    return _ctl.pid_tf((kp, ki, kd), n)
+
+
+def state_feedback_loop(params: RobotParams, K: Sequence[float]) -> ct.TransferFunction:
+    """The loop broken at the plant input, ``K (sI - A)^-1 B``."""
+    A, B, _, _ = linear_model(params)
+    return ct.tf(ct.ss(A, B, np.atleast_2d(np.asarray(K, float)), 0))
+
+
+def observer_controller(params: RobotParams, K: Sequence[float], L: np.ndarray, Nbar: float = 0.0) -> ct.StateSpace:
+    """The observer-based controller: inputs ``[x, phi, r]``, output ``F``.
+
+    ``xhat' = (A - B K - L C) xhat + L y + B Nbar r``, ``F = -K xhat + Nbar r``.
+    """
+    A, B, C, _ = linear_model(params)
+    K = np.atleast_2d(np.asarray(K, float))
+    L = np.asarray(L, float)
+    Ac = A - B @ K - L @ C
+    Bc = np.hstack([L, B * Nbar])
+    return ct.ss(Ac, Bc, -K, np.array([[0.0, 0.0, Nbar]]), inputs=["x", "phi", "r"], outputs=["F"],
+                 states=[f"{s}_hat" for s in STATES], name="observer_controller")
+
+
+def reduced_controller_ss(params: RobotParams, K: Sequence[float], obs: ReducedObserver, Nbar: float = 0.0) -> ct.StateSpace:
+    """The controller with the reduced-order observer: inputs ``[x, phi, r]``, output ``F``.
+
+    ``u = -K (Sy y + Sw (z + Lr y)) + Nbar r`` substituted into ``z' = F z + G y + H u``.
+    """
+    K = np.atleast_2d(np.asarray(K, float))
+    Py = obs.Sy + obs.Sw @ obs.Lr
+    Ac = obs.F - obs.H @ K @ obs.Sw
+    Bc = np.hstack([obs.G - obs.H @ K @ Py, obs.H * Nbar])
+    Cc = -K @ obs.Sw
+    Dc = np.hstack([-K @ Py, [[Nbar]]])
+    return ct.ss(Ac, Bc, Cc, Dc, obs.Ts if obs.Ts else 0, inputs=["x", "phi", "r"], outputs=["F"],
+                 states=["z_xdot", "z_phidot"], name="reduced_controller")
+
+
+def margins(loop: ct.LTI) -> dict[str, float | None]:
+    """``control.stability_margins`` of a SISO loop (negative feedback): gm, pm (deg), wg, wp (rad/s)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # python-control compares nan responses internally
+        gm, pm, _, wg, wp, _ = ct.stability_margins(loop)
+
+    def num(v: float) -> float | None:
+        return float(v) if math.isfinite(v) else None  # null: no crossover (an infinite margin)
+
+    return {"gain_margin": num(gm), "phase_margin_deg": num(pm), "w_gain_crossover": num(wp),
+            "w_phase_crossover": num(wg)}
+
+
+def _input_loop(params: RobotParams, ctrl_y: ct.StateSpace) -> ct.LTI:
+    # u = ctrl_y [x, phi] (r = 0); loop broken at u, negative-feedback convention: L = -ctrl_y P
+    P = plant(params)
+    return -ct.series(P, ctrl_y[:, :2])
+
+
+# ---------------------------------------------------------------- discrete time
+def discrete_plant(params: RobotParams, rate: float) -> ct.StateSpace:
+    """``control.c2d(plant(params), 1/rate, "zoh")``."""
+    return ct.c2d(plant(params), 1.0 / rate, method="zoh")
+
+
+def dlqr(params: RobotParams, Q: Sequence[float] | np.ndarray, R: float, rate: float) -> StateFeedback:
+    """Discrete LQR on the ZOH plant with the continuous weights mapped as ``Q Ts``, ``R Ts``."""
+    Gd = discrete_plant(params, rate)
+    q, r = _weights(Q, R)
+    Ts = 1.0 / rate
+    K, _, E = ct.dlqr(Gd.A, Gd.B, q * Ts, r * Ts)
+    K = np.asarray(K, float).ravel()
+    return StateFeedback(K=K, Nbar=precompensator(Gd.A, Gd.B, K, Ts), poles=np.asarray(E), Ts=Ts)
+
+
+def dplace(params: RobotParams, poles: Sequence[complex], rate: float) -> StateFeedback:
+    """Discrete pole placement at ``exp(poles Ts)``."""
+    Gd = discrete_plant(params, rate)
+    Ts = 1.0 / rate
+    p = np.exp(_poles(poles, 4, "poles") * Ts)
+    K = np.asarray(ct.place(Gd.A, Gd.B, p), float).ravel()
+    return StateFeedback(K=K, Nbar=precompensator(Gd.A, Gd.B, K, Ts),
+                         poles=np.linalg.eigvals(Gd.A - Gd.B @ K[None, :]), Ts=Ts)
+
+
+def dobserver(params: RobotParams, poles: Sequence[complex], rate: float) -> Observer:
+    """Discrete (predictor) observer gain at ``exp(poles Ts)``: ``place(Ad.T, C.T, .).T``."""
+    Gd = discrete_plant(params, rate)
+    Ts = 1.0 / rate
+    p = np.exp(_poles(poles, 4, "observer poles") * Ts)
+    L = np.asarray(ct.place(Gd.A.T, Gd.C.T, p), float).T
+    return Observer(L=L, poles=np.linalg.eigvals(Gd.A - L @ Gd.C), Ts=Ts)
+
+
+def dkalman(params: RobotParams, sigma_force: float, sigma_meas: Sequence[float], rate: float) -> Observer:
+    """Discrete Kalman gain, ``control.dlqe(Ad, Bd, C, QN, RN)`` (per-sample variances)."""
+    Gd = discrete_plant(params, rate)
+    QN, RN = _noise(sigma_force, sigma_meas)
+    L, _, E = ct.dlqe(Gd.A, Gd.B, Gd.C, QN, RN)
+    return Observer(L=np.asarray(L, float), poles=np.asarray(E), Ts=1.0 / rate)
+
+
+# ---------------------------------------------------------------- everything at once
+def _tf_dict(tf: ct.TransferFunction) -> dict[str, Any]:
+    num = np.atleast_1d(np.squeeze(tf.num[0][0])).astype(float)
+    den = np.atleast_1d(np.squeeze(tf.den[0][0])).astype(float)
+    return {"num": num.tolist(), "den": den.tolist(), "zeros": complex_list(tf.zeros()), "poles": complex_list(tf.poles())}
+
+
+def design(
+    params: RobotParams,
+    *,
+    Q: Sequence[float] | None = None,
+    R: float | None = None,
+    poles: Sequence[complex] | None = None,
+    spec: tuple[float, float] | None = None,
+    observer_poles: Sequence[complex] | None = None,
+    noise: Sequence[float] | None = None,
+    reduced_poles: Sequence[complex] | None = None,
+    pid_gains: Sequence[float] | None = None,
+    rate: float | None = None,
+    delay: float = 0.0,
+) -> dict[str, Any]:
+    """Every requested design step, JSON-ready (what ``upright design --json`` writes).
+
+    Parameters
+    ----------
+    params : RobotParams
+    Q, R : optional
+        LQR weights (4 diagonal weights, ``R`` > 0); both or neither.
+    poles : 4 complex, optional
+        Pole placement.  ``spec = (overshoot, settling)`` gives them instead (:func:`poles_from_spec`).
+    observer_poles : 4 complex, optional
+        Full-order Luenberger observer.
+    noise : (sigma_force, sigma_x, sigma_phi), optional
+        Kalman filter instead of (or besides) the observer poles.
+    reduced_poles : 2 complex, optional
+        Reduced-order observer of ``[xdot, phidot]``.
+    pid_gains : (Kp, Ki, Kd), optional
+        PID on the angle (derivative filtered at ``DERIVATIVE_FILTER`` rad/s).
+    rate : float, optional
+        Loop rate (Hz): adds the ``discrete`` section.
+    delay : float
+        Measurement delay (s), a whole number of ticks at ``rate``.
+
+    Returns
+    -------
+    dict
+        ``conventions, robot, plant`` and, as requested, ``lqr, place, observer, kalman,
+        reduced_observer, pid, controllers, discrete``.
+    """
+    if (Q is None) != (R is None):
+        raise ValueError("LQR needs both Q and R")
+    if poles is not None and spec is not None:
+        raise ValueError("give the poles or the spec, not both")
+    A, B, C, D = linear_model(params)
+    G = plant(params)
+    tfs = transfer_functions(params)
+    _, det_wr, rank_wr = analysis.controllability(A, B)
+    out: dict[str, Any] = {
+        "conventions": CONVENTIONS,
+        "robot": {"source": params.source, "M": params.M, "m": params.m, "b": params.b, "L_cm": params.L,
+                  "I_cm": params.I_cm, "I_pivot": params.I_pivot, "g": params.g,
+                  "missing_sections": sorted(missing_sections(params.values))},
+        "plant": {"states": list(STATES), "inputs": ["F"], "outputs": ["x", "phi"], "A": _mat(A), "B": _mat(B),
+                  "C": _mat(C), "D": _mat(D), "poles": complex_list(np.linalg.eigvals(A)),
+                  "tf": {k: _tf_dict(v) for k, v in tfs.items()},
+                  "controllability": {"det_Wr": det_wr, "rank": rank_wr},
+                  "observability": {"rank": analysis.observability_rank(A, C)}},
+    }
+    feedback: dict[str, StateFeedback] = {}
+    if Q is not None:
+        feedback["lqr"] = lqr(params, Q, R)  # type: ignore[arg-type]
+        out["lqr"] = {"Q": _mat(_weights(Q, R)[0]), "R": float(R), **feedback["lqr"].as_dict()}  # type: ignore[arg-type]
+    if spec is not None:
+        poles = poles_from_spec(*spec)
+    if poles is not None:
+        feedback["place"] = place(params, poles)
+        out["place"] = {"spec": list(spec) if spec is not None else None, **feedback["place"].as_dict()}
+    ests: dict[str, Observer] = {}
+    if observer_poles is not None:
+        ests["observer"] = observer(params, observer_poles)
+        out["observer"] = ests["observer"].as_dict()
+    if noise is not None:
+        ests["kalman"] = kalman(params, noise[0], noise[1:])
+        out["kalman"] = {"sigma_force": noise[0], "sigma_x": noise[1], "sigma_phi": noise[2], **ests["kalman"].as_dict()}
+    red = None
+    if reduced_poles is not None:
+        red = reduced(params, reduced_poles)
+        out["reduced_observer"] = {"Lr": _mat(red.Lr), "F": _mat(red.F), "G": _mat(red.G), "H": _mat(red.H),
+                                   "poles": complex_list(red.poles)}
+    loops: dict[str, Any] = {}
+    for name, sf in feedback.items():
+        loops[f"{name} (state feedback)"] = {"margins": margins(state_feedback_loop(params, sf.K))}
+        for ename, ob in ests.items():
+            cs = observer_controller(params, sf.K, ob.L, sf.Nbar)
+            cl = ct.feedback(G, cs[:, :2], sign=1)
+            loops[f"{name} + {ename}"] = {"A": _mat(cs.A), "B": _mat(cs.B), "C": _mat(cs.C), "D": _mat(cs.D),
+                                         "closed_loop_poles": complex_list(cl.poles()),
+                                         "margins": margins(_input_loop(params, cs))}
+        if red is not None:
+            cs = reduced_controller_ss(params, sf.K, red, sf.Nbar)
+            cl = ct.feedback(G, cs[:, :2], sign=1)
+            loops[f"{name} + reduced_observer"] = {"A": _mat(cs.A), "B": _mat(cs.B), "C": _mat(cs.C), "D": _mat(cs.D),
+                                                  "closed_loop_poles": complex_list(cl.poles()),
+                                                  "margins": margins(_input_loop(params, cs))}
+    if pid_gains is not None:
+        Cp = pid(*pid_gains)
+        Lp = tfs["phi"] * Cp
+        out["pid"] = {"Kp": pid_gains[0], "Ki": pid_gains[1], "Kd": pid_gains[2], "N": _ctl.DERIVATIVE_FILTER,
+                      "tf": _tf_dict(Cp), "closed_loop_poles": complex_list(ct.feedback(Lp, 1).poles()),
+                      "margins": margins(Lp)}
+    if loops:
+        out["controllers"] = loops
+    if rate is not None:
+        out["discrete"] = _discrete(params, rate, delay, feedback, Q, R, poles, observer_poles, noise, reduced_poles)
+    return out
+
+
+def _discrete(params: RobotParams, rate: float, delay: float, feedback: dict[str, StateFeedback],
+              Q: Any, R: Any, poles: Any, observer_poles: Any, noise: Any, reduced_poles: Any) -> dict[str, Any]:
+    if not (math.isfinite(rate) and rate > 0):
+        raise ValueError(f"rate must be > 0 Hz, got {rate!r}")
+    ticks = delay * rate
+    if delay < 0 or abs(ticks - round(ticks)) > 1e-6:
+        raise ValueError(f"delay must be a whole number of ticks of {1e3 / rate:g} ms, got {delay!r} s")
+    d = int(round(ticks))
+    Gd = discrete_plant(params, rate)
+    out: dict[str, Any] = {"rate": rate, "Ts": 1.0 / rate, "delay": delay, "delay_steps": d,
+                           "plant": {"A": _mat(Gd.A), "B": _mat(Gd.B), "C": _mat(Gd.C), "D": _mat(Gd.D),
+                                     "poles": complex_list(np.linalg.eigvals(Gd.A))}}
+    if d:
+        Ax, Bx, Cx, _, _ = delayed_plant(params, rate, delay)
+        out["delayed_plant"] = {"states": "[x, xdot, phi, phidot, y[k-1], ..., y[k-d]] (y = [x, phi])",
+                                "A": _mat(Ax), "B": _mat(Bx), "C": _mat(Cx)}
+    fb: dict[str, StateFeedback] = {}
+    if "lqr" in feedback:
+        fb["lqr"] = dlqr(params, Q, R, rate)
+    if "place" in feedback:
+        fb["place"] = dplace(params, poles, rate)
+    for k, v in fb.items():
+        out[k] = v.as_dict()
+    if observer_poles is not None:
+        out["observer"] = dobserver(params, observer_poles, rate).as_dict()
+    if noise is not None:
+        out["kalman"] = dkalman(params, noise[0], noise[1:], rate).as_dict()
+    if reduced_poles is not None:
+        ro = discrete_reduced_observer(params, reduced_poles, rate)
+        out["reduced_observer"] = {"Lr": _mat(ro.Lr), "F": _mat(ro.F), "G": _mat(ro.G), "H": _mat(ro.H),
+                                   "poles": complex_list(ro.poles)}
+        for k, v in fb.items():
+            rc = reduced_controller(params, v.K, reduced_poles, rate, delay)
+            from host.design.discrete import closed_loop_poles
+
+            out["reduced_observer"][f"controller_{k}"] = {
+                "state": "[z (2), u[k-d], ..., u[k-1]]", "Ac": _mat(rc.Ac), "Bc": _mat(rc.Bc), "Cc": _mat(rc.Cc),
+                "Dc": _mat(rc.Dc), "Bu": _mat(rc.Bu), "kr": rc.kr,
+                "closed_loop_poles": complex_list(closed_loop_poles(params, rc))}
+    return out
