@@ -212,6 +212,7 @@ def test_discrete_reduced_observer_with_the_delay(out: dict) -> None:
     np.testing.assert_allclose(big, want, atol=1e-6)
 
 
+@pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning")  # python-control's own margins code
 def test_margins(out: dict, ABCD: tuple[np.ndarray, ...]) -> None:
     A, B, C, D = ABCD
     K = np.array(out["lqr"]["K"])[None, :]
@@ -305,6 +306,9 @@ def test_a_missing_section_is_named_where_it_is_needed(robot: Path, capsys: pyte
     with pytest.raises(ParamError, match=r"^loop: .*loop\.rate"):
         _ = p.values["loop.rate"]
     assert p.replace(M=0.6).M == 0.6 and "motor.kt" not in p.values and getattr(p, "no_such", None) is None
+    assert main(["design", "--params", str(robot), "--no-figures"]) == 2  # the report mode scores against [loop]
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "no [loop] section" in err and "--Q/--R" in err
     assert main(["export", "--params", str(robot)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "section [loop]" in err and err.startswith("upright export: bad parameter")

@@ -281,6 +281,13 @@ def run(args: argparse.Namespace) -> int:
     if not args.no_figures:
         check_out_dir(args.out, "--out")
     params = load_params(args.params)
+    from sim.robot_file import missing_sections
+
+    if "loop" in missing_sections(params.values):
+        from host.cli.args import UsageError
+
+        raise UsageError(f"the report scores every design against the [loop] constraints, and {params.source} has no "
+                         f"[loop] section: add it, or design with the flags (--Q/--R, --poles, ...; docs/design.md)")
     text, _ = build_report(params, search=not args.no_search)
     print(f"Design report for {params.source}\n")
     print(text)
