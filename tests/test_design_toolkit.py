@@ -204,12 +204,15 @@ def test_discrete_reduced_observer_with_the_delay(out: dict) -> None:
     dd = out["discrete"]
     Ts = 1 / RATE
     np.testing.assert_allclose(_cx(dd["reduced_observer"]["poles"]), np.sort_complex(np.exp(np.array(RED) * Ts)), atol=1e-9)
-    c = dd["reduced_observer"]["controller_lqr"]
-    assert np.array(c["Ac"]).shape == (4, 4)  # z (2) + 2 stored inputs
-    cl = _cx(c["closed_loop_poles"])
-    big = np.sort_complex(cl[np.abs(cl) > 0.05])
-    want = np.sort_complex(np.concatenate([np.array(dd["lqr"]["poles"]).dot([1, 1j]), np.exp(np.array(RED) * Ts)]))
-    np.testing.assert_allclose(big, want, atol=1e-6)
+    sf = np.array(dd["lqr"]["poles"]).dot([1, 1j])
+    for name, n, est in (("lqr + reduced_observer", 2, np.exp(np.array(RED) * Ts)),
+                         ("lqr + observer", 4, np.exp(np.array(OBS) * Ts)),
+                         ("lqr + kalman", 4, np.array(dd["kalman"]["poles"]).dot([1, 1j]))):
+        c = dd["controllers"][name]
+        assert np.array(c["Ac"]).shape == (n + 2, n + 2)  # the estimator's states + 2 stored inputs
+        cl = _cx(c["closed_loop_poles"])
+        big = np.sort_complex(cl[np.abs(cl) > 0.05])  # the delay line's poles sit (numerically spread) at 0
+        np.testing.assert_allclose(big, np.sort_complex(np.concatenate([sf, est])), atol=1e-6, err_msg=name)
 
 
 @pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning")  # python-control's own margins code

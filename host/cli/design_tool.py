@@ -165,10 +165,10 @@ def render(d: dict[str, Any]) -> str:
                 out += [f"{name} (discrete): Ld =", _mat(dd[name]["L"])]
         if "reduced_observer" in dd:
             out += ["reduced-order observer (discrete): Lr =", _mat(dd["reduced_observer"]["Lr"])]
-            for k, v in dd["reduced_observer"].items():
-                if k.startswith("controller_"):
-                    big = [_fmt_c(z) for z in v["closed_loop_poles"] if math.hypot(*z) > 1e-3]
-                    out.append(f"  {k[11:]} + reduced observer with the delay: closed-loop poles (|z| > 1e-3) {', '.join(big)}")
+        for k, v in dd.get("controllers", {}).items():
+            big = [_fmt_c(z) for z in v["closed_loop_poles"] if math.hypot(*z) > 0.05]
+            out.append(f"{k} with the delay: {len(v['Ac'])} controller states, closed-loop poles (|z| > 0.05; the rest "
+                       f"the delay line's, near 0) {', '.join(big)}")
     return "\n".join(out)
 
 

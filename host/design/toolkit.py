@@ -30,7 +30,7 @@ import numpy as np
 
 from host.design import analysis
 from host.design import controllers as _ctl
-from host.design.discrete import delayed_plant
+from host.design.discrete import DiscreteController, closed_loop_poles, controller_ss, delayed_plant
 from host.design.reduced import ReducedObserver, discrete_reduced_observer, reduced_controller, reduced_observer
 from sim.params import RobotParams
 from sim.plant import STATES, linear_model, make_nlsys
@@ -40,7 +40,7 @@ __all__ = [
     "CONVENTIONS", "StateFeedback", "Observer", "plant", "plant_nonlinear", "transfer_functions", "poles_from_spec",
     "lqr", "place", "precompensator", "observer", "kalman", "reduced", "pid", "state_feedback_loop",
     "observer_controller", "reduced_controller_ss", "margins", "discrete_plant", "dlqr", "dplace", "dobserver",
-    "dkalman", "design", "complex_list",
+    "dkalman", "discrete_observer_controller", "design", "complex_list",
 ]
 
 CONVENTIONS: dict[str, str] = {
@@ -333,6 +333,28 @@ def dkalman(params: RobotParams, sigma_force: float, sigma_meas: Sequence[float]
     return Observer(L=np.asarray(L, float), poles=np.asarray(E), Ts=1.0 / rate)
 
 
+def discrete_observer_controller(params: RobotParams, K: Sequence[float], Ld: np.ndarray, rate: float,
+                                 delay: float = 0.0, u_max: float = math.inf) -> DiscreteController:
+    """The firmware's controller structure (:func:`host.design.discrete.controller_ss`: filter on the
+    delayed measurement, predictor over the stored inputs, ``u = -K xh + kr r``) with a chosen
+    full-order estimator: the predictor gain ``Ld`` (:func:`dobserver`, :func:`dkalman`) becomes the
+    filter gain ``M = Ad^-1 Ld`` (the same error poles, ``Ad (I - M C) = Ad - Ld C``)."""
+    c = controller_ss(params, rate, delay, design="gain", K=K, u_max=u_max)
+    M = np.linalg.solve(c.Ad, np.asarray(Ld, float))
+    I_MC = np.eye(4) - M @ c.C
+    c.Ac[:4, :4] = c.Ad @ I_MC
+    c.Bc[:4, :2] = c.Ad @ M
+    c.Cc[0, :4] = -(c.Kf @ I_MC)[0]
+    c.Dc[0, :2] = -(c.Kf @ M)[0]
+    c.M = M
+    return c
+
+
+def _ctrl_dict(c: DiscreteController, params: RobotParams, state: str) -> dict[str, Any]:
+    return {"state": state, "Ac": _mat(c.Ac), "Bc": _mat(c.Bc), "Cc": _mat(c.Cc), "Dc": _mat(c.Dc), "Bu": _mat(c.Bu),
+            "kr": c.kr, "closed_loop_poles": complex_list(closed_loop_poles(params, c))}
+
+
 # ---------------------------------------------------------------- everything at once
 def _tf_dict(tf: ct.TransferFunction) -> dict[str, Any]:
     num = np.atleast_1d(np.squeeze(tf.num[0][0])).astype(float)
@@ -473,20 +495,27 @@ def _discrete(params: RobotParams, rate: float, delay: float, feedback: dict[str
         fb["place"] = dplace(params, poles, rate)
     for k, v in fb.items():
         out[k] = v.as_dict()
+    ests: dict[str, Observer] = {}
     if observer_poles is not None:
-        out["observer"] = dobserver(params, observer_poles, rate).as_dict()
+        ests["observer"] = dobserver(params, observer_poles, rate)
     if noise is not None:
-        out["kalman"] = dkalman(params, noise[0], noise[1:], rate).as_dict()
+        ests["kalman"] = dkalman(params, noise[0], noise[1:], rate)
+    ctrls: dict[str, Any] = {}
+    for ename, ob in ests.items():
+        out[ename] = ob.as_dict()
+        for k, v in fb.items():
+            c = discrete_observer_controller(params, v.K, ob.L, rate, delay)
+            ctrls[f"{k} + {ename}"] = _ctrl_dict(c, params, "[p (4): the a-priori estimate of x[k-d], u[k-d], ..., "
+                                                          "u[k-1]]; u = Cc z + Dc [x, phi, r], z' = Ac z + Bc [x, phi, r] "
+                                                          "+ Bu u")
     if reduced_poles is not None:
         ro = discrete_reduced_observer(params, reduced_poles, rate)
         out["reduced_observer"] = {"Lr": _mat(ro.Lr), "F": _mat(ro.F), "G": _mat(ro.G), "H": _mat(ro.H),
                                    "poles": complex_list(ro.poles)}
         for k, v in fb.items():
             rc = reduced_controller(params, v.K, reduced_poles, rate, delay)
-            from host.design.discrete import closed_loop_poles
-
-            out["reduced_observer"][f"controller_{k}"] = {
-                "state": "[z (2), u[k-d], ..., u[k-1]]", "Ac": _mat(rc.Ac), "Bc": _mat(rc.Bc), "Cc": _mat(rc.Cc),
-                "Dc": _mat(rc.Dc), "Bu": _mat(rc.Bu), "kr": rc.kr,
-                "closed_loop_poles": complex_list(closed_loop_poles(params, rc))}
+            ctrls[f"{k} + reduced_observer"] = _ctrl_dict(rc, params, "[z (2), u[k-d], ..., u[k-1]]; u = Cc z + Dc "
+                                                                      "[x, phi, r], z' = Ac z + Bc [x, phi, r] + Bu u")
+    if ctrls:
+        out["controllers"] = ctrls
     return out
