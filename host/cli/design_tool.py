@@ -45,7 +45,7 @@ def add_tool_arguments(parser: argparse.ArgumentParser) -> None:
     if hasattr(parser, "_negative_number_matcher"):  # let "--poles -2,-3,..." read as a value (no flag starts -<digit>)
         parser._negative_number_matcher = re.compile(r"^-\.?\d")
     g = parser.add_argument_group("design flags (the toolkit; docs/design.md)",
-                                  "negative values need '=': --poles=-2,-3,-4+1j,-4-1j")
+                                  "comma-separated lists; complex poles as -4+1j: --poles -2,-3,-4+1j,-4-1j")
     g.add_argument("--Q", type=_numbers(4, "weights"), metavar="QX,QXD,QPHI,QPHID",
                    help="LQR state weights, the diagonal of Q (with --R)")
     g.add_argument("--R", type=positive, metavar="R", help="LQR input weight (with --Q)")
