@@ -98,3 +98,10 @@ dashboard-screenshot: setup
 
 clean:
 	rm -rf $(OUT) .pytest_cache .hypothesis
+
+# the design report as a notebook (docs/report.ipynb, committed without outputs), executed and rendered to HTML
+.PHONY: report
+report: $(STAMP)
+	$(PY) -m nbconvert --to html --execute --ExecutePreprocessor.kernel_name=python3 --ExecutePreprocessor.timeout=600 \
+	  --output-dir $(OUT)/report docs/report.ipynb
+	@echo "report: $(OUT)/report/report.html"

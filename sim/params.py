@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
+from . import robot_file as _robot_file
+
 DEFAULT_PATH = Path(__file__).with_name("robot.toml")
 
 __all__ = ["ParamError", "Spec", "SCHEMA", "REALISM_KEYS", "RobotParams", "load_params", "params_from_dict",
@@ -67,12 +69,14 @@ SCHEMA: dict[str, Spec] = {
                        default=0.0),
     "cart.stiction": _P("N", "static friction: the force that breaks the cart loose (below cart.coulomb: "
                              "cart.coulomb)", 0.0, 100.0, lo_open=False, default=0.0),
-    "pendulum.m_cam": _P("kg", "mass of the camera head", 0.0),
-    "pendulum.m_shaft": _P("kg", "mass of the shaft", 0.0),
-    "pendulum.L_shaft": _P("m", "length of the shaft", 0.0),
-    "pendulum.L_cam": _P("m", "length of the camera head along the shaft", 0.0),
+    "pendulum.m_cam": _P("kg", "mass of the camera head (geometric form)", 0.0, default=math.nan),
+    "pendulum.m_shaft": _P("kg", "mass of the shaft (geometric form)", 0.0, default=math.nan),
+    "pendulum.L_shaft": _P("m", "length of the shaft (geometric form)", 0.0, default=math.nan),
+    "pendulum.L_cam": _P("m", "length of the camera head along the shaft (geometric form)", 0.0, default=math.nan),
+    "pendulum.m": _P("kg", "mass of the pendulum (minimal form; sim/robot_file.py)", 0.0, default=math.nan),
     "pendulum.L_cm": _P("m", "pivot to centre of mass (derived from geometry if absent)", 0.0, default=math.nan),
-    "pendulum.I": _P("kg*m^2", "inertia about the pivot, eq. (2.10) (derived if absent)", 0.0, default=math.nan),
+    "pendulum.I": _P("kg*m^2", "inertia about the centre of mass (a file gives I_cm or I_pivot; eq. 2.10 if absent)",
+                     0.0, lo_open=False, default=math.nan),
     "environment.g": _P("m/s^2", "gravitational acceleration", 0.0),
     "motor.V_supply": _P("V", "H-bridge supply voltage", 0.0),
     "motor.R": _P("ohm", "armature resistance", 0.0),
@@ -130,7 +134,8 @@ class RobotParams:
 
     The attributes mirror the TOML keys (``cart.M`` becomes ``M``).  The pendulum mass
     ``m``, its centre of mass ``L`` and inertia ``I`` are derived from the geometry
-    unless the file gives ``pendulum.L_cm`` / ``pendulum.I``.
+    unless the file gives ``pendulum.L_cm`` / the inertia; a file in the minimal form gives
+    ``pendulum.m``, ``L_cm`` and ``I_cm`` or ``I_pivot`` (:mod:`sim.robot_file`).
     """
 
     values: Mapping[str, float] = field(repr=False)
@@ -141,11 +146,13 @@ class RobotParams:
         for k, v in vals.items():
             if k.split(".", 1)[1] == name:
                 return v
-        raise AttributeError(name)
+        raise _robot_file.no_attribute(vals, name)  # a missing section's key: its error
 
     @property
     def m(self) -> float:
-        """Total pendulum mass m_pend = m_cam + m_shaft (kg)."""
+        """Total pendulum mass m_pend = m_cam + m_shaft, or ``pendulum.m`` (kg)."""
+        if not math.isnan(self.values["pendulum.m"]):
+            return self.values["pendulum.m"]
         return self.values["pendulum.m_cam"] + self.values["pendulum.m_shaft"]
 
     @property
@@ -160,13 +167,24 @@ class RobotParams:
 
     @property
     def I(self) -> float:  # noqa: E743 - the report's symbol
-        """Pendulum inertia about the pivot, eq. (2.10) (kg m^2)."""
+        """Pendulum inertia about the centre of mass as the equations use it (kg m^2): the file's
+        ``I_cm`` (or ``I_pivot - m L^2``), else eq. (2.10) (the report's choice, docs/parameters.md)."""
         v = self.values["pendulum.I"]
         if not math.isnan(v):
             return v
         mc, ms = self.values["pendulum.m_cam"], self.values["pendulum.m_shaft"]
         ls, lc = self.values["pendulum.L_shaft"], self.values["pendulum.L_cam"]
         return mc * (lc / 2 + ls) ** 2 + ms * ls**2 / 12
+
+    @property
+    def I_cm(self) -> float:  # noqa: N802
+        """Inertia about the centre of mass (kg m^2), the same as :attr:`I`."""
+        return self.I
+
+    @property
+    def I_pivot(self) -> float:  # noqa: N802
+        """Inertia about the pivot, ``I_cm + m L^2`` (kg m^2): the ``J`` of the equations."""
+        return self.I + self.m * self.L**2
 
     @property
     def physical(self) -> dict[str, float]:
@@ -212,6 +230,7 @@ def params_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> RobotPa
     ParamError
         On an unknown section or key, a missing required key, or a value out of range.
     """
+    data, missing = _robot_file.normalise(data, ParamError)  # the minimal form, optional sections, I_cm/I_pivot
     sections = {k.split(".", 1)[0] for k in SCHEMA}
     values: dict[str, float] = {}
     for sec, body in data.items():
@@ -239,7 +258,7 @@ def params_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> RobotPa
         raise ParamError("sensors.delay", f"must be a whole number of control ticks of {1e3 / values['loop.rate']:g} ms "
                                           f"(loop.rate {values['loop.rate']:g} Hz), got {values['sensors.delay']!r} s "
                                           f"= {ticks:.4g} ticks")
-    return RobotParams(values=values, source=source)
+    return RobotParams(values=_robot_file.guard(values, missing, source, ParamError), source=source)
 
 
 def load_params(path: str | Path | None = None) -> RobotParams:
@@ -268,6 +287,7 @@ def load_params(path: str | Path | None = None) -> RobotParams:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ParamError("", f"{p}: not valid TOML: {exc}") from exc
+    _robot_file.note_old_keys(data, str(p))
     return params_from_dict(data, source=str(p))
 
 

@@ -1,6 +1,8 @@
-"""``upright design``: the design report of the robot in the parameter file.
+"""``upright design``: the design report of the robot in the parameter file, or (with design
+flags: ``--Q/--R``, ``--poles``, ``--observer-poles``, ``--noise``, ``--reduced-poles``, ``--pid``,
+``--rate``, ``--delay``, ``--json``) the chosen designs (:mod:`host.cli.design_tool`).
 
-Prints tables of open-loop poles, gains, closed-loop poles, margins and constraint checks
+Without flags it prints tables of open-loop poles, gains, closed-loop poles, margins and constraint checks
 for every design, and writes figures (pole-zero map, step/impulse responses, Nyquist
 plots, gang-of-four Bode) as PNG files.
 """
@@ -248,24 +250,44 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--candidates", type=positive_int, default=24,
                         help="--robust: designs evaluated (the budget; default 24, a few minutes on 2 cores)")
     parser.add_argument("--seed", type=nonneg_int, default=0, help="--robust: seed of the candidate draw")
-    parser.add_argument("--json", metavar="FILE", default=None, help="--robust: write the result as JSON")
+    parser.add_argument("--json", metavar="FILE", default=None,
+                        help="write the result as JSON: --robust's, or the design flags' ('-': stdout, nothing else)")
+    from host.cli.design_tool import add_tool_arguments
+
+    add_tool_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     """Print the design report and write the figures."""
     from host.cli.args import check_out_dir
 
+    from host.cli.design_tool import TOOL_FLAGS, run_tool, wants_tool
+
     if getattr(args, "robust", False):
+        from host.cli.args import UsageError
         from host.cli.design_robust import run_robust
 
+        given = [f"--{k.replace('_', '-')}" for k in TOOL_FLAGS if getattr(args, k, None) is not None]
+        if given:
+            raise UsageError(f"{given[0]}: a design flag, not with --robust")
+
         return run_robust(args)
-    if getattr(args, "uncertainty", None) is not None or getattr(args, "json", None) is not None:
+    if wants_tool(args):
+        return run_tool(args)
+    if getattr(args, "uncertainty", None) is not None:
         from host.cli.args import UsageError
 
-        raise UsageError("--uncertainty and --json need --robust")
+        raise UsageError("--uncertainty needs --robust")
     if not args.no_figures:
         check_out_dir(args.out, "--out")
     params = load_params(args.params)
+    from sim.robot_file import missing_sections
+
+    if "loop" in missing_sections(params.values):
+        from host.cli.args import UsageError
+
+        raise UsageError(f"the report scores every design against the [loop] constraints, and {params.source} has no "
+                         f"[loop] section: add it, or design with the flags (--Q/--R, --poles, ...; docs/design.md)")
     text, _ = build_report(params, search=not args.no_search)
     print(f"Design report for {params.source}\n")
     print(text)

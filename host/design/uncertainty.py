@@ -81,10 +81,12 @@ class Point:
         """Robot-file overrides (scenario ``[params]``) that make this robot from ``params``."""
         f = self.factors
         fm = f.get("pendulum_mass", 1.0)
+        minimal = not math.isnan(params.values["pendulum.m"])  # the minimal form: one pendulum mass
+        masses = ({"pendulum.m": params.m * fm} if minimal else
+                  {"pendulum.m_cam": params.m_cam * fm, "pendulum.m_shaft": params.m_shaft * fm})
         return {
             "cart.M": params.M * f.get("cart_mass", 1.0),
-            "pendulum.m_cam": params.m_cam * fm,
-            "pendulum.m_shaft": params.m_shaft * fm,
+            **masses,
             "pendulum.L_cm": params.L,  # masses scaled together: the centre of mass stays
             "pendulum.I": params.I * f.get("inertia", 1.0),
             "cart.b": params.b * f.get("friction", 1.0),

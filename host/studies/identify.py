@@ -372,5 +372,6 @@ def robot_toml(p: RobotParams, note: str = "") -> str:
             out += ["", f"[{s}]"] if out else [f"[{s}]"]
             sec = s
         val = str(int(v)) if SCHEMA[key].integer else repr(float(v))
+        k = "I_cm" if key == "pendulum.I" else k  # the file's name of the internal key (sim/robot_file.py)
         out.append(f"{k} = {val}  # {SCHEMA[key].unit}, {SCHEMA[key].doc}")
     return "\n".join(out) + "\n"
