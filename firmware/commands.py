@@ -16,6 +16,7 @@
 #   fill_telemetry(arr) (TELEM_STATE fields then TELEM_CTRL fields: 8 ints),
 #   fill_timing(arr) (TIMING fields: 4 ints),
 #   fill_sensors_raw(arr) (SENSORS_RAW fields: adc, enc, pos; on REQUEST),
+#   status_get(k) (msgtable STATUS value k, read by PARAM_GET(STATUS_BASE + k)),
 #   cmd_save(dispatcher, seq) (SAVE_CONFIG: queue a save; the target answers it later
 #   with dispatcher.reply(SAVE_CONFIG, seq, reason)); without fill_sensors_raw or cmd_save
 #   their request / SAVE_CONFIG is refused with R_NOT_SUPPORTED.
@@ -59,6 +60,7 @@ class Dispatcher:
         self.gbuf = bytearray(T.GAINS_MAX)
         self.g_len = 0
         self.g_crc = 0
+        self.g_run = 0
         self.g_got = 0
         self.g_active = False
         self.n_refused = 0
@@ -73,6 +75,10 @@ class Dispatcher:
         self._fill_raw = target.fill_sensors_raw if hasattr(target, "fill_sensors_raw") else None
         self._save = target.cmd_save if hasattr(target, "cmd_save") else None
         self._excite = target.cmd_excite if hasattr(target, "cmd_excite") else None
+        # status_get(k) -> int: the read-only status values (msgtable STATUS; PARAM_GET)
+        self._status = target.status_get if hasattr(target, "status_get") else None
+        # gains_apply_crc(buf, nbytes, crc): the table with the CRC checked here (not computed again)
+        self._apply_crc = target.gains_apply_crc if hasattr(target, "gains_apply_crc") else None
         self._counted = hasattr(sender, "n_sent")
 
     # ---- replies ----
@@ -192,12 +198,22 @@ class Dispatcher:
         if mid == T.CLEAR_FAULTS:
             return self._reply(mid, seq, tg.cmd_clear_faults())
         if mid == T.PARAM_GET:
-            if rx[0] >= self.nparams:
-                return self._nack(mid, seq, T.R_BAD_INDEX)
-            return self._param_value(rx[0], seq)
+            i = rx[0]
+            if i >= self.nparams:
+                k = i - T.STATUS_BASE
+                if k < 0 or k >= T.N_STATUS or self._status is None:
+                    return self._nack(mid, seq, T.R_BAD_INDEX)
+                tx = self.tx
+                tx[0] = i
+                tx[1] = self._status(k)
+                self.sender.send(T.PARAM_VALUE, seq, tx, 0)
+                return T.OK
+            return self._param_value(i, seq)
         if mid == T.PARAM_SET:
             i = rx[0]
             if i >= self.nparams:
+                if T.STATUS_BASE <= i < T.STATUS_BASE + T.N_STATUS:
+                    return self._nack(mid, seq, T.R_READ_ONLY)
                 return self._nack(mid, seq, T.R_BAD_INDEX)
             v = rx[1]
             if v < self.pmin[i] or v > self.pmax[i]:
@@ -260,6 +276,7 @@ class Dispatcher:
         self.g_len = nbytes
         self.g_crc = crc
         self.g_got = 0
+        self.g_run = crc16.INIT  # CRC of the bytes received so far (one chunk's worth per chunk)
         self.g_active = True
         return self._ack(T.GAINS_BEGIN, seq)
 
@@ -277,21 +294,29 @@ class Dispatcher:
             self.g_active = False
             return self._nack(T.GAINS_CHUNK, seq, T.R_BAD_SEQUENCE)
         g = self.gbuf
+        tb = self.table
+        c = self.g_run
         for i in range(n):
-            g[offset + i] = buf[doff + i]
+            b = buf[doff + i]
+            g[offset + i] = b
+            c = ((c << 8) & 0xFFFF) ^ tb[((c >> 8) ^ b) & 0xFF]
+        self.g_run = c
         self.g_got = got + n
         return self._ack(T.GAINS_CHUNK, seq)
 
     def _gains_commit(self, seq):
+        # bounded: the CRC was built chunk by chunk (_gains_chunk); the state is checked first
+        if not self._motor_off():
+            # upload kept: disarm and commit again
+            return self._nack(T.GAINS_COMMIT, seq, T.R_ARMED)
         if not self.g_active:
             return self._nack(T.GAINS_COMMIT, seq, T.R_BAD_SEQUENCE)
         if self.g_got != self.g_len:
             return self._nack(T.GAINS_COMMIT, seq, T.R_INCOMPLETE)
-        if crc16.compute(self.table, self.gbuf, 0, self.g_len) != self.g_crc:
+        if self.g_run != self.g_crc:
             self.g_active = False
             return self._nack(T.GAINS_COMMIT, seq, T.R_BAD_CRC)
-        if not self._motor_off():
-            # upload kept: disarm and commit again
-            return self._nack(T.GAINS_COMMIT, seq, T.R_ARMED)
         self.g_active = False
+        if self._apply_crc is not None:
+            return self._reply(T.GAINS_COMMIT, seq, self._apply_crc(self.gbuf, self.g_len, self.g_crc))
         return self._reply(T.GAINS_COMMIT, seq, self.target.gains_apply(self.gbuf, self.g_len))

@@ -277,7 +277,8 @@ REASONS = (
     (R_BAD_INDEX, "bad_index", "no parameter with this index"),
     (R_READ_ONLY, "read_only", "parameter cannot be written"),
     (R_FAULTED, "faulted", "a fault is latched: clear it first (arming refused)"),
-    (R_ARMED, "armed", "only allowed while the motor is off (gain table, some parameters)"),
+    (R_ARMED, "armed", "only allowed while the motor is off: gain commit, save, mode, and the parameters "
+     "that change the drive or the sensors (DRIVE_PARAMS: signs, pot offset, max_duty, node_id)"),
     (R_BAD_STATE, "bad_state", "not allowed in the current supervisor state"),
     (R_BAD_LENGTH, "bad_length", "gain table length is 0, too long, or not the expected size"),
     (R_BAD_CRC, "bad_crc", "gain table CRC does not match the bytes received"),
@@ -317,6 +318,11 @@ P_ENC_SIGN = const(11)
 P_MOTOR_SIGN = const(12)
 N_PARAMS = const(13)
 
+# parameters that change the drive or what the sensors mean (signs, offsets, the duty clamp,
+# the CAN node id the host reaches the board at): param_set is refused (ARMED) while armed or
+# balancing -- changed under a balancing robot they tip it
+DRIVE_PARAMS = (P_MAX_DUTY, P_NODE_ID, P_POT_OFFSET, P_ADC_SIGN, P_ENC_SIGN, P_MOTOR_SIGN)
+
 # (index, name, unit, min, max, default, doc); every value an int with |v| < 2**30
 PARAMS = (
     (P_TILT_LIMIT, "tilt_limit_mrad", "mrad", 50, 1500, 500,
@@ -347,6 +353,35 @@ PARAMS = (
      "encoder direction: -1 flips it (0 counts as +1); start-up value firmware/board.py ENC_SIGN"),
     (P_MOTOR_SIGN, "motor_sign", "", -1, 1, 1,
      "motor direction on top of firmware/board.py MOTOR_SIGN: -1 flips it (0 counts as +1)"),
+)
+
+# ---- status values: read-only board figures, read with PARAM_GET(STATUS_BASE + k) ----
+# answered by PARAM_VALUE like a parameter, never saved, refused by PARAM_SET (read_only);
+# each an int with |v| < 2**30 (the host: host.link.clients.Link.status)
+STATUS_BASE = const(64)
+S_UPTIME_MS = const(0)
+S_LATE = const(1)
+S_LINK_DEFERRED = const(2)
+S_LINK_WAIT_MAX = const(3)
+S_CFG_STATUS = const(4)
+S_CFG_SLOT = const(5)
+S_CFG_SEQ = const(6)
+S_STARTS = const(7)
+N_STATUS = const(8)
+# (k, name, unit, doc)
+STATUS = (
+    (S_UPTIME_MS, "uptime_ms", "ms", "time since the board started (not reset by a MODE switch), wraps at 2**30 ms "
+     "(12.4 days); HEARTBEAT.uptime_ms is its low 16 bits"),
+    (S_LATE, "late_ticks", "", "loop ticks that started late (gap > 1.5 periods) since start (saturates at 65535)"),
+    (S_LINK_DEFERRED, "link_deferred", "", "host frames that waited in the receive buffer for a later tick "
+     "(the link's per-tick budget was spent) since start (saturates at 65535)"),
+    (S_LINK_WAIT_MAX, "link_wait_max", "tick", "longest time a host frame waited in the receive buffer, in ticks"),
+    (S_CFG_STATUS, "cfg_status", "", "saved configuration at start-up: 0 loaded, 1 empty (none saved), 2 corrupt "
+     "(copies there, none valid: defaults, F_CONFIG), 3 no storage"),
+    (S_CFG_SLOT, "cfg_slot", "", "the saved copy in force: 0 (cfg_a.bin), 1 (cfg_b.bin), -1 none (defaults)"),
+    (S_CFG_SEQ, "cfg_seq", "", "sequence number of the saved copy in force (0: none); each save writes newest + 1"),
+    (S_STARTS, "starts", "", "control-loop starts since the board started: 1, +1 after each MODE switch back to "
+     "the robot (the board did not reset: HEARTBEAT.boot unchanged)"),
 )
 
 # ---- fault flags (HEARTBEAT.faults; HIL_ACTUATOR.faults carries the low 8 bits) ----

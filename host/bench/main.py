@@ -26,6 +26,7 @@ BENCHES: dict[str, str] = {
     "firmware": "host.bench.firmware:bench",
     "hil": "host.bench.hil:bench_hil",
     "rp2040": "host.bench.rp2040:bench",
+    "link": "host.bench.link_sweep:bench",
     "fuzz_states": "host.bench.fuzz_states:bench",
     "catch": "host.bench.catch:bench",
     "identify": "host.bench.identify:bench",

@@ -130,5 +130,13 @@ def render_protocol_md() -> str:
             "`out_of_range` before the firmware is asked.", "",
             "| index | name | unit | min | max | default | meaning |", "|---:|---|---|---:|---:|---:|---|"]
     out += [f"| {i} | `{n}` | {u} | {lo} | {hi} | {d} | {doc} |" for i, n, u, lo, hi, d, doc in T.PARAMS]
+    drive = ", ".join(f"`{p[1]}`" for p in T.PARAMS if p[0] in T.DRIVE_PARAMS)
+    out += ["", f"Refused with `armed` while armed or balancing (they change the drive or what the sensors mean, "
+            f"and would tip a balancing robot): {drive}; `loop_rate_hz` is always read-only.", ""]
+    out += ["## Status values (`param_get` at index STATUS_BASE + k, read-only)", "",
+            f"Board figures read like parameters: `param_get(index={T.STATUS_BASE} + k)` is answered by",
+            "`param_value`; never saved, `param_set` on them is refused with `read_only`.", "",
+            "| index | name | unit | meaning |", "|---:|---|---|---|"]
+    out += [f"| {T.STATUS_BASE + k} | `{n}` | {u} | {doc} |" for k, n, u, doc in T.STATUS]
     out.append("")
     return "\n".join(out)
