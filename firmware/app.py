@@ -240,7 +240,11 @@ class App:
         if not self.sup.ready:
             self.sup.faults |= F_GAINS
             self.sup.state = FAULT
-        if self.reset_cause != T.RC_POWER_ON:
+        latch = self.reset_cause
+        # VERSION.reset_cause: why the board last reset, also after a MODE switch restarted the
+        # loop (main.py: config reset_cause_boot; F_RESET latches on the first start only)
+        self.reset_cause = cfg.get("reset_cause_boot", latch)
+        if latch != T.RC_POWER_ON:
             # restarted by the hardware watchdog or a loop exception: the host must see it
             self.sup.faults |= F_RESET
             self.sup.state = FAULT
@@ -863,7 +867,17 @@ class App:
             arr[3] = self._tel(xf[3], 3)
             arr[4] = self._tel(self.ref, 0)
             arr[5] = self._tel(c.u, 4)
-        if self.exc.mode:
+        if self.sup.state != BALANCING:
+            # motor off (disarmed, armed waiting to catch, fault): the force is what is
+            # applied (0), the state the sensors as read, at rest -- not the estimate of the
+            # last balancing tick, which the controller no longer updates
+            s = self.sensors
+            arr[0] = self._tel(fixmath.clamp(s.yx, c.lim[0]), 0)
+            arr[1] = 0
+            arr[2] = self._tel(fixmath.clamp(s.yp, c.lim[2]), 2)
+            arr[3] = 0
+            arr[5] = 0
+        elif self.exc.mode:
             # an excitation is set: x and phi as the sensors read them (upright identify)
             s = self.sensors
             arr[0] = self._tel(fixmath.clamp(s.yx, c.lim[0]), 0)

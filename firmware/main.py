@@ -35,10 +35,13 @@ def main(link=None, repl_ms=None):
             import time
             time.sleep_ms(ms)  # Ctrl-C now: KeyboardInterrupt, the REPL (motor off since HalPico())
     port = None
+    starts = 0
     try:
         while True:
-            mode, port = _robot(board, hal, link, port, boot, cause)
-            cause = T.RC_POWER_ON
+            # a MODE switch back to the robot starts a new App: the board did not reset (the
+            # boot counter and the reset cause stay), its uptime goes on and `starts` counts it
+            starts += 1
+            mode, port = _robot(board, hal, link, port, boot, cause, starts)
             while mode == T.MODE_HIL:
                 mode = _hil(port, boot)
             if mode == T.MODE_REPL:
@@ -60,19 +63,25 @@ def _port(hal, link):
     return hal.uart()
 
 
+def _uptime_ms():
+    # board time since power-up (rp2: time.ticks_ms() starts at 0 at reset, wraps at 2**30)
+    import time
+    return time.ticks_ms() & 0x3FFFFFFF
+
+
 def _hil(port, boot):
     # MODE hil: lockstep HIL on the robot's link until MODE robot/repl; returns that mode.
     # The motor stays off (the robot loop switched it off; HilHal drives no pin)
     import gc
     from .main_hil import BoardUART, HilMain
     gc.collect()
-    m = HilMain(port if hasattr(port, "wait") else BoardUART(port), config={"boot": boot})
+    m = HilMain(port if hasattr(port, "wait") else BoardUART(port), config={"boot": boot, "uptime_ms": _uptime_ms()})
     m.switch = True
     m.run()
     return m.next_mode
 
 
-def _robot(board, hal, link, port, boot, cause):
+def _robot(board, hal, link, port, boot, cause, starts=1):
     # The robot: the paced loop until a MODE switch (returns the mode asked for and the port).
     # Safety net around the loop (see docs/firmware.md, "Hardware cut-offs"):
     #  - a hung loop stops feeding the hardware watchdog (board.WDT_MS): the board resets,
@@ -90,7 +99,11 @@ def _robot(board, hal, link, port, boot, cause):
     try:
         cfg = board.config()
         cfg["boot"] = boot
-        cfg["reset_cause"] = cause
+        # the reset cause of this boot: only the first start after a reset latches F_RESET
+        cfg["reset_cause"] = cause if starts == 1 else T.RC_POWER_ON
+        cfg["reset_cause_boot"] = cause
+        cfg["starts"] = starts
+        cfg["uptime_ms"] = _uptime_ms()
         app = App(hal, config=cfg)
         # saved parameters and gain table (two copies on the flash filesystem), before the link
         from .store import ConfigStore

@@ -104,7 +104,8 @@ MESSAGES = (
       ("boot", "B", 1, "", "boot counter mod 256, incremented on every start"),
       ("epoch", "B", 1, "", "arming epoch mod 256: ARM must carry it; changes on every disarm, clear_faults and fault"),
       ("gains_crc", "B", 1, "", "low 8 bits of the active gain table's CRC-16 (VERSION.gains_crc)"),
-      ("uptime_ms", "H", 1, "ms", "time since boot, low 16 bits (wraps every 65.536 s)"))),
+      ("uptime_ms", "H", 1, "ms", "time since boot, low 16 bits (wraps every 65.536 s; the whole value: "
+       "SESSION.uptime_ms, status value uptime_ms)"))),
     (HIL_SENSOR, "hil_sensor", TO_BOARD,
      "HIL: the simulated sensors for one control tick; in lockstep the board runs one step per frame.",
      (("tick", "I", 1, "", "tick number of this sample, wraps at 2**30"),
@@ -117,7 +118,8 @@ MESSAGES = (
       ("state", "B", 1, "", "supervisor state (see STATES)"),
       ("faults", "B", 1, "", "low 8 bits of the latched fault flags"))),
     (TELEM_STATE, "telem_state", TO_HOST,
-     "Telemetry part 1: estimated state (every telemetry_div ticks, and on REQUEST).",
+     "Telemetry part 1: estimated state (every telemetry_div ticks, and on REQUEST); while not balancing "
+     "(motor off) x and phi as the sensors read them and the rates 0.",
      (("x", "h", 0.0001, "m", "estimated cart position"),
       ("xdot", "h", 0.001, "m/s", "estimated cart speed"),
       ("phi", "h", 0.0001, "rad", "estimated tilt from upright"),
@@ -125,7 +127,7 @@ MESSAGES = (
     (TELEM_CTRL, "telem_ctrl", TO_HOST,
      "Telemetry part 2: reference, command and step time of the same tick as the preceding TELEM_STATE.",
      (("ref", "h", 0.0001, "m", "cart position reference"),
-      ("force", "h", 0.01, "N", "commanded cart force after saturation"),
+      ("force", "h", 0.01, "N", "commanded cart force after saturation (0 while not balancing: what is applied)"),
       ("duty", "h", 1, "", "motor duty sent to the driver"),
       ("step_us", "H", 1, "us", "duration of this control step"))),
     (TIMING, "timing", TO_HOST,
