@@ -95,21 +95,30 @@ _SAVE_WDT_MS = const(5000)
 _I16 = const(32767)
 _U16 = const(65535)
 _TICKS_MASK = const(0x3FFFFFFF)  # tick/uptime counters wrap to 0 after this (fixmath)
+# the arming token's generator (App._new_token): a = 0x41C64E6D mod 2**30 in 15-bit limbs, c
+_LCG_AL = const(0x4E6D)
+_LCG_AH = const(0x038C)
+_LCG_C = const(12345)
 # the parameters with a derived integer (App._apply_param)
 _DERIVED = (T.P_TILT_LIMIT, T.P_ARM_TILT, T.P_WATCHDOG_MS, T.P_MAX_DUTY, T.P_POT_OFFSET, T.P_ADC_SIGN,
             T.P_ENC_SIGN, T.P_MOTOR_SIGN)
 
 
 def _epoch0(cfg, boot):
-    # the arming epoch a start begins with: random where the port has os.urandom, so an
-    # arm sent to the board before it reset does not match (config "epoch": tests)
+    # the arming token a start begins with (30 bits): os.urandom where the port has it, mixed
+    # with config "seed" (main.py: firmware/session.py, which also mixes the RP2040's ring
+    # oscillator and a seed persisted across starts -- an emulated board's urandom is the
+    # same at every power-up) and the boot counter; config "epoch" fixes it (tests)
     if "epoch" in cfg:
-        return cfg["epoch"] & 0xFF
+        return cfg["epoch"] & _TICKS_MASK
+    v = (cfg.get("seed", 0) ^ (boot << 22)) & _TICKS_MASK
     try:
         import os
-        return os.urandom(1)[0]
+        b = os.urandom(4)
+        v ^= ((b[0] & 0x3F) << 24) | (b[1] << 16) | (b[2] << 8) | b[3]
     except (ImportError, AttributeError, OSError):
-        return (boot * 151 + 89) & 0xFF
+        pass
+    return v & _TICKS_MASK
 
 
 class App:
@@ -347,7 +356,7 @@ class App:
         st = sup.state
         if st != self._st:
             if st == FAULT:
-                self.epoch = (self.epoch + 1) & 0xFF
+                self._new_token()
             self._st = st
         duty = 0
         if sup.state == BALANCING:
@@ -591,8 +600,8 @@ class App:
         return self.sup.arm()
 
     def cmd_disarm(self):
-        # every disarm changes the epoch: no arm sent before it can act after it
-        self.epoch = (self.epoch + 1) & 0xFF
+        # every disarm draws a new token: no arm sent before it can act after it
+        self._new_token()
         r = self.sup.disarm()
         self._set_motor(0)
         self._drive(0)
@@ -602,7 +611,7 @@ class App:
     def cmd_clear_faults(self):
         r = self.sup.clear()
         if r == T.OK:
-            self.epoch = (self.epoch + 1) & 0xFF
+            self._new_token()
         if r == T.OK and self.config_bad:
             # no valid saved configuration: stays latched until a table is uploaded
             self.sup.faults |= F_CONFIG
@@ -773,7 +782,7 @@ class App:
         arr[0] = self.sup.state
         arr[1] = self.sup.faults
         arr[2] = self.boot
-        arr[3] = self.epoch
+        arr[3] = self.epoch & 0xFF
         arr[4] = self.gains_crc & 0xFF
         arr[5] = self.uptime_ms & 0xFFFF
 
@@ -827,6 +836,23 @@ class App:
         if a < self._alloc_last:
             self._gc_count += 1
         self._alloc_last = a
+
+    def _new_token(self):
+        # the next arming token (disarm, clear_faults, fault): x -> a*x + c mod 2**30, a = 1 mod
+        # 4 and c odd (full period: no token repeats within 2**30 draws), in 15-bit limbs so
+        # every intermediate is a small int on a 32-bit port; allocation-free (the tick calls it)
+        x = self.epoch
+        hi = x >> 15
+        lo = x & 0x7FFF
+        t = _LCG_AL * lo
+        m = ((_LCG_AH * lo) & 0x7FFF) + ((_LCG_AL * hi) & 0x7FFF)
+        s = (t & 0x7FFF) + _LCG_C
+        self.epoch = ((((t >> 15) + m + (s >> 15)) & 0x7FFF) << 15) | (s & 0x7FFF)
+
+    def fill_session(self, arr):
+        # SESSION: the arming token and the whole uptime
+        arr[0] = self.epoch
+        arr[1] = self.uptime_ms
 
     def fill_stats(self, arr):
         # STATS_LOOP: worst step and deadline misses since boot, free heap (64 B units) and

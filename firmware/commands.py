@@ -20,7 +20,11 @@
 #   cmd_save(dispatcher, seq) (SAVE_CONFIG: queue a save; the target answers it later
 #   with dispatcher.reply(SAVE_CONFIG, seq, reason)); without fill_sensors_raw or cmd_save
 #   their request / SAVE_CONFIG is refused with R_NOT_SUPPORTED.
-# ARM is refused (R_STALE_EPOCH) unless its epoch is the one the heartbeat reports.
+# target.epoch: the arming token (SESSION.token).  ARM is refused (R_STALE_EPOCH) unless it
+# carries the token, GAINS_BEGIN likewise, and an upload ends when the token changes.  The
+# commands of msgtable.CHECKED are refused (R_BAD_CHECK) unless their trailing check is the
+# CRC-32 of their id byte and the payload bytes before it (low 30 bits of a u32 field, low
+# 16 of a u16); GAINS_COMMIT carries the CRC-32 of the whole table, built chunk by chunk.
 # sender: any object with send(mid, seq, vals, voff) (framing.SerialTx,
 # canframe-based senders, or a test double); its n_sent (if it has one) is STATS_FRAMES'
 # frames_out.  dec: the link's decoder (framing.Decoder, canframe.SerialCanDecoder), set
@@ -36,6 +40,7 @@ from array import array
 
 from . import crc16
 from . import identity
+from .crc32 import Crc32
 from . import msgtable as T
 
 _FAULT_STATE = const(3)
@@ -62,6 +67,9 @@ class Dispatcher:
         self.g_crc = 0
         self.g_run = 0
         self.g_got = 0
+        self.g_token = -1
+        self.c32 = Crc32()  # command checks and the upload's CRC-32 (chunk by chunk)
+        self.g32 = Crc32()
         self.g_active = False
         self.n_refused = 0
         self.n_handled = 0
@@ -75,6 +83,7 @@ class Dispatcher:
         self._fill_raw = target.fill_sensors_raw if hasattr(target, "fill_sensors_raw") else None
         self._save = target.cmd_save if hasattr(target, "cmd_save") else None
         self._excite = target.cmd_excite if hasattr(target, "cmd_excite") else None
+        self._fill_session = target.fill_session if hasattr(target, "fill_session") else None
         # status_get(k) -> int: the read-only status values (msgtable STATUS; PARAM_GET)
         self._status = target.status_get if hasattr(target, "status_get") else None
         # gains_apply_crc(buf, nbytes, crc): the table with the CRC checked here (not computed again)
@@ -174,8 +183,22 @@ class Dispatcher:
             return self._nack(mid, seq, T.R_UNKNOWN)
         self.n_handled += 1
         rx = self.rx
-        self.layout.unpack(mid, buf, off, rx, 0)
+        nf = self.layout.unpack(mid, buf, off, rx, 0)
         tg = self.target
+        if mid in T.CHECKED:
+            # the integrity check: CRC-32 of the id byte and the payload before the check
+            pl = self.layout.plen[mid]
+            c = self.c32
+            c.start()
+            c.byte(mid)
+            if mid == T.PARAM_SET:
+                c.feed(buf, off, pl - 2)
+                ok = c.low16() == rx[nf - 1]
+            else:
+                c.feed(buf, off, pl - 4)
+                ok = c.low30() == rx[nf - 1]
+            if not ok:
+                return self._nack(mid, seq, T.R_BAD_CHECK)
         if mid == T.SET_REFERENCE:
             x = rx[0]
             lim = tg.param_get(T.P_REF_LIMIT)
@@ -190,7 +213,7 @@ class Dispatcher:
             tg.fill_heartbeat(self.tx)
             if self.tx[1] != 0 or self.tx[0] == _FAULT_STATE:
                 return self._nack(mid, seq, T.R_FAULTED)
-            if rx[0] != self.tx[3]:
+            if rx[0] != tg.epoch:
                 return self._nack(mid, seq, T.R_STALE_EPOCH)
             return self._reply(mid, seq, tg.cmd_arm())
         if mid == T.DISARM:
@@ -223,11 +246,15 @@ class Dispatcher:
                 return self._nack(mid, seq, r)
             return self._param_value(i, seq)
         if mid == T.GAINS_BEGIN:
+            if rx[2] != tg.epoch:
+                # not this session's upload (sent before a reset, disarm or fault)
+                self.g_active = False
+                return self._nack(mid, seq, T.R_STALE_EPOCH)
             return self._gains_begin(rx[0], rx[1], seq)
         if mid == T.GAINS_CHUNK:
             return self._gains_chunk(rx[0], buf, rx[1], seq)
         if mid == T.GAINS_COMMIT:
-            return self._gains_commit(seq)
+            return self._gains_commit(seq, rx[0])
         if mid == T.SAVE_CONFIG:
             # queued by the target (cmd_save(dispatcher, seq)); answered through reply() when done
             if self._save is None:
@@ -252,6 +279,13 @@ class Dispatcher:
             w = rx[0]
             if w == T.HEARTBEAT:
                 self.send_heartbeat(seq)
+            elif w == T.SESSION:
+                tx = self.tx
+                tx[0] = tg.epoch
+                tx[1] = 0
+                if self._fill_session is not None:
+                    self._fill_session(tx)
+                self.sender.send(T.SESSION, seq, tx, 0)
             elif w == T.TELEM_STATE or w == T.TELEM_CTRL:
                 self.send_telemetry(seq)
             elif w == T.TIMING:
@@ -277,12 +311,18 @@ class Dispatcher:
         self.g_crc = crc
         self.g_got = 0
         self.g_run = crc16.INIT  # CRC of the bytes received so far (one chunk's worth per chunk)
+        self.g32.start()
+        self.g_token = self.target.epoch
         self.g_active = True
         return self._ack(T.GAINS_BEGIN, seq)
 
     def _gains_chunk(self, offset, buf, doff, seq):
         if not self.g_active:
             return self._nack(T.GAINS_CHUNK, seq, T.R_BAD_SEQUENCE)
+        if self.g_token != self.target.epoch:
+            # the session that began the upload ended (disarm, fault): the upload with it
+            self.g_active = False
+            return self._nack(T.GAINS_CHUNK, seq, T.R_STALE_EPOCH)
         got = self.g_got
         n = self.g_len - offset
         if n > T.CHUNK_BYTES:
@@ -301,21 +341,28 @@ class Dispatcher:
             g[offset + i] = b
             c = ((c << 8) & 0xFFFF) ^ tb[((c >> 8) ^ b) & 0xFF]
         self.g_run = c
+        self.g32.feed(buf, doff, n)
         self.g_got = got + n
         return self._ack(T.GAINS_CHUNK, seq)
 
-    def _gains_commit(self, seq):
-        # bounded: the CRC was built chunk by chunk (_gains_chunk); the state is checked first
+    def _gains_commit(self, seq, check):
+        # bounded: the CRCs were built chunk by chunk (_gains_chunk); the state is checked first
         if not self._motor_off():
             # upload kept: disarm and commit again
             return self._nack(T.GAINS_COMMIT, seq, T.R_ARMED)
         if not self.g_active:
             return self._nack(T.GAINS_COMMIT, seq, T.R_BAD_SEQUENCE)
+        if self.g_token != self.target.epoch:
+            self.g_active = False
+            return self._nack(T.GAINS_COMMIT, seq, T.R_STALE_EPOCH)
         if self.g_got != self.g_len:
             return self._nack(T.GAINS_COMMIT, seq, T.R_INCOMPLETE)
         if self.g_run != self.g_crc:
             self.g_active = False
             return self._nack(T.GAINS_COMMIT, seq, T.R_BAD_CRC)
+        if self.g32.low30() != check:
+            self.g_active = False
+            return self._nack(T.GAINS_COMMIT, seq, T.R_BAD_CHECK)
         self.g_active = False
         if self._apply_crc is not None:
             return self._reply(T.GAINS_COMMIT, seq, self._apply_crc(self.gbuf, self.g_len, self.g_crc))

@@ -29,6 +29,8 @@ def main(link=None, repl_ms=None):
     cause = hal.reset_cause()
     link = link or getattr(board, "LINK", "uart")
     boot = boot_count()
+    from .session import seed
+    seed0 = seed()  # the arming token's seed: differs at every start (firmware/session.py)
     if link == "usb":
         ms = getattr(board, "USB_REPL_MS", 0) if repl_ms is None else repl_ms
         if ms > 0:
@@ -41,7 +43,7 @@ def main(link=None, repl_ms=None):
             # a MODE switch back to the robot starts a new App: the board did not reset (the
             # boot counter and the reset cause stay), its uptime goes on and `starts` counts it
             starts += 1
-            mode, port = _robot(board, hal, link, port, boot, cause, starts)
+            mode, port = _robot(board, hal, link, port, boot, cause, starts, seed0 + starts)
             while mode == T.MODE_HIL:
                 mode = _hil(port, boot)
             if mode == T.MODE_REPL:
@@ -81,7 +83,7 @@ def _hil(port, boot):
     return m.next_mode
 
 
-def _robot(board, hal, link, port, boot, cause, starts=1):
+def _robot(board, hal, link, port, boot, cause, starts=1, seed=0):
     # The robot: the paced loop until a MODE switch (returns the mode asked for and the port).
     # Safety net around the loop (see docs/firmware.md, "Hardware cut-offs"):
     #  - a hung loop stops feeding the hardware watchdog (board.WDT_MS): the board resets,
@@ -103,6 +105,7 @@ def _robot(board, hal, link, port, boot, cause, starts=1):
         cfg["reset_cause"] = cause if starts == 1 else T.RC_POWER_ON
         cfg["reset_cause_boot"] = cause
         cfg["starts"] = starts
+        cfg["seed"] = seed & 0x3FFFFFFF
         cfg["uptime_ms"] = _uptime_ms()
         app = App(hal, config=cfg)
         # saved parameters and gain table (two copies on the flash filesystem), before the link

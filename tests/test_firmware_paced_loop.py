@@ -35,6 +35,7 @@ from array import array
 from firmware import codec, crc16, framing, gains
 from firmware import msgtable as T
 from firmware.app import App
+from firmware.crc32 import seal, of as crc32_of
 from firmware.link_serial import SerialLink
 
 _MASK = 0x3FFFFFFF
@@ -79,10 +80,12 @@ POS = 0
 VALS = array('i', [0] * 4)
 
 
-def add(tick, mid, a=0, b=0):
+def add(tick, mid, a=0, b=0, c=0):
     global NF, POS
     VALS[0] = a
     VALS[1] = b
+    VALS[2] = c
+    seal(layout, mid, VALS)  # the integrity check of a command that moves the cart
     n = enc.encode(mid, NF & 0xFF, VALS, 0)
     STREAM[POS:POS + n] = enc.out[:n]
     POS += n
@@ -92,7 +95,15 @@ def add(tick, mid, a=0, b=0):
 
 
 add(60, T.PARAM_SET, T.P_TELEM_DIV, 1)
-add(61, T.ARM, 0)  # the arming epoch: 0 at start (config), +1 by the watchdog fault, +1 by clear
+class _Tok:
+    epoch = 0
+def token(k):
+    # the arming token after k draws from 0 (config epoch 0; App._new_token: a fault, a clear)
+    t = _Tok()
+    for _ in range(k):
+        App._new_token(t)
+    return t.epoch
+add(61, T.ARM, token(0))  # the arming token: 0 at start (config), drawn anew by the watchdog fault and by clear
 add(63, T.SET_REFERENCE, 50000)
 for k in range(100, 1500, 40):
     add(k, T.REQUEST, T.HEARTBEAT)
@@ -109,15 +120,15 @@ BLOB = bytearray(NB + 6)
 for i in range(len(FL)):
     for j in range(4):
         BLOB[4 * i + j] = (FL[i] >> (8 * j)) & 0xFF
-add(1700, T.GAINS_BEGIN, NB, crc16.compute(table, BLOB, 0, NB))
+add(1700, T.GAINS_BEGIN, NB, crc16.compute(table, BLOB, 0, NB), token(1))
 NCHUNK = 0
 for off in range(0, NB, T.CHUNK_BYTES):
     enc.raw[4:4 + T.CHUNK_BYTES] = BLOB[off:off + T.CHUNK_BYTES]
     add(1700, T.GAINS_CHUNK, off)
     NCHUNK += 1
-add(1700, T.GAINS_COMMIT)
+add(1700, T.GAINS_COMMIT, crc32_of(BLOB, NB))
 add(1800, T.CLEAR_FAULTS)
-add(1801, T.ARM, 2)
+add(1801, T.ARM, token(2))
 for k in range(1810, 2050, 40):
     add(k, T.REQUEST, T.HEARTBEAT)
     add(k, T.HOST_HEARTBEAT)
