@@ -7,8 +7,9 @@
 #   c = Crc32()                  tables made once (1 KB)
 #   c.start(); c.feed(buf, i, n) bytes buf[i:i+n] into the running register
 #   c.byte(b)                    one byte
-#   c.low30(), c.low16()         the final CRC's low 30 / 16 bits (what a u32 / u16 field
-#                                carries to the firmware: msgtable's u32 keeps 30 bits)
+#   c.low30(), c.low24()         the final CRC's low 30 / 24 bits (what a u32 field carries to
+#                                the firmware -- msgtable's u32 keeps 30 bits -- / param_set's
+#                                3-byte check)
 
 from array import array
 
@@ -17,12 +18,15 @@ _TABLES = None  # (th, tl): made by the first Crc32 (not at import), shared by e
 
 
 def _make():
-    # the table as two arrays of 16-bit halves (reflected poly 0xEDB88320)
+    # the table as two arrays of 16-bit halves (reflected poly 0xEDB88320).  A CRC table is
+    # linear (T[a ^ b] = T[a] ^ T[b]): the 8 single-bit entries bit by bit, the rest by xor
+    # (~300 steps instead of 2048: the board builds it at start-up, before the loop runs)
     th = array("H", [0] * 256)
     tl = array("H", [0] * 256)
-    for i in range(256):
+    b = 1
+    while b < 256:
         hi = 0
-        lo = i
+        lo = b
         for _ in range(8):
             if lo & 1:
                 lo = ((lo >> 1) | ((hi & 1) << 15)) ^ 0x8320
@@ -30,8 +34,14 @@ def _make():
             else:
                 lo = (lo >> 1) | ((hi & 1) << 15)
                 hi = hi >> 1
-        th[i] = hi
-        tl[i] = lo
+        th[b] = hi
+        tl[b] = lo
+        b <<= 1
+    for i in range(3, 256):
+        low = i & -i
+        if low != i:
+            th[i] = th[low] ^ th[i ^ low]
+            tl[i] = tl[low] ^ tl[i ^ low]
     return th, tl
 
 
@@ -71,14 +81,15 @@ class Crc32:
     def low30(self):
         return (((self.hi ^ 0xFFFF) & 0x3FFF) << 16) | (self.lo ^ 0xFFFF)
 
-    def low16(self):
-        return self.lo ^ 0xFFFF
+    def low24(self):
+        return (((self.hi ^ 0xFFFF) & 0xFF) << 16) | (self.lo ^ 0xFFFF)
 
 
-def seal(layout, mid, vals, voff=0):
+def seal(layout, mid, vals, voff=0, raw=None, roff=0):
     # the trailing check of a msgtable.CHECKED command whose fields are vals[voff:] (host-side
-    # tools and tests running on the firmware's codec; allocates): written into vals, returned.
-    # 0 (vals unchanged) for a message without one
+    # tools and tests running on the firmware's codec; allocates): a u32 check is written into
+    # vals, param_set's 3 raw bytes into raw[roff:] where its payload will be packed (pack
+    # leaves raw fields alone); returns it.  0 (nothing written) for a message without one
     from . import msgtable as T
     if mid not in T.CHECKED:
         return 0
@@ -86,11 +97,19 @@ def seal(layout, mid, vals, voff=0):
     pl = layout.plen[mid]
     buf = bytearray(pl)
     layout.pack(mid, vals, voff, buf, 0)
-    w = 2 if mid == T.PARAM_SET else 4
+    w = 3 if mid == T.PARAM_SET else 4
     c = Crc32()
     c.byte(mid)
     c.feed(buf, 0, pl - w)
-    v = c.low16() if w == 2 else c.low30()
+    if w == 3:
+        v = c.low24()
+        if raw is not None:
+            o = roff + pl - 3
+            raw[o] = v & 0xFF
+            raw[o + 1] = (v >> 8) & 0xFF
+            raw[o + 2] = v >> 16
+        return v
+    v = c.low30()
     vals[voff + n - 1] = v
     return v
 

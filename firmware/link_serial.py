@@ -64,6 +64,10 @@ class SerialLink:
         self.tx = framing.SerialTx(enc, self._write)
         self.disp = commands.Dispatcher(app, layout, self.tx, table)
         self.disp.dec = self.dec
+        if getattr(app, "emitter", "") == "viper":
+            # the commands' integrity check (CRC-32) in viper too
+            from .fastframe import crc32_low30
+            self.disp.crc30 = crc32_low30
         self.pacer = Pacer(app, self.disp)
         if getattr(app, "emitter", "") == "viper" and type(self.pacer._p) is array:
             # its tick in viper too (firmware/fasttick.py)

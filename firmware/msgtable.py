@@ -28,8 +28,8 @@
 #   reads VERSION first and refuses a board whose table hash differs from its own);
 # - the commands that move the cart (CHECKED: arm, set_reference, param_set, excite) end in
 #   a field `check`: CRC-32/ISO-HDLC (zlib.crc32) over the message id byte and the payload
-#   bytes before it, its low 32 (u32: the firmware compares the low 30) or 16 bits (u16,
-#   param_set); GAINS_COMMIT.check is the CRC-32 of the whole table, GAINS_BEGIN carries the
+#   bytes before it, its low 32 bits (u32: the firmware compares the low 30) or, in
+#   param_set (no room for 4 bytes), its low 24 bits as 3 raw bytes; GAINS_COMMIT.check is the CRC-32 of the whole table, GAINS_BEGIN carries the
 #   token (an upload belongs to the session that began it).  A mismatch is R_BAD_CHECK;
 # - field formats are struct codes: B u8, b i8, H u16, h i16, I u32, i i32, Ns N raw
 #   bytes.  The firmware keeps ints small (|v| < 2**30): a received u32 keeps its low
@@ -178,7 +178,8 @@ MESSAGES = (
      "Write a parameter; checked against PARAMS min/max first; answered by PARAM_VALUE (the value now in force) or NACK.",
      (("index", "B", 1, "", "parameter index"),
       ("value", "i", 1, "", "new value in the parameter's unit"),
-      ("check", "H", 1, "", "low 16 bits of the CRC-32 of the id byte, index and value (integrity check)"))),
+      ("check", "3s", 1, "", "low 24 bits of the CRC-32 of the id byte, index and value, little-endian "
+       "(integrity check)"))),
     (PARAM_VALUE, "param_value", TO_HOST,
      "A parameter's current value (reply to PARAM_GET / PARAM_SET).",
      (("index", "B", 1, "", "parameter index"),

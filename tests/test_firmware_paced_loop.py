@@ -85,7 +85,7 @@ def add(tick, mid, a=0, b=0, c=0):
     VALS[0] = a
     VALS[1] = b
     VALS[2] = c
-    seal(layout, mid, VALS)  # the integrity check of a command that moves the cart
+    seal(layout, mid, VALS, 0, enc.raw, 2)  # the integrity check of a command that moves the cart
     n = enc.encode(mid, NF & 0xFF, VALS, 0)
     STREAM[POS:POS + n] = enc.out[:n]
     POS += n

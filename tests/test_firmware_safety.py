@@ -137,7 +137,7 @@ def cmd(disp, mid, *vals):
     # one command through the dispatcher as the link would hand it; -> OK or the reason
     buf = bytearray(16)
     v = list(vals) + [0] * 4
-    seal(LAYOUT, mid, v)  # the integrity check of a command that moves the cart
+    seal(LAYOUT, mid, v, 0, buf, 2)  # the integrity check of a command that moves the cart
     LAYOUT.pack(mid, v, 0, buf, 2)
     return disp.handle(mid, 1, buf, 2)
 

@@ -202,7 +202,7 @@ class FirmwareStates(RuleBasedStateMachine):
     def _cmd(self, mid: int, *vals: int, data: bytes | None = None) -> int:
         buf = bytearray(16)
         v = list(vals) + [0] * 4
-        seal(LAYOUT, mid, v)  # the integrity check of a command that moves the cart
+        seal(LAYOUT, mid, v, 0, buf, 2)  # the integrity check of a command that moves the cart
         LAYOUT.pack(mid, v, 0, buf, 2)
         if data is not None:
             buf[4:4 + len(data)] = data

@@ -46,18 +46,19 @@ def _requests() -> list[int]:
     return [c.ID for c in M.MESSAGES.values() if c.DIRECTION == "to_host"]
 
 
-def singles(table: bytes) -> list[tuple[str, list[M.Message]]]:
+def singles(table: bytes, token: int = 0) -> list[tuple[str, list[M.Message]]]:
     """Every host-to-board message of the table, each as a one-frame step of the sweep.
 
-    ``table`` is a gain table (bytes) the upload messages carry.  ``disarm`` is not here: the
-    sweep sends it last (it ends balancing).
+    ``table`` is a gain table (bytes) the upload messages carry, ``token`` the board's arming
+    token (``gains_begin`` carries it).  ``disarm`` is not here: the sweep sends it last (it
+    ends balancing).
     """
     B = M.BY_NAME
     out: list[tuple[str, list[M.Message]]] = []
     for c in M.MESSAGES.values():
         if c.DIRECTION != "to_board" or c.NAME in ("disarm",):
             continue
-        out += [(f"{c.NAME}", [m]) for m in _instances(c.NAME, table)]
+        out += [(f"{c.NAME}", [m]) for m in _instances(c.NAME, table, token)]
     for mid in _requests():
         out.append((f"request({M.MESSAGES[mid].NAME})", [B["request"](msg_id=mid)]))
     # de-duplicate labels (param_set has several instances)
@@ -70,7 +71,7 @@ def singles(table: bytes) -> list[tuple[str, list[M.Message]]]:
     return res
 
 
-def _instances(name: str, table: bytes) -> list[M.Message]:
+def _instances(name: str, table: bytes, token: int) -> list[M.Message]:
     # representative instances of one command (harmless to a balancing robot, or refused)
     B = M.BY_NAME
     c = B[name]
@@ -81,7 +82,7 @@ def _instances(name: str, table: bytes) -> list[M.Message]:
     if name == "param_get":
         return [c(index=i) for i in (0, T.N_PARAMS - 1)]
     if name == "gains_begin":
-        return [_fill(c, nbytes=len(table), crc=M.crc16(table))]
+        return [_fill(c, nbytes=len(table), crc=M.crc16(table), token=token)]
     if name == "gains_chunk":
         return [c(offset=0, data=table[:T.CHUNK_BYTES])]
     if name == "gains_commit":
@@ -105,12 +106,12 @@ def _fill(c: type[M.Message], **kw: Any) -> M.Message:
     # the fields given, 0 for the rest of the table's (a check field is the class's own)
     names = [f.name for f in c.FIELDS]
     for n in names:
-        if n not in kw and n != "check" and n != "token":
+        if n not in kw and n != "check":
             kw[n] = 0
     return c(**{k: v for k, v in kw.items() if k in names})
 
 
-def bursts(table: bytes) -> list[tuple[str, list[M.Message]]]:
+def bursts(table: bytes, token: int = 0) -> list[tuple[str, list[M.Message]]]:
     """Bursts of :data:`BURST` back-to-back frames: the same message again and again (each kind a
     tool sends in a loop), what ``upright board status`` sends, and everything at once."""
     B = M.BY_NAME
@@ -127,7 +128,7 @@ def bursts(table: bytes) -> list[tuple[str, list[M.Message]]]:
         ("burst status", [B["request"](msg_id=T.HEARTBEAT), B["request"](msg_id=T.VERSION), st,
                           B["request"](msg_id=T.TIMING)] * 3),
     ]
-    every = [m for _, ms in singles(table) for m in ms if m.NAME not in ("excite",)]
+    every = [m for _, ms in singles(table, token) for m in ms if m.NAME not in ("excite",)]
     out.append(("burst everything", every[:2 * BURST]))
     return out
 
@@ -228,7 +229,10 @@ def sweep(hil: EmulatedHil, *, settle_ticks: int = SETTLE_TICKS, steps: Sequence
             progress(f"{label}: gap {f.gap_us:.0f} us, iteration {f.iter_us:.0f} us, state {f.state} faults {f.faults}")
         return f
 
-    for label, msgs in [*(steps if steps is not None else [*singles(table), *bursts(table)])]:
+    if steps is None:
+        token = int(_ask(hil, plant, B["request"](msg_id=T.SESSION), "session").token)
+        steps = [*singles(table, token), *bursts(table, token)]
+    for label, msgs in steps:
         figures.append(one(label, msgs))
     figures.append(one("arm (repeat)", [_arm_message(hil, run=plant)]))
     after = _figures(host, plant, heard)

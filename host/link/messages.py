@@ -149,7 +149,7 @@ class Message:
 
     def __post_init__(self) -> None:
         if self.AUTO_CHECK is not None and getattr(self, self.AUTO_CHECK) is None:
-            object.__setattr__(self, self.AUTO_CHECK, command_check(self))
+            object.__setattr__(self, self.AUTO_CHECK, _check_value(self))
         for f in self.FIELDS:
             v = getattr(self, f.name)
             if f.is_raw:
@@ -247,12 +247,19 @@ def command_check(msg: Message) -> int:
 
     CRC-32/ISO-HDLC (:func:`zlib.crc32`) over the message id byte and the payload bytes before
     the trailing ``check`` field, truncated to that field's width (u32: all 32 bits, of which
-    the firmware compares the low 30; u16: the low 16 bits).
+    the firmware compares the low 30; ``param_set``'s 3 raw bytes: the low 24 bits, little-endian).
     """
     flds = msg.FIELDS[:-1]
     body = struct.pack("<" + "".join(f.fmt for f in flds), *(getattr(msg, f.name) for f in flds))
     crc = zlib.crc32(bytes([msg.ID]) + body)
     return crc & ((1 << (8 * msg.FIELDS[-1].size)) - 1)
+
+
+def _check_value(msg: Message) -> int | bytes:
+    # the check as the field holds it: an int, or little-endian bytes for a raw field
+    v = command_check(msg)
+    f = msg.FIELDS[-1]
+    return v.to_bytes(f.size, "little") if f.is_raw else v
 
 
 def table_check(table: bytes) -> int:
@@ -267,7 +274,7 @@ def _build() -> dict[int, type[Message]]:
         auto = mid in T.CHECKED and flds and flds[-1].name == "check"
         dc_fields: list[Any] = [(f.name, bytes if f.is_raw else int) for f in flds]
         if auto:
-            dc_fields[-1] = ("check", "int | None", dataclasses.field(default=None))
+            dc_fields[-1] = ("check", "int | bytes | None", dataclasses.field(default=None))
         ns = {
             "ID": mid,
             "NAME": name,
