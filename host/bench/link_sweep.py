@@ -320,7 +320,7 @@ def bench(quick: bool = False) -> dict[str, Any]:
     # disarm: the motor goes off, then the heap is sampled between ticks (not timed, no late tick)
     rows.append({"message": "disarm (then a heap sample, motor off)", "frames": 1, "worst_gap_us": round(d.gap_us, 1),
                  "gap_periods": round(d.gap_us / p, 3), "longest_iter_us": round(d.iter_us, 1), "late": "n/a",
-                 "state": "disarmed", "faults": d.faults})
+                 "state": M.STATES.get(d.state, str(d.state)) + " (last heartbeat)", "faults": d.faults})
     worst = max(rows[:-1], key=lambda r: r["worst_gap_us"])
     notes = [f"balancing the simulated pendulum, period {p:.0f} us: a late tick is a gap over {1.5 * p:.0f} us "
              f"between step starts, an overrun an iteration over {p:.0f} us",
