@@ -95,18 +95,30 @@ _SAVE_WDT_MS = const(5000)
 _I16 = const(32767)
 _U16 = const(65535)
 _TICKS_MASK = const(0x3FFFFFFF)  # tick/uptime counters wrap to 0 after this (fixmath)
+# the arming token's generator (App._new_token): a = 0x41C64E6D mod 2**30 in 15-bit limbs, c
+_LCG_AL = const(0x4E6D)
+_LCG_AH = const(0x038C)
+_LCG_C = const(12345)
+# the parameters with a derived integer (App._apply_param)
+_DERIVED = (T.P_TILT_LIMIT, T.P_ARM_TILT, T.P_WATCHDOG_MS, T.P_MAX_DUTY, T.P_POT_OFFSET, T.P_ADC_SIGN,
+            T.P_ENC_SIGN, T.P_MOTOR_SIGN)
 
 
 def _epoch0(cfg, boot):
-    # the arming epoch a start begins with: random where the port has os.urandom, so an
-    # arm sent to the board before it reset does not match (config "epoch": tests)
+    # the arming token a start begins with (30 bits): os.urandom where the port has it, mixed
+    # with config "seed" (main.py: firmware/session.py, which also mixes the RP2040's ring
+    # oscillator and a seed persisted across starts -- an emulated board's urandom is the
+    # same at every power-up) and the boot counter; config "epoch" fixes it (tests)
     if "epoch" in cfg:
-        return cfg["epoch"] & 0xFF
+        return cfg["epoch"] & _TICKS_MASK
+    v = (cfg.get("seed", 0) ^ (boot << 22)) & _TICKS_MASK
     try:
         import os
-        return os.urandom(1)[0]
+        b = os.urandom(4)
+        v ^= ((b[0] & 0x3F) << 24) | (b[1] << 16) | (b[2] << 8) | b[3]
     except (ImportError, AttributeError, OSError):
-        return (boot * 151 + 89) & 0xFF
+        pass
+    return v & _TICKS_MASK
 
 
 class App:
@@ -159,7 +171,7 @@ class App:
         self.ref_um = 0
         self.duty = 0
         self.tick = 0
-        self.uptime_ms = 0
+        self.uptime_ms = cfg.get("uptime_ms", 0) & _TICKS_MASK
         self._us_frac = 0
         self.step_us = 0
         self.gains_crc = 0
@@ -181,14 +193,25 @@ class App:
         # clear_faults and entry into FAULT (step() watches the state)
         self.epoch = _epoch0(cfg, self.boot)
         self._st = -1
+        # heap statistics (STATS_LOOP): gc.mem_free()/mem_alloc() walk the heap (~9 ms each
+        # on a Pico), so they are sampled only outside the control tick -- at start-up, when
+        # run() starts, after a save, and between ticks after a stats request while the
+        # motor is off (App.run) -- and the reply reports the last sample
         self._gc_count = 0
         self._alloc_last = 0
+        self.heap_free = 0
+        self._heap_due = False
+        self.sample_heap()
         # persistent configuration (attach_store) and a queued save (cmd_save)
         self.store = None
         self.config_bad = False
         self.save_seq = -1
         self._save_disp = None
         self.n_saves = 0
+        self.cfg_status = 3  # msgtable S_CFG_STATUS: no storage (attach_store: what it loaded)
+        # loop starts since the board started (main.py: +1 after a MODE switch back) and the
+        # board time at this start (config uptime_ms: main.py carries it across the switch)
+        self.starts = cfg.get("starts", 1)
         # motor supply (HAL read_supply_mv) and the angle wiper test (HAL adc_open)
         self._read_vsup = hal.read_supply_mv if hasattr(hal, "read_supply_mv") else None
         self._has_open = hasattr(hal, "adc_open")
@@ -210,12 +233,13 @@ class App:
             if p[1] in cfg:
                 self.params[p[0]] = cfg[p[1]]
         self.params[T.P_LOOP_RATE] = self.rate
-        self._apply_params()
         # no-motion check (F_STALL): |duty| >= stall_duty for stall_ms without one encoder
         # count (stall_ms=0: off).  800 duty (~2 N at rest, 3/4 of the default design's
-        # force clamp) for 100 ms moves the cart by centimetres
-        self.sup.stall_ticks = (cfg.get("stall_ms", STALL_MS) * self.rate) // 1000
+        # force clamp) for 100 ms moves the cart by centimetres; in ticks at the active
+        # table's rate (_apply_params: again whenever the table changes)
+        self.stall_ms = cfg.get("stall_ms", STALL_MS)
         self.sup.stall_duty = cfg.get("stall_duty", STALL_DUTY)
+        self._apply_params()
         # readiness of the flashed table: the firmware's own check and its CRC (gains.CRC);
         # a table that fails either is never run (F_GAINS on every tick, arm refused)
         n = len(self.table)
@@ -225,7 +249,11 @@ class App:
         if not self.sup.ready:
             self.sup.faults |= F_GAINS
             self.sup.state = FAULT
-        if self.reset_cause != T.RC_POWER_ON:
+        latch = self.reset_cause
+        # VERSION.reset_cause: why the board last reset, also after a MODE switch restarted the
+        # loop (main.py: config reset_cause_boot; F_RESET latches on the first start only)
+        self.reset_cause = cfg.get("reset_cause_boot", latch)
+        if latch != T.RC_POWER_ON:
             # restarted by the hardware watchdog or a loop exception: the host must see it
             self.sup.faults |= F_RESET
             self.sup.state = FAULT
@@ -254,33 +282,56 @@ class App:
         return (mrad * t[o] + (1 << (t[o + 1] - 1))) >> t[o + 1]
 
     def _apply_params(self):
+        # every derived integer, from the parameters and the active table: at start-up and
+        # whenever the active table changes (upload, saved configuration) -- the period, the
+        # link watchdog, the stall timeout (ticks at the table's rate), the tilt and track
+        # limits (the table's scales)
         p = self.params
         sup = self.sup
-        sup.tilt_counts = self._counts_from_mrad(p[T.P_TILT_LIMIT])
-        sup.arm_counts = self._counts_from_mrad(p[T.P_ARM_TILT])
         # the period comes only from the active table (loop_rate_hz reports it)
         rate = self.rate
         p[T.P_LOOP_RATE] = rate
-        sup.wd_ticks = (p[T.P_WATCHDOG_MS] * rate) // 1000
+        self.period_us = 1000000 // rate
+        self.timing.period_us = self.period_us
+        if hasattr(self.hal, "set_period"):
+            self.hal.set_period(self.period_us)  # HalPico: the driver-enable dead-man's timeout
+        # the link's per-tick budget (link_serial): no new frame once the tick has run this
+        # long since its step started (2/5 of the period: the longest command, ~650 us on
+        # the emulated Pico, and the telemetry still fit in the period after it)
+        self.link_budget_us = (self.period_us * 2) // 5
+        sup.stall_ticks = (self.stall_ms * rate) // 1000
         t = self.table
         # track fault at 1.25 x the reference limit (encoder counts)
         qx = t[self.off["FMT"]]
         rl = t[self.off["RLIM"]] >> qx
         sup.track_counts = rl + (rl >> 2)
-        self.motor.max_duty = p[T.P_MAX_DUTY]
-        self.period_us = 1000000 // rate
-        self.timing.period_us = self.period_us
-        if hasattr(self.hal, "set_period"):
-            self.hal.set_period(self.period_us)  # HalPico: the driver-enable dead-man's timeout
-        # calibration (upright board calibrate): pot offset (-1: the table's) and signs
-        sn = self.sensors
-        po = p[T.P_POT_OFFSET]
-        sn.pot_offset = po if po >= 0 else t[self.off["CAL"]]
-        sn.adc_sign = -1 if p[T.P_ADC_SIGN] < 0 else 1
-        sn.enc_sign = -1 if p[T.P_ENC_SIGN] < 0 else 1
-        self._msign = -1 if p[T.P_MOTOR_SIGN] < 0 else 1
-        if hasattr(self, "_hal_motor"):
-            self._set_motor = self._hal_motor if self._msign > 0 else self._motor_neg
+        for i in _DERIVED:
+            self._apply_param(i)
+
+    def _apply_param(self, i):
+        # what one parameter derives (param_set: only that one, a bounded piece of work)
+        p = self.params
+        sup = self.sup
+        if i == T.P_TILT_LIMIT:
+            sup.tilt_counts = self._counts_from_mrad(p[i])
+        elif i == T.P_ARM_TILT:
+            sup.arm_counts = self._counts_from_mrad(p[i])
+        elif i == T.P_WATCHDOG_MS:
+            sup.wd_ticks = (p[i] * self.rate) // 1000
+        elif i == T.P_MAX_DUTY:
+            self.motor.max_duty = p[i]
+        elif i == T.P_POT_OFFSET:
+            # calibration (upright board calibrate): pot offset (-1: the table's) and signs
+            po = p[i]
+            self.sensors.pot_offset = po if po >= 0 else self.table[self.off["CAL"]]
+        elif i == T.P_ADC_SIGN:
+            self.sensors.adc_sign = -1 if p[i] < 0 else 1
+        elif i == T.P_ENC_SIGN:
+            self.sensors.enc_sign = -1 if p[i] < 0 else 1
+        elif i == T.P_MOTOR_SIGN:
+            self._msign = -1 if p[i] < 0 else 1
+            if hasattr(self, "_hal_motor"):
+                self._set_motor = self._hal_motor if self._msign > 0 else self._motor_neg
 
     # ---- the loop ----
     def step(self):
@@ -307,7 +358,7 @@ class App:
         st = sup.state
         if st != self._st:
             if st == FAULT:
-                self.epoch = (self.epoch + 1) & 0xFF
+                self._new_token()
             self._st = st
         duty = 0
         if sup.state == BALANCING:
@@ -408,6 +459,7 @@ class App:
         self.sup.timing_ok = False
         self._on_time = 0
         self.late_score = 0
+        self.sample_heap()
         self._wdt_start(self.wdt_ms)
         feed = self._wdt_feed
         period = self._period_m
@@ -446,6 +498,13 @@ class App:
                     self._wdt_window(_SAVE_WDT_MS, locked)
                     self.service_save(locked)
                     self._wdt_window(self.wdt_ms, locked)
+                    self.sample_heap()
+                    deadline = ticks()
+                    first = True
+                elif self._heap_due and (sup.state == DISARMED or sup.state == FAULT):
+                    # heap statistics asked for (fill_stats) with the motor off: sampled
+                    # between ticks (a heap walk, ~18 ms on a Pico), pacing restarts
+                    self.sample_heap()
                     deadline = ticks()
                     first = True
                 deadline = add(deadline, self.period_us)
@@ -543,8 +602,8 @@ class App:
         return self.sup.arm()
 
     def cmd_disarm(self):
-        # every disarm changes the epoch: no arm sent before it can act after it
-        self.epoch = (self.epoch + 1) & 0xFF
+        # every disarm draws a new token: no arm sent before it can act after it
+        self._new_token()
         r = self.sup.disarm()
         self._set_motor(0)
         self._drive(0)
@@ -554,7 +613,7 @@ class App:
     def cmd_clear_faults(self):
         r = self.sup.clear()
         if r == T.OK:
-            self.epoch = (self.epoch + 1) & 0xFF
+            self._new_token()
         if r == T.OK and self.config_bad:
             # no valid saved configuration: stays latched until a table is uploaded
             self.sup.faults |= F_CONFIG
@@ -570,6 +629,7 @@ class App:
         store.n_params = T.N_PARAMS
         store.n_table = self.ctrl.length
         st, params, table = store.load(self._config_check)
+        self.cfg_status = st
         if st == LOADED:
             self._install_table(table, len(table))
             p = self.params
@@ -659,13 +719,22 @@ class App:
         if index == T.P_LOOP_RATE:
             # the period is the active table's RATE, nothing else
             return T.R_READ_ONLY
+        st = self.sup.state
+        if (st == ARMED or st == BALANCING) and index in T.DRIVE_PARAMS:
+            # signs, offsets, the drive: changed under a balancing robot they tip it
+            return T.R_ARMED
         self.params[index] = value
-        self._apply_params()
+        self._apply_param(index)
         return T.OK
 
     def gains_apply(self, buf, nbytes):
+        return self.gains_apply_crc(buf, nbytes, -1)
+
+    def gains_apply_crc(self, buf, nbytes, crc):
         # a complete, CRC-checked table from the dispatcher: int32 little-endian in
-        # the layout of firmware/gains.py; re-checked here before it replaces the live one
+        # the layout of firmware/gains.py; re-checked here before it replaces the live one.
+        # crc: its CRC-16 as the dispatcher checked it chunk by chunk (the table's CRC, the
+        # same bytes: not computed again), -1: compute it
         if self.sup.state != DISARMED and self.sup.state != FAULT:
             return T.R_ARMED
         n = nbytes >> 2
@@ -680,18 +749,18 @@ class App:
         r = self.ctrl.validate(sc, n, self.version)
         if r != T.OK:
             return r
-        self._install_table(sc, n)
+        self._install_table(sc, n, crc)
         self._apply_params()
         self.sup.faults &= ~(F_GAINS | F_CONFIG)
         self.config_bad = False
         return T.OK
 
-    def _install_table(self, src, n):
+    def _install_table(self, src, n, crc=-1):
         # a checked table becomes the live one (upload or saved configuration)
         t = self.table
         for i in range(n):
             t[i] = src[i]
-        self.gains_crc = self._table_crc(t, n)
+        self.gains_crc = crc if crc >= 0 else self._table_crc(t, n)
         self.sup.ready = True
         off = self.off
         self.ctrl.load(t)
@@ -715,9 +784,31 @@ class App:
         arr[0] = self.sup.state
         arr[1] = self.sup.faults
         arr[2] = self.boot
-        arr[3] = self.epoch
+        arr[3] = self.epoch & 0xFF
         arr[4] = self.gains_crc & 0xFF
         arr[5] = self.uptime_ms & 0xFFFF
+
+    def status_get(self, k):
+        # msgtable STATUS value k (PARAM_GET(STATUS_BASE + k)); allocation-free
+        if k == T.S_UPTIME_MS:
+            return self.uptime_ms
+        if k == T.S_LATE:
+            return self.n_late
+        ln = self.link
+        if k == T.S_LINK_DEFERRED:
+            return getattr(ln, "n_deferred", 0)
+        if k == T.S_LINK_WAIT_MAX:
+            return getattr(ln, "wait_max", 0)
+        st = self.store
+        if k == T.S_CFG_STATUS:
+            return self.cfg_status
+        if k == T.S_CFG_SLOT:
+            return st.slot if st is not None else -1
+        if k == T.S_CFG_SEQ:
+            return st.seq if st is not None else 0
+        if k == T.S_STARTS:
+            return self.starts
+        return 0
 
     def _set_motor_neg(self, duty):
         # motor_sign -1: the HAL gets the opposite duty (set_motor is this method then)
@@ -736,24 +827,48 @@ class App:
         arr[3] = self.gains_crc
         arr[4] = self.reset_cause
 
+    def sample_heap(self):
+        # the heap statistics STATS_LOOP reports (outside the control tick only: see __init__)
+        self._heap_due = False
+        if _mem_free is None:
+            return
+        f = _mem_free() >> 6
+        self.heap_free = f if f < _U16 else _U16
+        a = _mem_alloc()
+        if a < self._alloc_last:
+            self._gc_count += 1
+        self._alloc_last = a
+
+    def _new_token(self):
+        # the next arming token (disarm, clear_faults, fault): x -> a*x + c mod 2**30, a = 1 mod
+        # 4 and c odd (full period: no token repeats within 2**30 draws), in 15-bit limbs so
+        # every intermediate is a small int on a 32-bit port; allocation-free (the tick calls it)
+        x = self.epoch
+        hi = x >> 15
+        lo = x & 0x7FFF
+        t = _LCG_AL * lo
+        m = ((_LCG_AH * lo) & 0x7FFF) + ((_LCG_AL * hi) & 0x7FFF)
+        s = (t & 0x7FFF) + _LCG_C
+        self.epoch = ((((t >> 15) + m + (s >> 15)) & 0x7FFF) << 15) | (s & 0x7FFF)
+
+    def fill_session(self, arr):
+        # SESSION: the arming token and the whole uptime
+        arr[0] = self.epoch
+        arr[1] = self.uptime_ms
+
     def fill_stats(self, arr):
-        # STATS_LOOP: worst step and deadline misses since boot, free heap (64 B units),
-        # collections seen (the heap in use fell between two samples); allocation-free
+        # STATS_LOOP: worst step and deadline misses since boot, free heap (64 B units) and
+        # collections seen (the heap in use fell between two samples) as last sampled (a
+        # fresh sample is taken between ticks while the motor is off); allocation-free, and
+        # no heap walk in the tick
         tm = self.timing
         w = tm.worst if tm.worst > tm.step_max else tm.step_max
         arr[0] = w if w < _U16 else _U16
         m = tm.misses + tm.overruns
         arr[1] = m if m < _U16 else _U16
-        if _mem_free is not None:
-            f = _mem_free() >> 6
-            arr[2] = f if f < _U16 else _U16
-            a = _mem_alloc()
-            if a < self._alloc_last:
-                self._gc_count += 1
-            self._alloc_last = a
-        else:
-            arr[2] = 0
+        arr[2] = self.heap_free
         arr[3] = self._gc_count & 0xFFFF
+        self._heap_due = True
 
     def _tel(self, v, j):
         t = self.table
@@ -780,7 +895,17 @@ class App:
             arr[3] = self._tel(xf[3], 3)
             arr[4] = self._tel(self.ref, 0)
             arr[5] = self._tel(c.u, 4)
-        if self.exc.mode:
+        if self.sup.state != BALANCING:
+            # motor off (disarmed, armed waiting to catch, fault): the force is what is
+            # applied (0), the state the sensors as read, at rest -- not the estimate of the
+            # last balancing tick, which the controller no longer updates
+            s = self.sensors
+            arr[0] = self._tel(fixmath.clamp(s.yx, c.lim[0]), 0)
+            arr[1] = 0
+            arr[2] = self._tel(fixmath.clamp(s.yp, c.lim[2]), 2)
+            arr[3] = 0
+            arr[5] = 0
+        elif self.exc.mode:
             # an excitation is set: x and phi as the sensors read them (upright identify)
             s = self.sensors
             arr[0] = self._tel(fixmath.clamp(s.yx, c.lim[0]), 0)

@@ -16,10 +16,15 @@
 #   fill_telemetry(arr) (TELEM_STATE fields then TELEM_CTRL fields: 8 ints),
 #   fill_timing(arr) (TIMING fields: 4 ints),
 #   fill_sensors_raw(arr) (SENSORS_RAW fields: adc, enc, pos; on REQUEST),
+#   status_get(k) (msgtable STATUS value k, read by PARAM_GET(STATUS_BASE + k)),
 #   cmd_save(dispatcher, seq) (SAVE_CONFIG: queue a save; the target answers it later
 #   with dispatcher.reply(SAVE_CONFIG, seq, reason)); without fill_sensors_raw or cmd_save
 #   their request / SAVE_CONFIG is refused with R_NOT_SUPPORTED.
-# ARM is refused (R_STALE_EPOCH) unless its epoch is the one the heartbeat reports.
+# target.epoch: the arming token (SESSION.token).  ARM is refused (R_STALE_EPOCH) unless it
+# carries the token, GAINS_BEGIN likewise, and an upload ends when the token changes.  The
+# commands of msgtable.CHECKED are refused (R_BAD_CHECK) unless their trailing check is the
+# CRC-32 of their id byte and the payload bytes before it (low 30 bits of a u32 field, low
+# 24 of param_set's 3 raw bytes); GAINS_COMMIT carries the CRC-32 of the whole table, built chunk by chunk.
 # sender: any object with send(mid, seq, vals, voff) (framing.SerialTx,
 # canframe-based senders, or a test double); its n_sent (if it has one) is STATS_FRAMES'
 # frames_out.  dec: the link's decoder (framing.Decoder, canframe.SerialCanDecoder), set
@@ -35,6 +40,7 @@ from array import array
 
 from . import crc16
 from . import identity
+from .crc32 import Crc32
 from . import msgtable as T
 
 _FAULT_STATE = const(3)
@@ -59,7 +65,12 @@ class Dispatcher:
         self.gbuf = bytearray(T.GAINS_MAX)
         self.g_len = 0
         self.g_crc = 0
+        self.g_run = 0
         self.g_got = 0
+        self.g_token = -1
+        self.c32 = Crc32()  # command checks and the upload's CRC-32 (chunk by chunk)
+        self.crc30 = None  # a faster build of the check's CRC (fastframe.crc32_low30), if set
+        self.g32 = Crc32()
         self.g_active = False
         self.n_refused = 0
         self.n_handled = 0
@@ -73,6 +84,11 @@ class Dispatcher:
         self._fill_raw = target.fill_sensors_raw if hasattr(target, "fill_sensors_raw") else None
         self._save = target.cmd_save if hasattr(target, "cmd_save") else None
         self._excite = target.cmd_excite if hasattr(target, "cmd_excite") else None
+        self._fill_session = target.fill_session if hasattr(target, "fill_session") else None
+        # status_get(k) -> int: the read-only status values (msgtable STATUS; PARAM_GET)
+        self._status = target.status_get if hasattr(target, "status_get") else None
+        # gains_apply_crc(buf, nbytes, crc): the table with the CRC checked here (not computed again)
+        self._apply_crc = target.gains_apply_crc if hasattr(target, "gains_apply_crc") else None
         self._counted = hasattr(sender, "n_sent")
 
     # ---- replies ----
@@ -168,8 +184,10 @@ class Dispatcher:
             return self._nack(mid, seq, T.R_UNKNOWN)
         self.n_handled += 1
         rx = self.rx
-        self.layout.unpack(mid, buf, off, rx, 0)
+        nf = self.layout.unpack(mid, buf, off, rx, 0)
         tg = self.target
+        if mid in T.CHECKED and not self._check_ok(mid, buf, off, rx[nf - 1]):
+            return self._nack(mid, seq, T.R_BAD_CHECK)
         if mid == T.SET_REFERENCE:
             x = rx[0]
             lim = tg.param_get(T.P_REF_LIMIT)
@@ -184,7 +202,7 @@ class Dispatcher:
             tg.fill_heartbeat(self.tx)
             if self.tx[1] != 0 or self.tx[0] == _FAULT_STATE:
                 return self._nack(mid, seq, T.R_FAULTED)
-            if rx[0] != self.tx[3]:
+            if rx[0] != tg.epoch:
                 return self._nack(mid, seq, T.R_STALE_EPOCH)
             return self._reply(mid, seq, tg.cmd_arm())
         if mid == T.DISARM:
@@ -192,12 +210,22 @@ class Dispatcher:
         if mid == T.CLEAR_FAULTS:
             return self._reply(mid, seq, tg.cmd_clear_faults())
         if mid == T.PARAM_GET:
-            if rx[0] >= self.nparams:
-                return self._nack(mid, seq, T.R_BAD_INDEX)
-            return self._param_value(rx[0], seq)
+            i = rx[0]
+            if i >= self.nparams:
+                k = i - T.STATUS_BASE
+                if k < 0 or k >= T.N_STATUS or self._status is None:
+                    return self._nack(mid, seq, T.R_BAD_INDEX)
+                tx = self.tx
+                tx[0] = i
+                tx[1] = self._status(k)
+                self.sender.send(T.PARAM_VALUE, seq, tx, 0)
+                return T.OK
+            return self._param_value(i, seq)
         if mid == T.PARAM_SET:
             i = rx[0]
             if i >= self.nparams:
+                if T.STATUS_BASE <= i < T.STATUS_BASE + T.N_STATUS:
+                    return self._nack(mid, seq, T.R_READ_ONLY)
                 return self._nack(mid, seq, T.R_BAD_INDEX)
             v = rx[1]
             if v < self.pmin[i] or v > self.pmax[i]:
@@ -207,11 +235,15 @@ class Dispatcher:
                 return self._nack(mid, seq, r)
             return self._param_value(i, seq)
         if mid == T.GAINS_BEGIN:
+            if rx[2] != tg.epoch:
+                # not this session's upload (sent before a reset, disarm or fault)
+                self.g_active = False
+                return self._nack(mid, seq, T.R_STALE_EPOCH)
             return self._gains_begin(rx[0], rx[1], seq)
         if mid == T.GAINS_CHUNK:
             return self._gains_chunk(rx[0], buf, rx[1], seq)
         if mid == T.GAINS_COMMIT:
-            return self._gains_commit(seq)
+            return self._gains_commit(seq, rx[0])
         if mid == T.SAVE_CONFIG:
             # queued by the target (cmd_save(dispatcher, seq)); answered through reply() when done
             if self._save is None:
@@ -236,6 +268,13 @@ class Dispatcher:
             w = rx[0]
             if w == T.HEARTBEAT:
                 self.send_heartbeat(seq)
+            elif w == T.SESSION:
+                tx = self.tx
+                tx[0] = tg.epoch
+                tx[1] = 0
+                if self._fill_session is not None:
+                    self._fill_session(tx)
+                self.sender.send(T.SESSION, seq, tx, 0)
             elif w == T.TELEM_STATE or w == T.TELEM_CTRL:
                 self.send_telemetry(seq)
             elif w == T.TIMING:
@@ -252,6 +291,37 @@ class Dispatcher:
             return T.OK
         return self._nack(mid, seq, T.R_UNKNOWN)
 
+    def _check_ok(self, mid, buf, off, got):
+        # the integrity check of a CHECKED command: CRC-32 of the id byte and the payload before
+        # the check (crc32.Crc32 written out with locals: a few bytes, ~100 us on a Pico);
+        # got: the received u32's 30 bits, or (param_set) the offset of its 3 check bytes
+        c = self.c32
+        th = c.th
+        tl = c.tl
+        w = 3 if mid == T.PARAM_SET else 4
+        f = self.crc30
+        if f is not None:
+            # the viper build (link_serial sets it on a board: fastframe.crc32_low30)
+            v = f(th, tl, mid, buf, off, self.layout.plen[mid] - w)
+            if w == 3:
+                return (v & 0xFFFFFF) == (buf[got] | (buf[got + 1] << 8) | (buf[got + 2] << 16))
+            return v == got
+        k = (0xFFFF ^ mid) & 0xFF
+        lo = 0xFFFF ^ tl[k]
+        hi = 0xFF ^ th[k]
+        i = off
+        end = off + self.layout.plen[mid] - w
+        while i < end:
+            k = (lo ^ buf[i]) & 0xFF
+            lo = ((lo >> 8) | ((hi & 0xFF) << 8)) ^ tl[k]
+            hi = (hi >> 8) ^ th[k]
+            i += 1
+        lo ^= 0xFFFF
+        hi ^= 0xFFFF
+        if w == 3:
+            return ((hi & 0xFF) << 16 | lo) == (buf[got] | (buf[got + 1] << 8) | (buf[got + 2] << 16))
+        return ((hi & 0x3FFF) << 16 | lo) == got
+
     # ---- gain table upload ----
     def _gains_begin(self, nbytes, crc, seq):
         if nbytes < 1 or nbytes > T.GAINS_MAX:
@@ -260,12 +330,19 @@ class Dispatcher:
         self.g_len = nbytes
         self.g_crc = crc
         self.g_got = 0
+        self.g_run = crc16.INIT  # CRC of the bytes received so far (one chunk's worth per chunk)
+        self.g32.start()
+        self.g_token = self.target.epoch
         self.g_active = True
         return self._ack(T.GAINS_BEGIN, seq)
 
     def _gains_chunk(self, offset, buf, doff, seq):
         if not self.g_active:
             return self._nack(T.GAINS_CHUNK, seq, T.R_BAD_SEQUENCE)
+        if self.g_token != self.target.epoch:
+            # the session that began the upload ended (disarm, fault): the upload with it
+            self.g_active = False
+            return self._nack(T.GAINS_CHUNK, seq, T.R_STALE_EPOCH)
         got = self.g_got
         n = self.g_len - offset
         if n > T.CHUNK_BYTES:
@@ -277,21 +354,36 @@ class Dispatcher:
             self.g_active = False
             return self._nack(T.GAINS_CHUNK, seq, T.R_BAD_SEQUENCE)
         g = self.gbuf
+        tb = self.table
+        c = self.g_run
         for i in range(n):
-            g[offset + i] = buf[doff + i]
+            b = buf[doff + i]
+            g[offset + i] = b
+            c = ((c << 8) & 0xFFFF) ^ tb[((c >> 8) ^ b) & 0xFF]
+        self.g_run = c
+        self.g32.feed(buf, doff, n)
         self.g_got = got + n
         return self._ack(T.GAINS_CHUNK, seq)
 
-    def _gains_commit(self, seq):
-        if not self.g_active:
-            return self._nack(T.GAINS_COMMIT, seq, T.R_BAD_SEQUENCE)
-        if self.g_got != self.g_len:
-            return self._nack(T.GAINS_COMMIT, seq, T.R_INCOMPLETE)
-        if crc16.compute(self.table, self.gbuf, 0, self.g_len) != self.g_crc:
-            self.g_active = False
-            return self._nack(T.GAINS_COMMIT, seq, T.R_BAD_CRC)
+    def _gains_commit(self, seq, check):
+        # bounded: the CRCs were built chunk by chunk (_gains_chunk); the state is checked first
         if not self._motor_off():
             # upload kept: disarm and commit again
             return self._nack(T.GAINS_COMMIT, seq, T.R_ARMED)
+        if not self.g_active:
+            return self._nack(T.GAINS_COMMIT, seq, T.R_BAD_SEQUENCE)
+        if self.g_token != self.target.epoch:
+            self.g_active = False
+            return self._nack(T.GAINS_COMMIT, seq, T.R_STALE_EPOCH)
+        if self.g_got != self.g_len:
+            return self._nack(T.GAINS_COMMIT, seq, T.R_INCOMPLETE)
+        if self.g_run != self.g_crc:
+            self.g_active = False
+            return self._nack(T.GAINS_COMMIT, seq, T.R_BAD_CRC)
+        if self.g32.low30() != check:
+            self.g_active = False
+            return self._nack(T.GAINS_COMMIT, seq, T.R_BAD_CHECK)
         self.g_active = False
+        if self._apply_crc is not None:
+            return self._reply(T.GAINS_COMMIT, seq, self._apply_crc(self.gbuf, self.g_len, self.g_crc))
         return self._reply(T.GAINS_COMMIT, seq, self.target.gains_apply(self.gbuf, self.g_len))

@@ -250,3 +250,23 @@ def telem_viper(arr, t, xf, o: int, vh: int, ref: int, u: int) -> int:
         arr[j] = v
         j += 1
     return 6
+
+
+@micropython.viper
+def crc32_low30(th: ptr16, tl: ptr16, mid: int, buf: ptr8, off: int, n: int) -> int:
+    # CRC-32/ISO-HDLC of the byte mid and buf[off:off+n], its low 30 bits (commands.Dispatcher's
+    # integrity check, crc32.Crc32 written out in viper: the 16-bit halves of the register and of
+    # the table th/tl; every value < 2**16, the result a small int)
+    k = (0xFF ^ mid) & 0xFF
+    lo = 0xFFFF ^ int(tl[k])
+    hi = 0xFF ^ int(th[k])
+    i = off
+    end = off + n
+    while i < end:
+        k = (lo ^ int(buf[i])) & 0xFF
+        lo = ((lo >> 8) | ((hi & 0xFF) << 8)) ^ int(tl[k])
+        hi = (hi >> 8) ^ int(th[k])
+        i += 1
+    lo = lo ^ 0xFFFF
+    hi = hi ^ 0xFFFF
+    return ((hi & 0x3FFF) << 16) | lo

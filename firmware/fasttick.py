@@ -529,7 +529,7 @@ class StepV:
         st = su[_SU_STATE]
         if st != int(app._st):
             if st == _FAULT:
-                app.epoch = (int(app.epoch) + 1) & 0xFF
+                app._new_token()
             app._st = st
         duty = 0
         if st == _BALANCING:

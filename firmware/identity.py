@@ -10,5 +10,5 @@ except ImportError:
         return x
 
 FW_VERSION = const(0x01)
-TABLE_HASH = const(0x0d87)
+TABLE_HASH = const(0x6b2b)
 PARAM_HASH = const(0x0dda)

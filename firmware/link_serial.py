@@ -8,9 +8,18 @@
 # uart: machine.UART-like with any() (bytes waiting; a port may say 1 when there are
 # more) and readinto(buf, n).  Only bytes any() reported are read: rp2's readinto waits
 # for all n bytes (up to an inter-character timeout of >= 1 ms at 1 Mbaud), a stall of
-# half a loop period.  At most _RX bytes per tick (bounded time); the rest waits in the
-# UART's receive buffer (HalPico.uart() makes it large) for the next tick.  write(buf)
-# takes a whole buffer, so one memoryview per frame length is made here, once.
+# half a loop period.  write(buf) takes a whole buffer, so one memoryview per frame length
+# is made here, once.
+#
+# Bounded work per tick: poll() decodes and dispatches at most FRAMES_PER_TICK frames and _RX_TICK
+# bytes, starts no new frame once the tick has run app.link_budget_us (2/5 of the period)
+# since its step started or once its replies reach _SENT frames (the UART's transmit
+# interrupts cost the loop too: a stats request answers with three frames); every
+# command's own work is bounded (commands.py, App).
+# What is left waits -- bytes already read in self.rx, the rest in the UART's receive
+# buffer (HalPico.uart() makes it large) -- for the next tick.  Frames handled after
+# waiting are counted (n_deferred) and the longest wait is kept in ticks (wait_max): the
+# host reads both (msgtable STATUS: link_deferred, link_wait_max).
 
 try:
     from micropython import const
@@ -28,6 +37,10 @@ from . import msgtable as T
 from .pacer import Pacer
 
 _RX = const(64)
+_RX_TICK = const(96)  # bytes decoded per tick at most
+FRAMES_PER_TICK = const(4)  # frames dispatched per tick at most (tests read it)
+_SENT = const(3)  # ... and none after the replies of this tick reach this many frames
+_U16 = const(65535)
 _CMAX = const(0x3FFFFFFF)  # frame counter wrap (framing.SerialTx.n_sent)
 
 
@@ -51,6 +64,10 @@ class SerialLink:
         self.tx = framing.SerialTx(enc, self._write)
         self.disp = commands.Dispatcher(app, layout, self.tx, table)
         self.disp.dec = self.dec
+        if getattr(app, "emitter", "") == "viper":
+            # the commands' integrity check (CRC-32) in viper too
+            from .fastframe import crc32_low30
+            self.disp.crc30 = crc32_low30
         self.pacer = Pacer(app, self.disp)
         if getattr(app, "emitter", "") == "viper" and type(self.pacer._p) is array:
             # its tick in viper too (firmware/fasttick.py)
@@ -63,6 +80,15 @@ class SerialLink:
         self._switch = ModeSwitch()
         self.disp.on_mode = self._on_mode
         self.rx = bytearray(_RX)
+        self._ri = 0  # rx[_ri:_rn]: bytes read and not yet decoded (they wait for the next tick)
+        self._rn = 0
+        self.n_deferred = 0
+        self.wait = 0  # ticks the current backlog has waited
+        self.wait_max = 0
+        self._ticks = app._ticks if hasattr(app, "_ticks") else None
+        self._diff = getattr(app, "_tdiff", None)
+        # the time budget needs the app's clock and its step start (App: timing.last_us)
+        self._budget = self._ticks is not None and hasattr(app, "link_budget_us") and hasattr(app, "timing")
         self._scan = self.dec.scan
         self._uart_write = uart.write
         self._readinto = uart.readinto
@@ -119,10 +145,9 @@ class SerialLink:
         self.disp.send_heartbeat(seq)
 
     def poll(self):
-        # idle (nothing received): one any() and the pacer
-        n = self._any()
-        if n:
-            self._receive(n)
+        # idle (nothing received, nothing waiting): one any() and the pacer
+        if self._ri < self._rn or self._any():
+            self._receive()
             if self.mode >= 0:
                 raise self._switch
         self._tick()
@@ -133,32 +158,57 @@ class SerialLink:
             self.mode = m
         return T.OK
 
-    def _receive(self, n):
-        # at most _RX bytes this tick, n of them waiting now
+    def _receive(self):
+        # decode and dispatch within this tick's budget (see the top of the file)
         rx = self.rx
-        left = _RX
-        while True:
-            if n > left:
-                n = left
-            n = self._readinto(rx, n)
-            if not n:
-                break
-            left -= n
-            self._frames(n)
-            if left <= 0:
-                break
-            n = self._any()
-            if not n:
-                break
-
-    def _frames(self, n):
-        # decode rx[0:n]; every complete valid frame is dispatched
         dec = self.dec
         scan = self._scan
-        rx = self.rx
-        i = 0
-        while i < n:
+        app = self.app
+        ticks = self._ticks
+        budget = self._budget and app.link_budget_us
+        t0 = app.timing.last_us if budget else 0
+        waited = self.wait > 0
+        st = self.tx
+        s0 = st.n_sent
+        left = _RX_TICK
+        k = 0
+        i = self._ri
+        n = self._rn
+        while True:
+            if i >= n:
+                if left <= 0:
+                    break
+                m = self._any()
+                if not m:
+                    break
+                if m > _RX:
+                    m = _RX
+                if m > left:
+                    m = left
+                n = self._readinto(rx, m)
+                i = 0
+                if not n:
+                    n = 0
+                    break
+                left -= n
             mid = scan(rx, i, n)
             i = dec.next
             if mid >= 0:
                 self.disp.handle(mid, dec.seq, dec.buf, 2)
+                k += 1
+                if waited and self.n_deferred < _U16:
+                    self.n_deferred += 1
+                if k >= FRAMES_PER_TICK or ((st.n_sent - s0) & _CMAX) >= _SENT:
+                    break
+                if budget and self._diff(ticks(), t0) > budget:
+                    break
+        self._ri = i
+        self._rn = n
+        if i < n or self._any():
+            # a backlog: it waits for the next tick
+            w = self.wait + 1
+            self.wait = w
+            if w > self.wait_max:
+                self.wait_max = w if w < _U16 else _U16
+        else:
+            self.wait = 0

@@ -29,18 +29,25 @@ def main(link=None, repl_ms=None):
     cause = hal.reset_cause()
     link = link or getattr(board, "LINK", "uart")
     boot = boot_count()
+    from .session import seed
+    seed0 = seed()  # the arming token's seed: differs at every start (firmware/session.py)
     if link == "usb":
         ms = getattr(board, "USB_REPL_MS", 0) if repl_ms is None else repl_ms
         if ms > 0:
             import time
             time.sleep_ms(ms)  # Ctrl-C now: KeyboardInterrupt, the REPL (motor off since HalPico())
     port = None
+    starts = 0
+    import time
+    t0 = time.ticks_ms()
     try:
         while True:
-            mode, port = _robot(board, hal, link, port, boot, cause)
-            cause = T.RC_POWER_ON
+            # a MODE switch back to the robot starts a new App: the board did not reset (the
+            # boot counter and the reset cause stay), its uptime goes on and `starts` counts it
+            starts += 1
+            mode, port = _robot(board, hal, link, port, boot, cause, starts, seed0 + starts, _uptime_ms(t0))
             while mode == T.MODE_HIL:
-                mode = _hil(port, boot)
+                mode = _hil(port, boot, _uptime_ms(t0))
             if mode == T.MODE_REPL:
                 return
     finally:
@@ -60,19 +67,27 @@ def _port(hal, link):
     return hal.uart()
 
 
-def _hil(port, boot):
+def _uptime_ms(t0):
+    # board time since the first control loop of this boot started (t0: its time.ticks_ms()):
+    # 0 for it, then carried across MODE switches (HIL and back), so the uptime a host reads
+    # never restarts without a reset (ticks_ms wraps at 2**30 ms: ticks_diff exact for 12 days)
+    import time
+    return time.ticks_diff(time.ticks_ms(), t0) & 0x3FFFFFFF
+
+
+def _hil(port, boot, uptime=0):
     # MODE hil: lockstep HIL on the robot's link until MODE robot/repl; returns that mode.
     # The motor stays off (the robot loop switched it off; HilHal drives no pin)
     import gc
     from .main_hil import BoardUART, HilMain
     gc.collect()
-    m = HilMain(port if hasattr(port, "wait") else BoardUART(port), config={"boot": boot})
+    m = HilMain(port if hasattr(port, "wait") else BoardUART(port), config={"boot": boot, "uptime_ms": uptime})
     m.switch = True
     m.run()
     return m.next_mode
 
 
-def _robot(board, hal, link, port, boot, cause):
+def _robot(board, hal, link, port, boot, cause, starts=1, seed=0, uptime=0):
     # The robot: the paced loop until a MODE switch (returns the mode asked for and the port).
     # Safety net around the loop (see docs/firmware.md, "Hardware cut-offs"):
     #  - a hung loop stops feeding the hardware watchdog (board.WDT_MS): the board resets,
@@ -90,7 +105,12 @@ def _robot(board, hal, link, port, boot, cause):
     try:
         cfg = board.config()
         cfg["boot"] = boot
-        cfg["reset_cause"] = cause
+        # the reset cause of this boot: only the first start after a reset latches F_RESET
+        cfg["reset_cause"] = cause if starts == 1 else T.RC_POWER_ON
+        cfg["reset_cause_boot"] = cause
+        cfg["starts"] = starts
+        cfg["seed"] = seed & 0x3FFFFFFF
+        cfg["uptime_ms"] = uptime
         app = App(hal, config=cfg)
         # saved parameters and gain table (two copies on the flash filesystem), before the link
         from .store import ConfigStore

@@ -274,7 +274,8 @@ def main(port=None, link="serial", mode="lockstep", node=1, uart=None, heap_lock
     config = None
     if boot_file is not None:
         from .boot import boot_count
-        config = {"boot": boot_count(boot_file)}
+        from .session import seed
+        config = {"boot": boot_count(boot_file), "seed": seed(boot_file + ".seed")}
     if desktop:
         # the unix port on a desktop OS has no real-time guarantee (the hypervisor steals
         # tens of ms): late ticks are counted, F_DEADLINE is a board's (App "deadline")

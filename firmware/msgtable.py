@@ -22,9 +22,15 @@
 #   serial_can_crc); a frame whose CRC does not check out is dropped and counted;
 # - ids are chosen so that no single-bit error turns any board-bound command into ARM
 #   and ARM and DISARM are at least 3 bits apart (tests/test_proto_integrity.py); ARM
-#   carries the board's arming epoch (HEARTBEAT.epoch), so a stale or repeated arm is
+#   carries the board's arming token (SESSION.token: 30 random bits, drawn anew at every
+#   start, disarm, clear_faults and fault), so a stale, repeated or pre-reset arm is
 #   refused (R_STALE_EPOCH); REQUEST and VERSION keep their ids in every version (a host
 #   reads VERSION first and refuses a board whose table hash differs from its own);
+# - the commands that move the cart (CHECKED: arm, set_reference, param_set, excite) end in
+#   a field `check`: CRC-32/ISO-HDLC (zlib.crc32) over the message id byte and the payload
+#   bytes before it, its low 32 bits (u32: the firmware compares the low 30) or, in
+#   param_set (no room for 4 bytes), its low 24 bits as 3 raw bytes; GAINS_COMMIT.check is the CRC-32 of the whole table, GAINS_BEGIN carries the
+#   token (an upload belongs to the session that began it).  A mismatch is R_BAD_CHECK;
 # - field formats are struct codes: B u8, b i8, H u16, h i16, I u32, i i32, Ns N raw
 #   bytes.  The firmware keeps ints small (|v| < 2**30): a received u32 keeps its low
 #   30 bits (ticks wrap at 2**30 like time.ticks_us), a received i32 saturates at
@@ -38,6 +44,7 @@ except ImportError:
         return x
 
 # ---- message ids (5 bits: 0..31) ----
+SESSION = const(0)
 HEARTBEAT = const(1)
 HIL_SENSOR = const(2)
 HIL_ACTUATOR = const(3)
@@ -76,6 +83,9 @@ EXC_OFF = const(0)
 EXC_ADD = const(1)
 EXC_OPEN = const(2)
 
+# commands with a trailing integrity check (see the wire rules above)
+CHECKED = (ARM, SET_REFERENCE, PARAM_SET, EXCITE)
+
 MAX_ID = const(31)
 MAX_PAYLOAD = const(8)
 # serial frame: id, seq, payload, crc16
@@ -96,15 +106,25 @@ TO_HOST = const(2)
 # (id, name, direction, doc, fields)
 # field: (name, format, scale, unit, doc)
 MESSAGES = (
+    (SESSION, "session", TO_HOST,
+     "The board's session (on REQUEST): the arming token ARM and GAINS_BEGIN must carry, and the whole board "
+     "time. The token is 30 random bits (os.urandom / the RP2040's ring-oscillator bits, mixed with a seed "
+     "persisted across starts), drawn anew at every start, disarm, clear_faults and fault: nothing sent "
+     "before a reset or a disarm can arm after it (a replay matches with probability 2**-30).",
+     (("token", "I", 1, "", "arming token (0 .. 2**30-1); HEARTBEAT.epoch is its low 8 bits"),
+      ("uptime_ms", "I", 1, "ms", "time since the board started, wraps at 2**30 ms (12.4 days); not reset by a "
+       "MODE switch"))),
     (HEARTBEAT, "heartbeat", TO_HOST,
      "Periodic board status (every heartbeat_ms, and on REQUEST); a changed boot counter means the board reset, "
      "a changed gains_crc that it runs another gain table (VERSION has the full CRC).",
      (("state", "B", 1, "", "supervisor state (see STATES)"),
       ("faults", "H", 1, "", "latched fault flags (see FAULTS)"),
       ("boot", "B", 1, "", "boot counter mod 256, incremented on every start"),
-      ("epoch", "B", 1, "", "arming epoch mod 256: ARM must carry it; changes on every disarm, clear_faults and fault"),
+      ("epoch", "B", 1, "", "low 8 bits of the arming token (SESSION.token, which ARM must carry): changes with "
+       "it, on every start, disarm, clear_faults and fault"),
       ("gains_crc", "B", 1, "", "low 8 bits of the active gain table's CRC-16 (VERSION.gains_crc)"),
-      ("uptime_ms", "H", 1, "ms", "time since boot, low 16 bits (wraps every 65.536 s)"))),
+      ("uptime_ms", "H", 1, "ms", "time since boot, low 16 bits (wraps every 65.536 s; the whole value: "
+       "SESSION.uptime_ms, status value uptime_ms)"))),
     (HIL_SENSOR, "hil_sensor", TO_BOARD,
      "HIL: the simulated sensors for one control tick; in lockstep the board runs one step per frame.",
      (("tick", "I", 1, "", "tick number of this sample, wraps at 2**30"),
@@ -117,7 +137,8 @@ MESSAGES = (
       ("state", "B", 1, "", "supervisor state (see STATES)"),
       ("faults", "B", 1, "", "low 8 bits of the latched fault flags"))),
     (TELEM_STATE, "telem_state", TO_HOST,
-     "Telemetry part 1: estimated state (every telemetry_div ticks, and on REQUEST).",
+     "Telemetry part 1: estimated state (every telemetry_div ticks, and on REQUEST); while not balancing "
+     "(motor off) x and phi as the sensors read them and the rates 0.",
      (("x", "h", 0.0001, "m", "estimated cart position"),
       ("xdot", "h", 0.001, "m/s", "estimated cart speed"),
       ("phi", "h", 0.0001, "rad", "estimated tilt from upright"),
@@ -125,7 +146,7 @@ MESSAGES = (
     (TELEM_CTRL, "telem_ctrl", TO_HOST,
      "Telemetry part 2: reference, command and step time of the same tick as the preceding TELEM_STATE.",
      (("ref", "h", 0.0001, "m", "cart position reference"),
-      ("force", "h", 0.01, "N", "commanded cart force after saturation"),
+      ("force", "h", 0.01, "N", "commanded cart force after saturation (0 while not balancing: what is applied)"),
       ("duty", "h", 1, "", "motor duty sent to the driver"),
       ("step_us", "H", 1, "us", "duration of this control step"))),
     (TIMING, "timing", TO_HOST,
@@ -136,12 +157,14 @@ MESSAGES = (
       ("overruns", "H", 1, "", "steps that missed their deadline (saturates at 65535)"))),
     (SET_REFERENCE, "set_reference", TO_BOARD,
      "Set the cart position reference; refused (OUT_OF_RANGE) beyond +-ref_limit_um. ACK or NACK.",
-     (("x_um", "i", 1e-6, "m", "cart position reference"),)),
+     (("x_um", "i", 1e-6, "m", "cart position reference"),
+      ("check", "I", 1, "", "CRC-32 of the id byte and x_um (integrity check)"))),
     (ARM, "arm", TO_BOARD,
-     "Arm the motor (disarmed -> armed) if epoch is the board's current arming epoch (HEARTBEAT.epoch); "
+     "Arm the motor (disarmed -> armed) if epoch is the board's current arming token (SESSION.token); "
      "refused (STALE_EPOCH) otherwise, and (FAULTED) while a fault is latched; a repeat while armed "
-     "with the same epoch changes nothing and is ACKed. ACK or NACK.",
-     (("epoch", "B", 1, "", "the board's arming epoch, read from its HEARTBEAT"),)),
+     "with the same token changes nothing and is ACKed. ACK or NACK.",
+     (("epoch", "I", 1, "", "the board's arming token, read from its SESSION"),
+      ("check", "I", 1, "", "CRC-32 of the id byte and epoch (integrity check)"))),
     (DISARM, "disarm", TO_BOARD,
      "Disarm: motor off, always accepted; the arming epoch changes, so no arm sent before it can act. ACK.",
      ()),
@@ -154,22 +177,28 @@ MESSAGES = (
     (PARAM_SET, "param_set", TO_BOARD,
      "Write a parameter; checked against PARAMS min/max first; answered by PARAM_VALUE (the value now in force) or NACK.",
      (("index", "B", 1, "", "parameter index"),
-      ("value", "i", 1, "", "new value in the parameter's unit"))),
+      ("value", "i", 1, "", "new value in the parameter's unit"),
+      ("check", "3s", 1, "", "low 24 bits of the CRC-32 of the id byte, index and value, little-endian "
+       "(integrity check)"))),
     (PARAM_VALUE, "param_value", TO_HOST,
      "A parameter's current value (reply to PARAM_GET / PARAM_SET).",
      (("index", "B", 1, "", "parameter index"),
       ("value", "i", 1, "", "value in the parameter's unit"))),
     (GAINS_BEGIN, "gains_begin", TO_BOARD,
-     "Start a gain-table upload: total length and CRC-16/CCITT-FALSE of the whole table. ACK or NACK(BAD_LENGTH).",
+     "Start a gain-table upload: total length and CRC-16/CCITT-FALSE of the whole table, and the arming token "
+     "(SESSION.token) of the session it belongs to: a token that is not the board's current one is refused "
+     "(STALE_EPOCH), and a token change (disarm, fault, reset) ends the upload. ACK or NACK(BAD_LENGTH).",
      (("nbytes", "H", 1, "B", "table length in bytes (1..GAINS_MAX)"),
-      ("crc", "H", 1, "", "CRC-16/CCITT-FALSE of the table bytes"))),
+      ("crc", "H", 1, "", "CRC-16/CCITT-FALSE of the table bytes"),
+      ("token", "I", 1, "", "the board's arming token (SESSION.token)"))),
     (GAINS_CHUNK, "gains_chunk", TO_BOARD,
      "Table bytes [offset, offset+6) in offset order, the last chunk zero-padded. ACK (a repeat of the previous chunk is ACKed again) or NACK(BAD_SEQUENCE, upload aborted).",
      (("offset", "H", 1, "B", "byte offset of this chunk, multiple of 6"),
       ("data", "6s", 1, "", "six table bytes"))),
     (GAINS_COMMIT, "gains_commit", TO_BOARD,
-     "Check length and CRC and apply the table atomically; only while the motor is off (disarmed or fault). ACK or NACK (old table kept).",
-     ()),
+     "Check length, session, CRC-16 and CRC-32 and apply the table atomically; only while the motor is off "
+     "(disarmed or fault): refused (ARMED) before any other check otherwise. ACK or NACK (old table kept).",
+     (("check", "I", 1, "", "CRC-32 (zlib.crc32) of the whole table; the board compares its low 30 bits"),)),
     (REQUEST, "request", TO_BOARD,
      "Ask the board to send one message now (heartbeat, telem_state, timing, version, stats_decode: all three "
      "stats messages). Answered by that message or NACK.",
@@ -247,7 +276,8 @@ MESSAGES = (
      "force applied, excitation included. ACK or NACK.",
      (("mode", "B", 1, "", "0 off, 1 added to the balancing force, 2 open loop (force = excitation)"),
       ("div", "B", 1, "tick", "control ticks per PRBS bit (1..255)"),
-      ("amp_mn", "H", 0.001, "N", "amplitude (1..10000 mN)"))),
+      ("amp_mn", "H", 0.001, "N", "amplitude (1..10000 mN)"),
+      ("check", "I", 1, "", "CRC-32 of the id byte, mode, div and amp_mn (integrity check)"))),
 )
 
 # ---- refusal reasons (NACK.reason; also the return codes of the target methods) ----
@@ -269,6 +299,7 @@ R_NOT_SUPPORTED = const(14)
 R_NOT_READY = const(15)
 R_STALE_EPOCH = const(16)
 R_STORAGE = const(17)
+R_BAD_CHECK = const(18)
 
 REASONS = (
     (OK, "ok", "accepted"),
@@ -277,7 +308,8 @@ REASONS = (
     (R_BAD_INDEX, "bad_index", "no parameter with this index"),
     (R_READ_ONLY, "read_only", "parameter cannot be written"),
     (R_FAULTED, "faulted", "a fault is latched: clear it first (arming refused)"),
-    (R_ARMED, "armed", "only allowed while the motor is off (gain table, some parameters)"),
+    (R_ARMED, "armed", "only allowed while the motor is off: gain commit, save, mode, and the parameters "
+     "that change the drive or the sensors (DRIVE_PARAMS: signs, pot offset, max_duty, node_id)"),
     (R_BAD_STATE, "bad_state", "not allowed in the current supervisor state"),
     (R_BAD_LENGTH, "bad_length", "gain table length is 0, too long, or not the expected size"),
     (R_BAD_CRC, "bad_crc", "gain table CRC does not match the bytes received"),
@@ -288,9 +320,11 @@ REASONS = (
     (R_NOT_SUPPORTED, "not_supported", "the board does not implement this request"),
     (R_NOT_READY, "not_ready", "arm refused: the active gain table failed its check or its CRC at boot/upload; "
      "clear_faults does not change that, only uploading a good table does"),
-    (R_STALE_EPOCH, "stale_epoch", "arm with an epoch that is not the board's current one: sent before a disarm, "
-     "clear_faults or fault, or a repeat; read HEARTBEAT.epoch and arm again"),
+    (R_STALE_EPOCH, "stale_epoch", "arm or gain upload with a token that is not the board's current one: sent "
+     "before a reset, disarm, clear_faults or fault, or a repeat; read SESSION.token and send again"),
     (R_STORAGE, "storage", "save_config failed: the flash filesystem refused the write (old configuration kept)"),
+    (R_BAD_CHECK, "bad_check", "the integrity check (CRC-32) of a command that moves the cart, or of an uploaded "
+     "table, does not match: a corrupted frame, nothing changed"),
 )
 
 # ---- supervisor states (HEARTBEAT.state); the supervisor (firmware app) owns the logic ----
@@ -316,6 +350,11 @@ P_ADC_SIGN = const(10)
 P_ENC_SIGN = const(11)
 P_MOTOR_SIGN = const(12)
 N_PARAMS = const(13)
+
+# parameters that change the drive or what the sensors mean (signs, offsets, the duty clamp,
+# the CAN node id the host reaches the board at): param_set is refused (ARMED) while armed or
+# balancing -- changed under a balancing robot they tip it
+DRIVE_PARAMS = (P_MAX_DUTY, P_NODE_ID, P_POT_OFFSET, P_ADC_SIGN, P_ENC_SIGN, P_MOTOR_SIGN)
 
 # (index, name, unit, min, max, default, doc); every value an int with |v| < 2**30
 PARAMS = (
@@ -347,6 +386,35 @@ PARAMS = (
      "encoder direction: -1 flips it (0 counts as +1); start-up value firmware/board.py ENC_SIGN"),
     (P_MOTOR_SIGN, "motor_sign", "", -1, 1, 1,
      "motor direction on top of firmware/board.py MOTOR_SIGN: -1 flips it (0 counts as +1)"),
+)
+
+# ---- status values: read-only board figures, read with PARAM_GET(STATUS_BASE + k) ----
+# answered by PARAM_VALUE like a parameter, never saved, refused by PARAM_SET (read_only);
+# each an int with |v| < 2**30 (the host: host.link.clients.Link.status)
+STATUS_BASE = const(64)
+S_UPTIME_MS = const(0)
+S_LATE = const(1)
+S_LINK_DEFERRED = const(2)
+S_LINK_WAIT_MAX = const(3)
+S_CFG_STATUS = const(4)
+S_CFG_SLOT = const(5)
+S_CFG_SEQ = const(6)
+S_STARTS = const(7)
+N_STATUS = const(8)
+# (k, name, unit, doc)
+STATUS = (
+    (S_UPTIME_MS, "uptime_ms", "ms", "time since the board started (not reset by a MODE switch), wraps at 2**30 ms "
+     "(12.4 days); HEARTBEAT.uptime_ms is its low 16 bits"),
+    (S_LATE, "late_ticks", "", "loop ticks that started late (gap > 1.5 periods) since start (saturates at 65535)"),
+    (S_LINK_DEFERRED, "link_deferred", "", "host frames that waited in the receive buffer for a later tick "
+     "(the link's per-tick budget was spent) since start (saturates at 65535)"),
+    (S_LINK_WAIT_MAX, "link_wait_max", "tick", "longest time a host frame waited in the receive buffer, in ticks"),
+    (S_CFG_STATUS, "cfg_status", "", "saved configuration at start-up: 0 loaded, 1 empty (none saved), 2 corrupt "
+     "(copies there, none valid: defaults, F_CONFIG), 3 no storage"),
+    (S_CFG_SLOT, "cfg_slot", "", "the saved copy in force: 0 (cfg_a.bin), 1 (cfg_b.bin), -1 none (defaults)"),
+    (S_CFG_SEQ, "cfg_seq", "", "sequence number of the saved copy in force (0: none); each save writes newest + 1"),
+    (S_STARTS, "starts", "", "control-loop starts since the board started: 1, +1 after each MODE switch back to "
+     "the robot (the board did not reset: HEARTBEAT.boot unchanged)"),
 )
 
 # ---- fault flags (HEARTBEAT.faults; HIL_ACTUATOR.faults carries the low 8 bits) ----

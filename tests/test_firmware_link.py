@@ -22,6 +22,7 @@ from firmware import codec, crc16, framing
 from firmware import msgtable as T
 from firmware.app import App
 from firmware.link_serial import SerialLink
+from firmware.crc32 import seal
 
 layout = codec.Layout()
 table = crc16.make_table()
@@ -36,6 +37,7 @@ def add(tick, mid, a=0, b=0):
     global NF, pos
     vals[0] = a
     vals[1] = b
+    seal(layout, mid, vals, 0, enc.raw, 2)  # the integrity check of a command that moves the cart
     n = enc.encode(mid, NF & 0xFF, vals, 0)
     STREAM[pos:pos + n] = enc.out[:n]
     pos += n

@@ -44,6 +44,7 @@ from firmware import msgtable as T
 from firmware import supervisor as S
 from firmware import gains as G
 from firmware import codec, commands, crc16
+from firmware.crc32 import seal, of as crc32_of
 
 def chk(name, v):
     print('OBS ' + name + ' ' + str(int(v)))
@@ -136,6 +137,7 @@ def cmd(disp, mid, *vals):
     # one command through the dispatcher as the link would hand it; -> OK or the reason
     buf = bytearray(16)
     v = list(vals) + [0] * 4
+    seal(LAYOUT, mid, v, 0, buf, 2)  # the integrity check of a command that moves the cart
     LAYOUT.pack(mid, v, 0, buf, 2)
     return disp.handle(mid, 1, buf, 2)
 
@@ -154,7 +156,7 @@ def upload(disp, data, crc=None):
     n = len(data)
     if crc is None:
         crc = crc16.compute(CRCT, data, 0, n)
-    r = cmd(disp, T.GAINS_BEGIN, n, crc)
+    r = cmd(disp, T.GAINS_BEGIN, n, crc, disp.target.epoch)
     if r:
         return 100 + r
     for off in range(0, n, 6):
@@ -165,7 +167,7 @@ def upload(disp, data, crc=None):
         r = disp.handle(T.GAINS_CHUNK, 1, buf, 2)
         if r:
             return 200 + r
-    return cmd(disp, T.GAINS_COMMIT)
+    return cmd(disp, T.GAINS_COMMIT, crc32_of(data))
 
 class Gains:
     def __init__(s, flat, crc):

@@ -47,10 +47,10 @@ def _state(app):
 
 
 def _upload(disp, blob: bytes, crc: int | None = None) -> int:
-    r = _send(disp, M.GainsBegin(nbytes=len(blob), crc=M.crc16(blob) if crc is None else crc))
+    r = _send(disp, M.GainsBegin(nbytes=len(blob), crc=M.crc16(blob) if crc is None else crc, token=disp.target.epoch))
     for off in range(0, len(blob), 6):
         r = r or _send(disp, M.GainsChunk(offset=off, data=blob[off:off + 6].ljust(6, b"\0")))
-    return r or _send(disp, M.GainsCommit())
+    return r or _send(disp, M.GainsCommit(check=M.table_check(blob)))
 
 
 def test_reference_beyond_track_refused():

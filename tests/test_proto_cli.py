@@ -23,7 +23,7 @@ def test_encode_decode_serial_and_can(capsys):
     rc, out, _ = _out(capsys, ["proto", "encode", "set_reference", "x_um=-0.5", "--physical", "--seq", "9"])
     assert rc == 0 and bytes.fromhex(out) == M.encode_serial(M.SetReference(x_um=-500000), 9)
     rc, dec, _ = _out(capsys, ["proto", "decode", out])
-    assert rc == 0 and "seq   9" in dec and "set_reference(x_um=-0.5m)" in dec
+    assert rc == 0 and "seq   9" in dec and "set_reference(x_um=-0.5m, check=" in dec
     rc, out, _ = _out(capsys, ["proto", "encode", "gains_chunk", "offset=6", "data=010203040506", "--can", "--node", "2"])
     assert rc == 0 and out == f"{(2 << 5) | M.GainsChunk.ID:03X}#0600010203040506"
     rc, dec, _ = _out(capsys, ["proto", "decode", out, "--can"])
@@ -58,7 +58,7 @@ def test_decode_reports_drops(capsys):
     bad = bytearray(good)
     bad[2] ^= 1
     rc, out, err = _out(capsys, ["proto", "decode", (bytes(bad) + good).hex()])
-    assert rc == 1 and "arm(epoch=0)" in out and ("crc=1" in err or "length=1" in err)
+    assert rc == 1 and "arm(epoch=0, check=" in out and ("crc=1" in err or "length=1" in err)
 
 
 def test_dump_a_live_pty(capsys):

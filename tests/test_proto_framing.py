@@ -22,7 +22,7 @@ def test_table_is_consistent():
     names = [m[1] for m in T.MESSAGES]
     assert len(set(ids)) == len(ids) and len(set(names)) == len(names)
     for mid, name, direction, doc, fields in T.MESSAGES:
-        assert 0 < mid <= T.MAX_ID and direction in (T.TO_BOARD, T.TO_HOST) and doc
+        assert 0 <= mid <= T.MAX_ID and direction in (T.TO_BOARD, T.TO_HOST) and doc
         assert struct.calcsize("<" + "".join(f[1] for f in fields)) <= T.MAX_PAYLOAD, name
         assert len(fields) <= 8
         for f in fields:
@@ -138,7 +138,7 @@ def test_firmware_unpack_keeps_small_ints():
     layout = codec.Layout()
     vals = array("i", [0] * 8)
     for v, want in ((2**31 - 1, 2**30 - 1), (-(2**31), -(2**30 - 1)), (2**30 - 1, 2**30 - 1), (-(2**30), -(2**30 - 1)), (-5, -5)):
-        layout.unpack(T.SET_REFERENCE, struct.pack("<i", v), 0, vals, 0)
+        layout.unpack(T.SET_REFERENCE, struct.pack("<iI", v, 0), 0, vals, 0)
         assert vals[0] == want
     layout.unpack(T.HIL_SENSOR, struct.pack("<IHH", 0xFFFFFFFF, 4095, 65535), 0, vals, 0)
     assert list(vals[:3]) == [2**30 - 1, 4095, 65535]

@@ -116,7 +116,7 @@ def test_version_and_stats_report_what_the_board_knows():
     # the heartbeat: the epoch and the gain CRC's low byte
     hb = array("i", [0] * 8)
     app.fill_heartbeat(hb)
-    assert hb[3] == app.epoch and hb[4] == 0xEF
+    assert hb[3] == app.epoch & 0xFF and hb[4] == 0xEF
 
 
 def test_since_boot_figures_survive_a_timing_report():

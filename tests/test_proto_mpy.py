@@ -76,8 +76,9 @@ def _stream(seed: int, n_bytes: int) -> bytes:
         for pick in (0, 1):
             kw = {f.name: (bytes(f.size) if f.is_raw else f.bounds[pick]) for f in cls.FIELDS}
             msgs.append(cls(**kw))
-    msgs += [M.GainsBegin(nbytes=12, crc=M.crc16(bytes(12))), M.GainsChunk(offset=0, data=bytes(6)),
-             M.GainsChunk(offset=6, data=bytes(6)), M.GainsCommit(), M.Arm(epoch=3), M.Disarm()]
+    msgs += [M.GainsBegin(nbytes=12, crc=M.crc16(bytes(12)), token=3), M.GainsChunk(offset=0, data=bytes(6)),
+             M.GainsChunk(offset=6, data=bytes(6)), M.GainsCommit(check=M.table_check(bytes(12))), M.Arm(epoch=3),
+             M.Disarm()]
     out = bytearray()
     while len(out) < n_bytes:
         r = rng.random()

@@ -52,7 +52,22 @@ def _trace(board, **kw) -> np.ndarray:
 
 
 def _req(board, name: str, **fields):
+    # an upload belongs to the board's session (its arming token); a commit carries the
+    # table's CRC-32 (the test's tables: _COMMIT_CHECK, set by the begin)
+    if name == "gains_begin" and "token" not in fields:
+        fields["token"] = board.link.session_token(timeout=1.0)
+    if name == "gains_commit" and "check" not in fields:
+        fields["check"] = _LAST.get("check", 0)
     return board.link.request(M.BY_NAME[name](**fields), timeout=1.0)
+
+
+_LAST: dict[str, int] = {}
+
+
+def _begin(board, table: bytes, crc: int | None = None) -> None:
+    # gains_begin for this table (commit's check: its CRC-32)
+    _LAST["check"] = M.table_check(table)
+    _req(board, "gains_begin", nbytes=len(table), crc=M.crc16(table) if crc is None else crc)
 
 
 def _refused(board, reason: int, name: str, **fields) -> None:
@@ -81,7 +96,7 @@ def test_gain_upload_interrupted_or_corrupted_never_applied(board) -> None:
 
     board.link.disarm()
     # 1. interrupted: half the chunks, then the host goes away; a later commit is refused
-    _req(board, "gains_begin", nbytes=len(ALT), crc=M.crc16(ALT))
+    _begin(board, ALT)
     chunks = list(_chunks(ALT))
     for off, data in chunks[: len(chunks) // 2]:
         _req(board, "gains_chunk", offset=off, data=data)
@@ -89,23 +104,23 @@ def test_gain_upload_interrupted_or_corrupted_never_applied(board) -> None:
     # 2. corrupted: every chunk arrives, one byte of the table is wrong -> CRC refuses
     bad = bytearray(ALT)
     bad[len(bad) // 2] ^= 0x10
-    _req(board, "gains_begin", nbytes=len(ALT), crc=M.crc16(ALT))
+    _begin(board, ALT)
     for off, data in _chunks(bytes(bad)):
         _req(board, "gains_chunk", offset=off, data=data)
     _refused(board, T.R_BAD_CRC, "gains_commit")
     # 3. a chunk out of order aborts the upload
-    _req(board, "gains_begin", nbytes=len(ALT), crc=M.crc16(ALT))
+    _begin(board, ALT)
     _refused(board, T.R_BAD_SEQUENCE, "gains_chunk", offset=12, data=ALT[12:18])
     _refused(board, T.R_BAD_SEQUENCE, "gains_commit")
     # 4. a table with a good CRC but the wrong size / header: the firmware's own check
     short = ALT[:-4]
-    _req(board, "gains_begin", nbytes=len(short), crc=M.crc16(short))
+    _begin(board, short)
     for off, data in _chunks(short):
         _req(board, "gains_chunk", offset=off, data=data)
     _refused(board, T.R_BAD_LENGTH, "gains_commit")
     hdr = bytearray(ALT)
     hdr[0] ^= 0x7F  # table format version
-    _req(board, "gains_begin", nbytes=len(hdr), crc=M.crc16(bytes(hdr)))
+    _begin(board, bytes(hdr))
     for off, data in _chunks(bytes(hdr)):
         _req(board, "gains_chunk", offset=off, data=data)
     with pytest.raises(CommandRefused) as e:
@@ -113,7 +128,7 @@ def test_gain_upload_interrupted_or_corrupted_never_applied(board) -> None:
     assert e.value.reason in (T.R_BAD_SHAPE, T.R_UNSTABLE), e.value
     # 5. a complete, correct table while the motor runs: refused, upload kept for later
     board.link.arm()
-    _req(board, "gains_begin", nbytes=len(ALT), crc=M.crc16(ALT))
+    _begin(board, ALT)
     for off, data in _chunks(ALT):
         _req(board, "gains_chunk", offset=off, data=data)
     _refused(board, T.R_ARMED, "gains_commit")
@@ -175,7 +190,13 @@ def test_commands_out_of_range_or_wrong_state_refused_mid_run_change_nothing(boa
         # the period comes only from the gain table's RATE (issue 13): read-only in every state
         (M.BY_NAME["param_set"](index=T.P_LOOP_RATE, value=400), T.R_READ_ONLY),
         (M.BY_NAME["clear_faults"](), T.R_BAD_STATE),  # while balancing
-        (M.BY_NAME["gains_commit"](), T.R_BAD_SEQUENCE),
+        # while balancing a commit is refused before anything else is looked at (bounded work)
+        (M.BY_NAME["gains_commit"](check=0), T.R_ARMED),
+        # what would tip the balancing robot: refused while armed (issue 23)
+        (M.BY_NAME["param_set"](index=T.P_MOTOR_SIGN, value=-1), T.R_ARMED),
+        (M.BY_NAME["param_set"](index=T.P_POT_OFFSET, value=100), T.R_ARMED),
+        # a corrupted command that moves the cart: its integrity check fails
+        (M.BY_NAME["set_reference"](x_um=0, check=1), T.R_BAD_CHECK),
         (M.BY_NAME["gains_chunk"](offset=0, data=b"\x01" * 6), T.R_BAD_SEQUENCE),
         (M.BY_NAME["request"](msg_id=T.ARM), T.R_NOT_SUPPORTED),
         (M.BY_NAME["heartbeat"](**{f.name: 0 for f in M.BY_NAME["heartbeat"].FIELDS}), T.R_UNKNOWN),  # wrong direction

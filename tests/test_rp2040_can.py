@@ -281,8 +281,8 @@ def test_watchdog_cuts_the_motor_when_the_host_goes_silent(can_board) -> None:
 
         ask(M.BY_NAME["disarm"]())
         ask(M.BY_NAME["clear_faults"]())
-        hb = ask(M.BY_NAME["request"](msg_id=T.HEARTBEAT), "heartbeat")
-        arm = M.BY_NAME["arm"](epoch=hb.epoch) if M.BY_NAME["arm"].FIELDS else M.BY_NAME["arm"]()
+        ses = ask(M.BY_NAME["request"](msg_id=T.SESSION), "session")
+        arm = M.BY_NAME["arm"](epoch=ses.token)  # the board's arming token
         a = ask(arm)
         assert a.NAME == "ack", a
         # silence: no host frame for watchdog_ms (250) + margin

@@ -39,6 +39,7 @@ from firmware import gains as G
 from firmware import msgtable as T
 from firmware import supervisor as S
 from firmware.app import App
+from firmware.crc32 import of as crc32_of, seal
 from firmware.store import CORRUPT
 
 __all__ = ["FirmwareStates", "STATS", "run", "bench"]
@@ -201,6 +202,7 @@ class FirmwareStates(RuleBasedStateMachine):
     def _cmd(self, mid: int, *vals: int, data: bytes | None = None) -> int:
         buf = bytearray(16)
         v = list(vals) + [0] * 4
+        seal(LAYOUT, mid, v, 0, buf, 2)  # the integrity check of a command that moves the cart
         LAYOUT.pack(mid, v, 0, buf, 2)
         if data is not None:
             buf[4:4 + len(data)] = data
@@ -293,7 +295,7 @@ class FirmwareStates(RuleBasedStateMachine):
     def arm(self, stale: bool, delta: int) -> None:
         app = self.app
         before = app.sup.state
-        ep = (app.epoch + delta) & 0xFF if stale else app.epoch
+        ep = (app.epoch + delta) & 0x3FFFFFFF if stale else app.epoch
         r = self._cmd(T.ARM, ep)
         if stale:
             assert r in (T.R_STALE_EPOCH, T.R_FAULTED), r
@@ -336,13 +338,13 @@ class FirmwareStates(RuleBasedStateMachine):
             crc ^= 0x0100
         n = len(data) - (6 if kind == "short" else 0)
         motor_off = self.app.sup.state in (S.DISARMED, S.FAULT)
-        if self._cmd(T.GAINS_BEGIN, n, crc) != T.OK:
+        if self._cmd(T.GAINS_BEGIN, n, crc, self.app.epoch) != T.OK:
             return
         for off in range(0, n, 6):
             chunk = data[off:min(off + 6, n)]
             if self._cmd(T.GAINS_CHUNK, off, data=chunk) != T.OK:
                 return
-        r = self._cmd(T.GAINS_COMMIT)
+        r = self._cmd(T.GAINS_COMMIT, crc32_of(data, n))
         if kind == "good" and motor_off:
             assert r == T.OK, r
             self.ready = True

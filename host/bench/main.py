@@ -27,6 +27,7 @@ BENCHES: dict[str, str] = {
     "hil": "host.bench.hil:bench_hil",
     "rp2040": "host.bench.rp2040:bench",
     "rp2040_calibration": "host.bench.rp2040_calibration:bench",
+    "link": "host.bench.link_sweep:bench",
     "fuzz_states": "host.bench.fuzz_states:bench",
     "catch": "host.bench.catch:bench",
     "identify": "host.bench.identify:bench",

@@ -103,7 +103,8 @@ def parse_fields(cls: type[M.Message], items: list[str], physical: bool = False)
                 values[key] = int(text, 0)
             except ValueError:
                 raise ValueError(f"{cls.NAME}.{key}: expected an integer raw value, got {text!r} (use --physical for units)") from None
-    missing = [n for n in fields if n not in values]
+    # the integrity check of a command that moves the cart is computed when not given
+    missing = [n for n in fields if n not in values and n != cls.AUTO_CHECK]
     if missing:
         raise ValueError(f"{cls.NAME}: missing field(s) {', '.join(missing)}")
     if physical:

@@ -329,11 +329,12 @@ class EmulatedHil:
         if key == self._table_key:
             return
         blob, label = gain_table(*key)
-        self.request(M.BY_NAME["gains_begin"](nbytes=len(blob), crc=M.crc16(blob)))
+        token = self.request(M.BY_NAME["request"](msg_id=T.SESSION)).token  # the upload's session
+        self.request(M.BY_NAME["gains_begin"](nbytes=len(blob), crc=M.crc16(blob), token=token))
         n = T.CHUNK_BYTES
         for off in range(0, len(blob), n):
             self.request(M.BY_NAME["gains_chunk"](offset=off, data=blob[off:off + n].ljust(n, b"\x00")))
-        self.request(M.BY_NAME["gains_commit"]())
+        self.request(M.BY_NAME["gains_commit"](check=M.table_check(blob)))
         self._table_key = key
         self.gains = label
 
@@ -402,8 +403,8 @@ class EmulatedHil:
             self._ensure_gains(scenario, params)
             self.request(M.BY_NAME["param_set"](index=T.P_ARM_TILT, value=_ARM_TILT_MAX))
             self.request(M.BY_NAME["set_reference"](x_um=int(round(sim.x_ref() * 1e6))))
-            # ARM carries the board's arming epoch (changed by the disarm above)
-            epoch = self.request(M.BY_NAME["request"](msg_id=T.HEARTBEAT)).epoch
+            # ARM carries the board's arming token (SESSION; drawn anew by the disarm above)
+            epoch = self.request(M.BY_NAME["request"](msg_id=T.SESSION)).token
         except CommandRefused as exc:
             raise HilError(f"the board refused the set-up of {scenario.name}: {exc}\n{self._tail()}") from exc
         # align: plant tick 0 starts margin_us before a loop iteration; arm one tick earlier

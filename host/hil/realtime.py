@@ -110,7 +110,7 @@ class _Stream:
         self.send_t: dict[int, float] = {}
         self.pll = _PhaseLock(self.T_s, lead)
         # ARM (sent in the stream) carries the board's arming epoch, read after prepare()
-        self.epoch = session._request(self.link.query, "heartbeat").epoch
+        self.epoch = session._request(self.link.query, "session").token
 
     def pump(self, until: float, want: int | None) -> Any:
         # receive until `until` (or the answer for tick `want`); returns that answer

@@ -423,17 +423,21 @@ class Link:
 
     # ---- commands ----
     def arm(self, **kw: Any) -> None:
-        """Arm the motor with the board's current arming epoch (refused while a fault is latched).
+        """Arm the motor with the board's current arming token (refused while a fault is latched).
 
-        Reads the epoch from a fresh heartbeat, then sends ARM(epoch); retries resend the
-        same epoch, so a late retry after a disarm (which changes the epoch) is refused
+        Reads the token from a fresh SESSION, then sends ARM(token); retries resend the
+        same token, so a late retry after a disarm (which draws a new token) is refused
         (``stale_epoch``) instead of re-arming.  Starts the host heartbeat
         (:meth:`start_heartbeat`) if it is not running: the board's watchdog needs it.
         """
-        hb = self.query("heartbeat", **kw)
+        token = self.session_token(**kw)
         if not self.heartbeat_running:
             self.start_heartbeat()
-        self.request(M.BY_NAME["arm"](epoch=hb.epoch), **kw)
+        self.request(M.BY_NAME["arm"](epoch=token), **kw)
+
+    def session_token(self, **kw: Any) -> int:
+        """The board's current arming token (``session.token``), for ARM and GAINS_BEGIN."""
+        return int(self.query("session", **kw).token)
 
     def disarm(self, **kw: Any) -> None:
         """Disarm the motor."""
@@ -471,12 +475,13 @@ class Link:
         table = bytes(table)
         if not 0 < len(table) <= T.GAINS_MAX:
             raise ValueError(f"gain table of {len(table)} bytes; must be 1..{T.GAINS_MAX}")
-        self.request(M.BY_NAME["gains_begin"](nbytes=len(table), crc=M.crc16(table)), **kw)
+        token = self.session_token(**kw)  # the upload belongs to this session
+        self.request(M.BY_NAME["gains_begin"](nbytes=len(table), crc=M.crc16(table), token=token), **kw)
         n = T.CHUNK_BYTES
         for off in range(0, len(table), n):
             data = table[off:off + n].ljust(n, b"\x00")
             self.request(M.BY_NAME["gains_chunk"](offset=off, data=data), **kw)
-        self.request(M.BY_NAME["gains_commit"](), **kw)
+        self.request(M.BY_NAME["gains_commit"](check=M.table_check(table)), **kw)
 
     # ---- lifetime ----
     def close(self) -> None:

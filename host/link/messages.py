@@ -20,12 +20,16 @@ import binascii
 import dataclasses
 import math
 import struct
+import zlib
 from typing import Any, ClassVar, Iterator
 
 from firmware import msgtable as T
 
 __all__ = [
     "Field",
+    "command_check",
+    "table_check",
+    "STATUS",
     "Message",
     "ProtocolError",
     "FrameError",
@@ -139,7 +143,13 @@ class Message:
     FIELDS: ClassVar[tuple[Field, ...]]
     STRUCT: ClassVar[struct.Struct]
 
+    #: the field a message of :data:`firmware.msgtable.CHECKED` ends in: filled in by the
+    #: constructor when not given (:func:`command_check`)
+    AUTO_CHECK: ClassVar[str | None] = None
+
     def __post_init__(self) -> None:
+        if self.AUTO_CHECK is not None and getattr(self, self.AUTO_CHECK) is None:
+            object.__setattr__(self, self.AUTO_CHECK, _check_value(self))
         for f in self.FIELDS:
             v = getattr(self, f.name)
             if f.is_raw:
@@ -199,6 +209,8 @@ class Message:
             raise ProtocolError(f"{cls.NAME}: unknown field(s) {sorted(extra)}")
         raw = {}
         for f in cls.FIELDS:
+            if f.name not in values and f.name == cls.AUTO_CHECK:
+                continue
             if f.name not in values:
                 raise ProtocolError(f"{cls.NAME}: missing field {f.name}")
             v = values[f.name]
@@ -230,11 +242,39 @@ def _camel(name: str) -> str:
     return "".join(p.capitalize() for p in name.split("_"))
 
 
+def command_check(msg: Message) -> int:
+    """The integrity check of a command that moves the cart (``firmware.msgtable.CHECKED``).
+
+    CRC-32/ISO-HDLC (:func:`zlib.crc32`) over the message id byte and the payload bytes before
+    the trailing ``check`` field, truncated to that field's width (u32: all 32 bits, of which
+    the firmware compares the low 30; ``param_set``'s 3 raw bytes: the low 24 bits, little-endian).
+    """
+    flds = msg.FIELDS[:-1]
+    body = struct.pack("<" + "".join(f.fmt for f in flds), *(getattr(msg, f.name) for f in flds))
+    crc = zlib.crc32(bytes([msg.ID]) + body)
+    return crc & ((1 << (8 * msg.FIELDS[-1].size)) - 1)
+
+
+def _check_value(msg: Message) -> int | bytes:
+    # the check as the field holds it: an int, or little-endian bytes for a raw field
+    v = command_check(msg)
+    f = msg.FIELDS[-1]
+    return v.to_bytes(f.size, "little") if f.is_raw else v
+
+
+def table_check(table: bytes) -> int:
+    """``gains_commit.check``: the CRC-32 (:func:`zlib.crc32`) of the whole gain table."""
+    return zlib.crc32(bytes(table))
+
+
 def _build() -> dict[int, type[Message]]:
     out: dict[int, type[Message]] = {}
     for mid, name, direction, doc, fields in T.MESSAGES:
         flds = tuple(Field(*f) for f in fields)
-        dc_fields = [(f.name, bytes if f.is_raw else int) for f in flds]
+        auto = mid in T.CHECKED and flds and flds[-1].name == "check"
+        dc_fields: list[Any] = [(f.name, bytes if f.is_raw else int) for f in flds]
+        if auto:
+            dc_fields[-1] = ("check", "int | bytes | None", dataclasses.field(default=None))
         ns = {
             "ID": mid,
             "NAME": name,
@@ -242,6 +282,7 @@ def _build() -> dict[int, type[Message]]:
             "DOC": doc,
             "FIELDS": flds,
             "STRUCT": struct.Struct("<" + "".join(f.fmt for f in flds)),
+            "AUTO_CHECK": "check" if auto else None,
             "__doc__": f"{doc}\n\nFields (raw wire values): "
             + (", ".join(f"{f.name} ({f.fmt}, x{f.scale} {f.unit})".rstrip() for f in flds) or "none"),
         }
@@ -264,6 +305,8 @@ REASON_NAMES: dict[int, str] = {code: name for code, (name, _) in REASONS.items(
 #: parameter name -> (index, unit, min, max, default, doc)
 PARAMS: dict[str, tuple[int, str, int, int, int, str]] = {p[1]: (p[0], p[2], p[3], p[4], p[5], p[6]) for p in T.PARAMS}
 STATES: dict[int, str] = {s[0]: s[1] for s in T.STATES}
+#: status value name -> (param_get index, unit, doc): read-only board figures (msgtable STATUS)
+STATUS: dict[str, tuple[int, str, str]] = {s[1]: (T.STATUS_BASE + s[0], s[2], s[3]) for s in T.STATUS}
 
 
 def message_class(key: int | str) -> type[Message]:

@@ -60,13 +60,39 @@ def render_protocol_md() -> str:
         "**Commands that cannot be replayed or mistaken**: no single-bit error turns a board-bound id",
         f"into `arm` (id {T.ARM}), and `arm` and `disarm` (id {T.DISARM}) differ in at least 3 bits",
         "(`tests/test_proto_integrity.py`: every single- and double-bit flip of every command frame",
-        "on both stream carriers is dropped and counted). `arm` carries the board's arming epoch",
-        "(`heartbeat.epoch`), which changes on every `disarm`, `clear_faults` and fault, and starts at",
-        "a random value at boot: an arm sent before any of those is refused (`stale_epoch`); the",
-        "host reads the epoch and retries with the same one. Only `host_heartbeat` and `set_reference`",
-        "(and HIL sensor frames) feed the board's link watchdog (`watchdog_ms`): a monitor polling",
-        "the board does not keep it armed. The host sends `host_heartbeat` while it operates the",
-        "board and flags a board heartbeat missing for 3 periods.",
+        "on both stream carriers is dropped and counted). `arm` carries the board's **arming token**",
+        "(`session.token`, 30 bits; `heartbeat.epoch` is its low 8 bits), drawn anew at every start,",
+        "`disarm`, `clear_faults` and fault: an arm sent before any of those -- before a reset too --",
+        "is refused (`stale_epoch`), a replay matches with probability 2^-30 (< 10^-9). The token is",
+        "an LCG step (x -> a*x + c mod 2^30, full period: no repeat within 2^30 draws) from a seed",
+        "drawn at every start from `os.urandom` (on an RP2040 the ring oscillator's random bit),",
+        "the boot counter and a seed persisted on the flash and rewritten at every start",
+        "(`firmware/session.py`: an emulated RP2040's urandom is the same at every power-up). The",
+        "host reads `request(session)` and retries with the same token. `gains_begin` carries the",
+        "token too: an upload belongs to the session that began it (a token change ends it, an",
+        "upload replayed after a reset is refused at its begin). Only `host_heartbeat` and",
+        "`set_reference` (and HIL sensor frames) feed the board's link watchdog (`watchdog_ms`): a",
+        "monitor polling the board does not keep it armed. The host sends `host_heartbeat` while it",
+        "operates the board and flags a board heartbeat missing for 3 periods.",
+        "",
+        "**Integrity check of the commands that move the cart** ("
+        + ", ".join(f"`{M.MESSAGES[i].NAME}`" for i in T.CHECKED) + "): their last field `check` is",
+        "the CRC-32/ISO-HDLC (`zlib.crc32`: reflected poly 0xEDB88320, init and xorout 0xFFFFFFFF)",
+        "of the message id byte followed by the payload bytes before `check`; a u32 `check` holds all",
+        "32 bits (the firmware compares the low 30, what it keeps of a u32), `param_set`'s 3 raw bytes",
+        "the low 24 bits little-endian (no room for 4). `gains_commit.check` is the CRC-32 of the",
+        "whole table (the board builds it chunk by chunk). A mismatch is refused (`bad_check`). A",
+        "corrupted frame acts only if it passes the frame CRC-16 (2^-16 for a random corruption; no",
+        "error of up to 3 bits passes) *and* the check (2^-30, `param_set` 2^-24): below 2^-40 ~",
+        "10^-12 per corrupted frame. `host.link.messages` fills `check` in when it is not given",
+        "(`command_check`, `table_check`).",
+        "",
+        "**Bounded work per tick**: the board decodes and answers at most "
+        "4 frames a tick (96 bytes, 3 reply frames) and starts none once the tick has run 2/5 of "
+        "its period; the rest waits in its receive buffer, counted (status values `link_deferred`,",
+        "`link_wait_max`). Heap statistics in `stats_loop` are the last sample, taken between ticks",
+        "while the motor is off; a `gains_commit` while armed is refused before any check;",
+        "`param_set` of what would tip a balancing robot is refused while armed (below).",
         "",
         "**Identity**: `request(version)` answers the firmware version, CRC-16 hashes of the message",
         "table and of the parameter table (generated into `firmware/identity.py`), the active gain",
@@ -130,5 +156,13 @@ def render_protocol_md() -> str:
             "`out_of_range` before the firmware is asked.", "",
             "| index | name | unit | min | max | default | meaning |", "|---:|---|---|---:|---:|---:|---|"]
     out += [f"| {i} | `{n}` | {u} | {lo} | {hi} | {d} | {doc} |" for i, n, u, lo, hi, d, doc in T.PARAMS]
+    drive = ", ".join(f"`{p[1]}`" for p in T.PARAMS if p[0] in T.DRIVE_PARAMS)
+    out += ["", f"Refused with `armed` while armed or balancing (they change the drive or what the sensors mean, "
+            f"and would tip a balancing robot): {drive}; `loop_rate_hz` is always read-only.", ""]
+    out += ["## Status values (`param_get` at index STATUS_BASE + k, read-only)", "",
+            f"Board figures read like parameters: `param_get(index={T.STATUS_BASE} + k)` is answered by",
+            "`param_value`; never saved, `param_set` on them is refused with `read_only`.", "",
+            "| index | name | unit | meaning |", "|---:|---|---|---|"]
+    out += [f"| {T.STATUS_BASE + k} | `{n}` | {u} | {doc} |" for k, n, u, doc in T.STATUS]
     out.append("")
     return "\n".join(out)

@@ -449,9 +449,14 @@ class Board:
         fields = [f.name for f in cls.FIELDS]
         if "epoch" in fields:
             for attempt in range(2):
-                self.query("heartbeat")
+                # the arming token: SESSION where the table has it, else the heartbeat's epoch
+                if has_message("session"):
+                    token = int(self.query("session").token)
+                else:
+                    self.query("heartbeat")
+                    token = getattr(self.heartbeat, "epoch", 0)
                 try:
-                    self.request(cls(epoch=getattr(self.heartbeat, "epoch", 0)))
+                    self.request(cls(epoch=token))
                     break
                 except BoardError as exc:
                     cause = exc.__cause__
