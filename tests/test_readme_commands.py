@@ -211,3 +211,13 @@ def test_host_tools_default_to_the_boards_uart_rate() -> None:
     p = build_parser(only="proto")
     a = p.parse_args(["proto", "dump"])
     assert a.baudrate == UART_BAUD and a.link == "/dev/ttyUSB0"
+
+
+def test_readme_decode_example_is_its_encode_example() -> None:
+    """The README's ``proto decode`` bytes are what its ``proto encode`` line produces (one message)."""
+    enc = next(c for c in COMMANDS if c.startswith("upright proto encode "))
+    dec = next(c for c in COMMANDS if c.startswith("upright proto decode "))
+    r = subprocess.run([sys.executable, "-m", "host.cli.main", *shlex.split(enc)[1:]], capture_output=True,
+                       text=True, timeout=120, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split()[0] == dec.split()[-1], (enc, r.stdout, dec)

@@ -17,7 +17,7 @@ from typing import Any, Sequence, TextIO
 __all__ = ["add_plant_argument", "load_plant", "print_precedence"]
 
 HELP = ("robot TOML of the simulated plant when it differs from the design (the design keeps --params / "
-        "sim/robot.toml), or a name from sim/plants/ (soft_pendulum); a scenario's [params] and [sensors] delay "
+        "sim/robot.toml), or a name from sim/plants/ (soft_pendulum, realistic_cart); a scenario's [params] and [sensors] delay "
         "override it (printed)")
 
 
