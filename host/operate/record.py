@@ -19,9 +19,17 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["COLUMNS", "Recorder", "SeqCounter", "format_of"]
+__all__ = ["COLUMNS", "UNITS", "Recorder", "SeqCounter", "format_of"]
 
 COLUMNS = ("t", "seq", "x", "xdot", "phi", "phidot", "ref", "force", "duty", "step_us", "state", "faults")
+UNITS: dict[str, str] = {
+    "t": "s", "seq": "", "x": "m", "xdot": "m/s", "phi": "rad", "phidot": "rad/s", "ref": "m", "force": "N",
+    "duty": "count", "step_us": "us", "state": "", "faults": "",
+    # the columns ``upright board excite`` adds (host/operate/excite.py)
+    "excite": "", "exc_amp_n": "N", "exc_div": "tick",
+}
+"""Unit of each recorded column ('' for codes and counters; docs/logs.md says what each means).
+Parquet files carry it as the field metadata ``unit``."""
 
 
 def format_of(path: str | Path) -> str:
@@ -106,7 +114,9 @@ class Recorder:
             self._pa = pa
             types = {"seq": pa.int32(), "duty": pa.int32(), "step_us": pa.int32(), "state": pa.int32(),
                      "faults": pa.int32()}
-            self._schema = pa.schema([(c, types.get(c, pa.float64())) for c in self.columns])
+            fields = [pa.field(c, types.get(c, pa.float64()), metadata={"unit": UNITS.get(c, "")})
+                      for c in self.columns]
+            self._schema = pa.schema(fields, metadata={"upright.log": "board recording (docs/logs.md)"})
             self._pq = pq.ParquetWriter(str(self.path), self._schema)
             self._fh = None
         board.listeners.append(self._on)
