@@ -31,3 +31,20 @@ def test_the_stall_thresholds_quoted_are_the_firmwares() -> None:
     for doc in ("docs/firmware.md", "docs/reliability.md"):
         for n in re.findall(r"`stall_duty` \(default (\d+)", _text(doc)) + re.findall(r"`stall_duty` \((\d+),", _text(doc)):
             assert int(n) == app.STALL_DUTY, (doc, n)
+
+
+def test_the_default_design_quoted_is_the_shipped_one() -> None:
+    from host.design import discrete as d
+    from sim.params import load_params
+
+    doc = _text("docs/parameters.md")
+    m = re.search(r"accelerates the cart at \*\*([\d.]+) m/s² from upright\*\*: `u_max = ([\d.]+) / B\[1\] = ([\d.]+) N`", doc)
+    assert m, "docs/parameters.md no longer states the default clamp"
+    assert float(m.group(1)) == float(m.group(2)) == d.A_CMD_DEFAULT
+    assert abs(float(m.group(3)) - d.force_clamp(load_params())) < 5e-4
+    m = re.search(r"\*\*LQR weights `Q = diag\(([^)]*)\)`, `R = ([\d.]+)`\*\*", doc)
+    assert m, "docs/parameters.md no longer states the default weights"
+    assert tuple(float(v) for v in m.group(1).split(",")) == tuple(d.Q_DEFAULT)
+    assert float(m.group(2)) == d.R_DEFAULT
+    m = re.search(r"`OBSERVER_DEFAULT = ([\d.]+)`", doc)
+    assert m and float(m.group(1)) == d.OBSERVER_DEFAULT

@@ -1,6 +1,6 @@
 """Catch mode: a second, more aggressive force row for large tilts (issue 15 item 3).
 
-The shipped tracking design (:data:`host.design.discrete.Q_DEFAULT`, clamp at 3.89 m/s^2
+The shipped tracking design (:data:`host.design.discrete.Q_DEFAULT`, clamp at ``A_CMD_DEFAULT`` (4.73 m/s^2)
 from upright) cannot recover from 0.3 rad: holding 0.3 rad alone takes g tan 0.3 = 3 m/s^2,
 and its position loop spends the clamp's remaining authority on the cart.  A design that
 weighs the tilt far above the cart position recovers, but is too slow on a reference step
