@@ -116,11 +116,17 @@ def _record_args(sp: argparse.ArgumentParser) -> None:
 
 # ------------------------------------------------------------------ helpers
 def _say(text: str = "") -> None:
-    print(text, flush=True)
+    try:
+        print(text, flush=True)
+    except (OSError, ValueError):  # a closed terminal must not stop the disarm that follows
+        pass
 
 
 def _err(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)
+    try:
+        print(text, file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
 
 
 def _bar(k: float, n: float, extra: str = "", width: int = 30) -> None:
@@ -128,8 +134,11 @@ def _bar(k: float, n: float, extra: str = "", width: int = 30) -> None:
     fill = int(width * frac)
     tty = sys.stderr.isatty()
     line = f"[{'#' * fill}{'.' * (width - fill)}] {100 * frac:3.0f}% {k:5.1f}/{n:g} s {extra}"
-    sys.stderr.write(("\r" + line) if tty else (line + "\n"))
-    sys.stderr.flush()
+    try:
+        sys.stderr.write(("\r" + line) if tty else (line + "\n"))
+        sys.stderr.flush()
+    except (OSError, ValueError):  # a closed terminal: the run (and its disarm) goes on
+        pass
 
 
 def _open(args: argparse.Namespace) -> Any:
@@ -214,31 +223,51 @@ def _status(b: Any, args: argparse.Namespace) -> int:
 
 
 def _hold_armed(b: Any, seconds: float | None, tick: Callable[[float], None] | None = None) -> str:
-    """Keep the host heartbeat going while armed; returns why it ended."""
+    """Keep the host heartbeat going while armed; returns why it ended.
+
+    Ctrl-C, SIGTERM and SIGHUP (a closed terminal) end it the same way: the loop raises
+    KeyboardInterrupt (:class:`host.cli.args.Terminated` for the two others) between two
+    link calls, and the caller disarms.
+    """
     import signal
     import threading
 
+    from host.cli.main import TERMINATING, note_signal
     from host.link import messages as M
 
-    # Ctrl-C sets a flag the loop checks between link calls: a KeyboardInterrupt raised inside
+    # a signal sets a flag the loop checks between link calls: a KeyboardInterrupt raised inside
     # the link (holding its lock, half a frame written) could leave the disarm that follows stuck
     stop = threading.Event()
-    prev = None
+    got: list[int] = []
+
+    def on_signal(signum: int, _frame: object) -> None:
+        note_signal(signum)
+        got.append(signum)
+        stop.set()
+
+    prev: dict[int, Any] = {}
     if threading.current_thread() is threading.main_thread():
-        prev = signal.signal(signal.SIGINT, lambda _s, _f: stop.set())
+        for s in (signal.SIGINT, *TERMINATING):
+            if s == signal.SIGINT or signal.getsignal(s) is not signal.SIG_IGN:
+                prev[s] = signal.signal(s, on_signal)
     try:
-        return _hold_loop(b, seconds, tick, stop, M)
+        return _hold_loop(b, seconds, tick, stop, M, got)
     finally:
-        if prev is not None:
-            signal.signal(signal.SIGINT, prev)
+        for s, h in prev.items():
+            signal.signal(s, h)
 
 
-def _hold_loop(b: Any, seconds: float | None, tick: Callable[[float], None] | None, stop: Any, M: Any) -> str:
+def _hold_loop(b: Any, seconds: float | None, tick: Callable[[float], None] | None, stop: Any, M: Any,
+               got: list[int]) -> str:
+    import signal
+
     t0 = time.monotonic()
     last_state = None
     armed_seen = False
     while True:
         if stop.is_set():
+            if got and got[0] != signal.SIGINT:
+                raise A.Terminated(got[0])
             raise KeyboardInterrupt
         b.keepalive()
         b.poll(0.02)

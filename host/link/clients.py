@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import collections
 import importlib
+import os
 import select
 import threading
 import time
@@ -44,6 +45,8 @@ __all__ = [
     "LinkClosed",
     "CommandRefused",
     "IncompatibleBoard",
+    "PortBusy",
+    "port_holders",
     "Link",
     "SerialLink",
     "CanLink",
@@ -103,6 +106,98 @@ class IncompatibleBoard(LinkError):
     def __init__(self, text: str, version: M.Message | None = None) -> None:
         self.version = version
         super().__init__(text)
+
+
+class PortBusy(LinkError):
+    """Another process holds the serial port: ports are opened exclusively, one tool per port.
+
+    Attributes
+    ----------
+    port : str
+        The port as given.
+    holders : list of (int, str)
+        ``(pid, command line)`` of the processes found holding it (may be empty).
+    """
+
+    def __init__(self, port: str, holders: list[tuple[int, str]]) -> None:
+        self.port = port
+        self.holders = holders
+        if holders:
+            who = "; ".join(f"PID {pid} ({cmd})" for pid, cmd in holders)
+            text = f"port busy: {port} is held by {who}"
+        else:
+            text = f"port busy: {port} is held exclusively by another process"
+        super().__init__(text + ": one tool per port -- stop that one first (Ctrl-C), or use the dashboard for "
+                         "several views of one board")
+
+
+def _command_of(pid: int) -> str:
+    # a process's command line, shortened to ``upright ...`` for our own tools
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as fh:
+            argv = [a.decode(errors="replace") for a in fh.read().split(b"\0") if a]
+    except OSError:
+        return "?"
+    for i, a in enumerate(argv):
+        if a == "host.cli.main" or os.path.basename(a) == "upright":
+            return " ".join(["upright", *argv[i + 1:]])
+    return " ".join(argv) or "?"
+
+
+def port_holders(path: str) -> list[tuple[int, str]]:
+    """Processes holding the device ``path``: the holder of its exclusive lock (``/proc/locks``,
+    what :class:`SerialLink` takes), else every process with it open (``/proc/*/fd``).
+
+    Returns
+    -------
+    list of (int, str)
+        ``(pid, command line)``; empty where ``/proc`` says nothing (not Linux, no access).
+    """
+    try:
+        st = os.stat(path)
+    except OSError:
+        return []
+    me = os.getpid()
+    key = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    pids: list[int] = []
+    try:
+        with open("/proc/locks") as fh:
+            for line in fh:
+                parts = line.split()
+                # "1: FLOCK  ADVISORY  WRITE 12440 00:1a:3 0 EOF"
+                if len(parts) >= 6 and parts[1] == "FLOCK" and parts[5] == key and parts[4].isdigit():
+                    pid = int(parts[4])
+                    if pid != me and pid not in pids:
+                        pids.append(pid)
+    except OSError:
+        pass
+    if not pids:
+        real = os.path.realpath(path)
+        try:
+            procs = [d for d in os.listdir("/proc") if d.isdigit() and int(d) != me]
+        except OSError:
+            procs = []
+        for d in procs:
+            try:
+                fds = os.listdir(f"/proc/{d}/fd")
+            except OSError:
+                continue
+            for fd in fds:
+                try:
+                    if os.readlink(f"/proc/{d}/fd/{fd}") == real:
+                        pids.append(int(d))
+                        break
+                except OSError:
+                    continue
+    return [(pid, _command_of(pid)) for pid in pids]
+
+
+def _exclusive_ok(url: str) -> bool:
+    # a device path (not a pyserial URL) that is not the pty multiplexer: every open of
+    # /dev/ptmx is a new pty on the same inode, a lock there would serialise them all
+    if "://" in url or not os.path.exists(url):
+        return False
+    return os.path.basename(os.path.realpath(url)) != "ptmx"
 
 
 # reply class wanted by a request, by request message name (default: ACK)
@@ -510,6 +605,10 @@ def _param_index(param: int | str) -> int:
 class SerialLink(Link):
     """Serial framing over pyserial (any ``serial_for_url`` URL: a device, ``loop://``, a pty).
 
+    A device (a tty, a pty's slave) is opened exclusively (pyserial ``exclusive=True``, an
+    ``flock`` on the device): a second tool on the same port gets :class:`PortBusy` naming
+    the process that holds it, instead of both reading half the frames.
+
     Parameters
     ----------
     url : str
@@ -526,9 +625,12 @@ class SerialLink(Link):
         import serial
 
         self._serial_mod = serial
+        kw: dict[str, Any] = {"exclusive": True} if _exclusive_ok(url) else {}
         try:
-            self._ser = serial.serial_for_url(url, baudrate=baudrate, timeout=0)
+            self._ser = serial.serial_for_url(url, baudrate=baudrate, timeout=0, **kw)
         except (serial.SerialException, OSError, ValueError) as exc:
+            if kw and "exclusively lock" in str(exc):
+                raise PortBusy(url, port_holders(url)) from exc
             raise LinkError(f"cannot open serial port {url!r}: {exc}") from exc
         self.url = url
         self.decoder = M.SerialStreamDecoder()

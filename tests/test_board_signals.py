@@ -1,0 +1,127 @@
+"""Tools that die disarm, one tool per port (issue 23 item 4, issue 22 item 3).
+
+``upright board arm`` / ``excite`` against the virtual board (firmware under the MicroPython
+unix port, real time; :class:`test_board_cli.Relay`): SIGTERM, SIGHUP and a closed terminal
+disarm the board as Ctrl-C does before the tool exits (128 + signal).  "Disarmed" is checked
+on the board right after the exit: state ``disarmed`` with no fault flag -- the link
+watchdog (250 ms without host frames) would have latched ``watchdog`` instead.  A second
+tool on the same port is refused in one line naming the process that holds it.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import select
+import signal
+import subprocess
+import termios
+import time
+
+import pytest
+
+from test_board_cli import ROOT, UPRIGHT, board, relay  # noqa: F401 - the fixture
+
+pytestmark = pytest.mark.slow
+
+
+def _wait_line(proc: subprocess.Popen, text: str, timeout: float = 60) -> str:
+    deadline = time.monotonic() + timeout
+    seen = ""
+    while text not in seen and time.monotonic() < deadline:
+        line = proc.stderr.readline()
+        if not line and proc.poll() is not None:
+            break
+        seen += line
+    assert text in seen, seen + (proc.stderr.read() if proc.poll() is not None else "")
+    return seen
+
+
+def _board_state(r) -> dict:
+    p = board(r, "status", "--json")
+    assert p.returncode == 0, p.stderr
+    return json.loads(p.stdout)
+
+
+def _assert_disarmed_by_the_tool(r) -> None:
+    st = _board_state(r)
+    # a watchdog expiry would read state "fault", faults "watchdog"
+    assert st["state"] == "disarmed" and st["faults"] == 0, st
+
+
+@pytest.mark.parametrize("sig,status", [(signal.SIGTERM, 143), (signal.SIGHUP, 129)], ids=["SIGTERM", "SIGHUP"])
+def test_signal_during_arm_disarms(relay, sig, status):  # noqa: F811 - the fixture
+    proc = subprocess.Popen([*UPRIGHT, "board", "--port", relay.port, "arm"], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    seen = _wait_line(proc, "armed;")
+    time.sleep(0.5)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == status, seen + err
+    assert "upright board: disarmed" in err and f"interrupted by {signal.Signals(sig).name}" in err, err
+    assert "Traceback" not in err, err
+    _assert_disarmed_by_the_tool(relay)
+
+
+def test_closed_terminal_during_arm_disarms(relay):  # noqa: F811
+    """The tool on a terminal (a pty as its controlling tty) that is closed: the kernel's
+    SIGHUP, then writes to the gone terminal fail -- the board is disarmed all the same."""
+    master, slave = os.openpty()
+
+    def own_terminal() -> None:
+        os.setsid()
+        fcntl.ioctl(slave, termios.TIOCSCTTY, 0)
+
+    proc = subprocess.Popen([*UPRIGHT, "board", "--port", relay.port, "arm"], cwd=ROOT, stdin=slave,
+                            stdout=slave, stderr=slave, preexec_fn=own_terminal)
+    os.close(slave)
+    out = b""
+    deadline = time.monotonic() + 60
+    try:
+        while b"armed;" not in out and time.monotonic() < deadline and proc.poll() is None:
+            if select.select([master], [], [], 0.2)[0]:
+                try:
+                    out += os.read(master, 4096)
+                except OSError:
+                    break
+        assert b"armed;" in out, out
+        time.sleep(0.5)
+    finally:
+        os.close(master)  # the terminal window closes
+    assert proc.wait(timeout=30) == 129, out
+    _assert_disarmed_by_the_tool(relay)
+
+
+def test_sigterm_during_excite_disarms(relay, tmp_path):  # noqa: F811
+    out = tmp_path / "bal.csv"
+    proc = subprocess.Popen([*UPRIGHT, "board", "--port", relay.port, "excite", "--seconds", "30",
+                             "--amplitude", "0.3", "--out", str(out)], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    seen = _wait_line(proc, "rows,")  # the progress bar: armed, balancing, excitation on
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 143, seen + err
+    assert out.stat().st_size > 0
+    _assert_disarmed_by_the_tool(relay)
+    p = board(relay, "params", "get", "telem_div", "--json")
+    assert json.loads(p.stdout) == {"telem_div": 10}  # put back on the way out
+
+
+def test_second_tool_is_told_who_holds_the_port(relay):  # noqa: F811
+    proc = subprocess.Popen([*UPRIGHT, "board", "--port", relay.port, "arm"], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_line(proc, "armed;")
+        p = board(relay, "status")
+        assert p.returncode == 1, p.stdout + p.stderr
+        lines = p.stderr.strip().splitlines()
+        assert len(lines) == 1, p.stderr
+        assert "port busy" in lines[0] and f"PID {proc.pid} (upright board --port {relay.port} arm)" in lines[0], lines
+        assert proc.poll() is None  # the first tool is undisturbed
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err
+    _assert_disarmed_by_the_tool(relay)
