@@ -95,7 +95,8 @@ SCENARIO_HALF_TICK = 'name = "half_tick"\nduration = 1.0\n[sensors]\ndelay = 0.0
     (["proto", "dump", "--count", "-1"], ("--count",)),
     (["proto", "dump", "--baudrate", "0"], ("--baudrate",)),
     (["proto", "dump", "--duration", "nan"], ("--duration",)),
-    (["proto", "dump", ""], ("link", "empty")),
+    (["proto", "dump", ""], ("PORT", "empty")),
+    (["proto", "dump", "--port", ""], ("--port", "empty")),
 ])
 def test_bad_flag_is_refused_in_one_line_exit_2(capsys, argv, needles) -> None:
     rc, _, err = _run(capsys, argv)

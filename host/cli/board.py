@@ -36,11 +36,13 @@ __all__ = ["add_arguments", "run"]
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``upright board``."""
-    parser.add_argument("--port", required=True, metavar="DEV",
-                        help="serial device or pty (a CAN channel with --link can)")
+    parser.add_argument("--port", metavar="DEV",
+                        help="serial device or pty (a CAN channel with --link can); required but for `params list`. "
+                             "One tool per port: a second one is told which process holds it")
     parser.add_argument("--link", choices=("serial", "can"), default="serial", help="framing (default serial)")
-    parser.add_argument("--baud", "--baudrate", dest="baud", type=A.positive_int, default=A.board_baud(),
-                        help=f"serial line rate (default {A.board_baud()}: firmware/board.py UART_BAUD)")
+    parser.add_argument("--baudrate", "--baud", dest="baudrate", type=A.positive_int, default=A.board_baud(),
+                        help=f"serial line rate (default {A.board_baud()}: firmware/board.py UART_BAUD; "
+                             "--baud is the old spelling)")
     parser.add_argument("--node", type=A.int_range(0, 63), default=1, help="CAN node id (default 1)")
     parser.add_argument("--can-interface", type=A.can_interface, default="slcan", metavar="NAME",
                         help="python-can interface with --link can (default slcan)")
@@ -57,7 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     sp = sub.add_parser("arm", help="arm and keep the host heartbeat going; disarm on Ctrl-C, exit or --seconds")
     sp.add_argument("--seconds", type=A.in_range(0, 86400, lo_open=True), default=None,
-                    help="disarm after this long (default: until Ctrl-C)")
+                    help="disarm after this many wall-clock seconds (default: until Ctrl-C, SIGTERM or SIGHUP, "
+                         "which disarm too)")
     sp.add_argument("--clear", action="store_true", help="clear latched faults first")
     sub.add_parser("disarm", help="disarm (motor off)")
     sub.add_parser("clear", help="clear latched faults (while disarmed)")
@@ -73,7 +76,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     s.add_argument("name", metavar="NAME")
     s.add_argument("value", metavar="VALUE")
     psub.add_parser("save", help="persist parameters and gain table on the board")
-    psub.add_parser("list", help="the parameter table (no board needed beyond the connection)")
+    psub.add_parser("list", help="the parameter table: names, units, ranges, defaults (no board needed)")
 
     sp = sub.add_parser("gains", help="gain tables")
     gsub = sp.add_subparsers(dest="gains_action", metavar="upload", required=True)
@@ -103,13 +106,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sp.add_argument("--cart-only", action="store_true",
                     help="pendulum removed/locked: PRBS open loop, then disarm and record the coast-down")
     sp.add_argument("--coast", type=A.in_range(0.5, 60), default=3.0, help="--cart-only: coast-down s (default 3)")
-    sp.add_argument("--arm", action="store_true", default=True, help="arm first and disarm at the end (default)")
-    sp.add_argument("--no-arm", dest="arm", action="store_false", help="the board is already balancing")
+    sp.add_argument("--arm", dest="arm_flag", action="store_true",
+                    help="deprecated, does nothing: arming first and disarming at the end is the default "
+                         "(--no-arm for a board that already balances)")
+    sp.add_argument("--no-arm", dest="arm", action="store_false", default=True,
+                    help="the board is already balancing (armed by another tool): do not arm or disarm")
 
 
 def _record_args(sp: argparse.ArgumentParser) -> None:
     sp.add_argument("--seconds", type=A.in_range(0, 86400, lo_open=True), default=10.0,
-                    help="how long (default 10 s)")
+                    help="how long, in wall-clock seconds on this host (default 10 s) -- not board time: a "
+                         "board slower than real time (the emulated Pico) records fewer ticks in it")
     sp.add_argument("--out", required=True, metavar="FILE", help=".csv or .parquet")
     sp.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -144,7 +151,7 @@ def _bar(k: float, n: float, extra: str = "", width: int = 30) -> None:
 def _open(args: argparse.Namespace) -> Any:
     from host.operate.board import Board
 
-    return Board.open(args.port, link=args.link, baudrate=args.baud, node=args.node,
+    return Board.open(args.port, link=args.link, baudrate=args.baudrate, node=args.node,
                       can_interface=args.can_interface, timeout=args.timeout, answer_timeout=args.answer_timeout)
 
 
@@ -317,8 +324,7 @@ def _params(b: Any, args: argparse.Namespace) -> int:
 
     act = args.params_action
     if act == "list":
-        for name, p in param_table().items():
-            _say(f"{name:18s} {p['unit'] or '-':6s} {p['min']}..{p['max']} (default {p['default']})  {p['doc']}")
+        _params_list()
         return 0
     if act == "get":
         names = args.names or list(param_table())
@@ -340,6 +346,15 @@ def _params(b: Any, args: argparse.Namespace) -> int:
     name = b.save()
     _say(f"saved on the board ({name})")
     return 0
+
+
+def _params_list() -> None:
+    # the host's own parameter table (firmware/msgtable.py PARAMS): no board needed
+    from host.operate.board import param_read_only, param_table
+
+    for name, p in param_table().items():
+        ro = "  [read-only]" if param_read_only(name) is not None else ""
+        _say(f"{name:18s} {p['unit'] or '-':6s} {p['min']}..{p['max']} (default {p['default']}){ro}  {p['doc']}")
 
 
 def _gains(b: Any, args: argparse.Namespace) -> int:
@@ -430,6 +445,11 @@ def _excite(b: Any, args: argparse.Namespace) -> int:
     _err(f"upright board: {s['rows']} rows ({s['telemetry_frames']} telemetry frames) to {s['file']}; "
          f"{s['lost']} lost; excitation {'cart-only' if args.cart_only else 'balancing'} "
          f"+-{args.amplitude:g} N, {args.div} ticks per bit")
+    if s.get("moved") is False:
+        x0, phi0 = s["span"]["x"][0], s["span"]["phi"][0]
+        _err(f"upright board: warning: nothing moved -- x ({x0:g} m) and phi ({phi0:g} rad) were the same in every "
+             "excited row: is the motor supply on, the driver enabled, are the encoder and pot wired? "
+             "`upright identify` cannot use this log")
     return 0
 
 
@@ -482,8 +502,19 @@ def run(args: argparse.Namespace) -> int:
     from host.operate.board import BoardError, ParamInputError, check_param, param_info
     from host.operate.record import format_of
 
+    if args.action == "params" and args.params_action == "list":
+        _params_list()
+        return 0
+    if not args.port:
+        raise A.UsageError("--port is required (the board's serial device, pty or CAN channel)")
+    if args.action == "excite" and args.arm_flag:
+        _err("upright board: note: excite --arm is deprecated and does nothing: arming first is the default "
+             "(--no-arm for a board that already balances)")
     # bad input is refused before the board is touched
     try:
+        if args.action == "gains" and args.file and (args.design or args.params):
+            # the conflict first: FILE's contents do not matter when it cannot be used
+            raise A.UsageError(f"gains upload: give FILE ({args.file}) or --design/--params, not both")
         if args.action in ("log", "excite"):
             A.check_out_file(args.out, "--out")
             format_of(args.out)

@@ -56,7 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--can-interface", type=A.can_interface, default="slcan", metavar="NAME",
                         help="python-can interface for --port with --link can (default slcan)")
     parser.add_argument("--node", type=A.int_range(0, 63), default=1, help="CAN node id of the board (default 1)")
-    parser.add_argument("--baudrate", type=A.positive_int, default=A.board_baud(),
+    parser.add_argument("--baudrate", "--baud", dest="baudrate", type=A.positive_int, default=A.board_baud(),
                         help=f"serial line rate for --port (default {A.board_baud()}: firmware/board.py UART_BAUD)")
     parser.add_argument("--no-gif", action="store_true", help="skip the animated GIFs (faster)")
     parser.add_argument("--no-plots", action="store_true", help="skip PNG and GIF")
