@@ -240,7 +240,7 @@ def test_a_failure_caused_by_ctrl_c_is_reported_as_the_interruption(capsys, monk
     from host.hil.errors import HilError
 
     def run(args):
-        monkeypatch.setattr(cli, "_INTERRUPTED", True)  # as SIGINT does, then the board dies of it
+        cli.note_signal(2)  # as SIGINT does, then the board dies of it
         raise HilError("firmware exited with status 130")
 
     monkeypatch.setattr(rep, "run", run)
