@@ -176,7 +176,7 @@ def render_status(st: dict[str, Any]) -> str:
         crc8 = hb.get("gains_crc")
         lines.append("  identity: this firmware has no VERSION message" +
                      (f"; gains CRC low byte {crc8:#04x}" if isinstance(crc8, int) else ""))
-    lines.append(f"  state {st['state']}  boot {hb.get('boot')}  uptime {hb.get('uptime_ms')} ms"
+    lines.append(f"  state {st['state']}  boot {hb.get('boot')}{_mod_text('boot')}  {uptime_text(st)}"
                  + (f"  arming epoch {hb['epoch']}" if "epoch" in hb else ""))
     if st["faults"]:
         ft = fault_table()
@@ -204,6 +204,58 @@ def render_status(st: dict[str, Any]) -> str:
         tm = bs["timing"]
         lines.append("  timing: " + ", ".join(f"{k} {v}" for k, v in tm.items()))
     return "\n".join(lines)
+
+
+def _field(name: str) -> Any:
+    # the widest message field of this name in the table (heartbeat, version, stats...)
+    from host.link import messages as M
+
+    best = None
+    for cls in M.MESSAGES.values():
+        for f in cls.FIELDS:
+            if f.name == name and not f.is_raw and (best is None or f.size > best.size):
+                best = f
+    return best
+
+
+def _mod_text(name: str) -> str:
+    # " (mod 256)" for a counter the table carries in one byte
+    f = _field(name)
+    return f" (mod {1 << (8 * f.size)})" if f is not None and f.size < 2 else ""
+
+
+def _duration_text(s: float) -> str:
+    if s < 120:
+        return f"{s:.1f} s"
+    m, sec = divmod(int(s), 60)
+    h, m = divmod(m, 60)
+    return f"{h} h {m:02d} min {sec:02d} s" if h else f"{m} min {sec:02d} s"
+
+
+def uptime_text(st: dict[str, Any]) -> str:
+    """The board's uptime as it reports it: the widest ``uptime*`` field of its heartbeat or
+    identity, and ``(mod N s)`` when the field wraps within a day (the heartbeat's 16-bit
+    ``uptime_ms`` wraps every 65.5 s: 67 s reads "1.5 s (mod 65.5 s)", not a reboot)."""
+    best: tuple[int, float, int] | None = None  # (bits, seconds, wrap s)
+    for src in (st.get("heartbeat", {}), st.get("identity", {})):
+        for k, v in src.items():
+            if not k.startswith("uptime") or not isinstance(v, (int, float)):
+                continue
+            f = _field(k)
+            if f is None:
+                continue
+            unit = {"ms": 1e-3, "s": 1.0, "us": 1e-6}.get(f.unit, 1e-3)
+            bits = 8 * f.size
+            # v is physical (scale applied); the wrap is in raw counts
+            wrap = (1 << bits) * f.scale * unit
+            if best is None or bits > best[0]:
+                best = (bits, float(v) * unit, wrap)
+    if best is None:
+        return "uptime -"
+    bits, secs, wrap = best
+    if wrap < 86400:
+        return f"uptime {_duration_text(secs)} (mod {wrap:.1f} s: the board sends its low {bits} bits)"
+    return f"uptime {_duration_text(secs)}"
 
 
 # ------------------------------------------------------------------ actions
