@@ -175,3 +175,44 @@ def test_recorder_says_whether_anything_moved(tmp_path) -> None:
     _tick(b, 7, 0.2, 0.0)
     assert rec.moved() is False
     rec.close()
+
+
+def test_uptime_says_where_it_wraps() -> None:
+    from host.cli.board import _field, uptime_text
+
+    f = _field("uptime_ms")
+    text = uptime_text({"heartbeat": {"uptime_ms": 1900}, "identity": {}})
+    if f.size == 2:  # the heartbeat's 16-bit field: 65 s after boot must not read as a reboot
+        assert text == "uptime 1.9 s (mod 65.5 s: the board sends its low 16 bits)", text
+    else:
+        assert text.startswith("uptime 1.9 s") and "mod" not in text, text
+    assert uptime_text({"heartbeat": {}, "identity": {}}) == "uptime -"
+
+
+class _Sc:
+    def __init__(self, name: str, duration: float) -> None:
+        self.name, self.duration = name, duration
+
+
+def test_hil_plan_estimates_up_front_and_per_scenario(monkeypatch) -> None:
+    import io
+
+    import host.cli.hil as H
+
+    clock = [100.0]
+    monkeypatch.setattr(H.time, "perf_counter", lambda: clock[0])
+    buf = io.StringIO()
+    plan = H.Plan([_Sc("a", 2.0), _Sc("b", 6.0)], 500.0, stream=buf)
+    assert "2 scenario(s), 8 s of robot time (4,000 control ticks)" in plan.header()
+    plan("a", 0, 1000)
+    clock[0] += 10.0  # 100 ticks/s
+    plan("a", 1000, 1000)
+    plan("b", 0, 3000)
+    clock[0] += 10.0
+    plan("b", 1000, 3000)
+    out = buf.getvalue()
+    assert "[1/2] a: 1000 ticks" in out and "[2/2] b: 3000 ticks" in out, out
+    assert "estimate: 40 s in all at 100 ticks/s (30 s left)" in out, out
+    assert "[2/2] b: 33% (1000/3000 ticks), ~20 s left" in out, out
+    # the step-time column says what it measures
+    assert "not a 100 % load" in H.STEP_NOTE
