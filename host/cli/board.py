@@ -151,8 +151,12 @@ def _bar(k: float, n: float, extra: str = "", width: int = 30) -> None:
 def _open(args: argparse.Namespace) -> Any:
     from host.operate.board import Board
 
-    return Board.open(args.port, link=args.link, baudrate=args.baudrate, node=args.node,
-                      can_interface=args.can_interface, timeout=args.timeout, answer_timeout=args.answer_timeout)
+    b = Board.open(args.port, link=args.link, baudrate=args.baudrate, node=args.node,
+                   can_interface=args.can_interface, timeout=args.timeout, answer_timeout=args.answer_timeout)
+    if getattr(b.link, "via_hub", False):
+        who = "; ".join(f"PID {pid} ({cmd})" for pid, cmd in b.link.hub_owner) or "another upright tool"
+        _err(f"upright board: {args.port} is held by {who}: sharing the board through its hub")
+    return b
 
 
 def _fmt_hash(v: Any) -> str:

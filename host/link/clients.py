@@ -127,69 +127,14 @@ class PortBusy(LinkError):
             text = f"port busy: {port} is held by {who}"
         else:
             text = f"port busy: {port} is held exclusively by another process"
-        super().__init__(text + ": one tool per port -- stop that one first (Ctrl-C), or use the dashboard for "
-                         "several views of one board")
-
-
-def _command_of(pid: int) -> str:
-    # a process's command line, shortened to ``upright ...`` for our own tools
-    try:
-        with open(f"/proc/{pid}/cmdline", "rb") as fh:
-            argv = [a.decode(errors="replace") for a in fh.read().split(b"\0") if a]
-    except OSError:
-        return "?"
-    for i, a in enumerate(argv):
-        if a == "host.cli.main" or os.path.basename(a) == "upright":
-            return " ".join(["upright", *argv[i + 1:]])
-    return " ".join(argv) or "?"
+        super().__init__(text + " (not an upright tool serving the port's hub): stop it first")
 
 
 def port_holders(path: str) -> list[tuple[int, str]]:
-    """Processes holding the device ``path``: the holder of its exclusive lock (``/proc/locks``,
-    what :class:`SerialLink` takes), else every process with it open (``/proc/*/fd``).
+    """Processes holding the device ``path`` (:func:`host.link.porthub.port_holders`)."""
+    from host.link.porthub import port_holders as holders
 
-    Returns
-    -------
-    list of (int, str)
-        ``(pid, command line)``; empty where ``/proc`` says nothing (not Linux, no access).
-    """
-    try:
-        st = os.stat(path)
-    except OSError:
-        return []
-    me = os.getpid()
-    key = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
-    pids: list[int] = []
-    try:
-        with open("/proc/locks") as fh:
-            for line in fh:
-                parts = line.split()
-                # "1: FLOCK  ADVISORY  WRITE 12440 00:1a:3 0 EOF"
-                if len(parts) >= 6 and parts[1] == "FLOCK" and parts[5] == key and parts[4].isdigit():
-                    pid = int(parts[4])
-                    if pid != me and pid not in pids:
-                        pids.append(pid)
-    except OSError:
-        pass
-    if not pids:
-        real = os.path.realpath(path)
-        try:
-            procs = [d for d in os.listdir("/proc") if d.isdigit() and int(d) != me]
-        except OSError:
-            procs = []
-        for d in procs:
-            try:
-                fds = os.listdir(f"/proc/{d}/fd")
-            except OSError:
-                continue
-            for fd in fds:
-                try:
-                    if os.readlink(f"/proc/{d}/fd/{fd}") == real:
-                        pids.append(int(d))
-                        break
-                except OSError:
-                    continue
-    return [(pid, _command_of(pid)) for pid in pids]
+    return holders(path)
 
 
 def _exclusive_ok(url: str) -> bool:
@@ -247,6 +192,8 @@ class Link:
         self._hb_thread: threading.Thread | None = None
         self._hb_stop = threading.Event()
         self._board_period: float | None = None
+        #: the hub this link serves its port's other tools on (:mod:`host.link.porthub`)
+        self._hub: Any = None
 
     # ---- transport hooks ----
     def _send(self, msg: M.Message, seq: int) -> None:  # pragma: no cover - abstract
@@ -272,8 +219,10 @@ class Link:
         return {}
 
     # ---- public API ----
-    def send(self, msg: M.Message) -> int:
+    def send(self, msg: M.Message, *, _tag: Any = None) -> int:
         """Send one message; return the sequence number used (serial framing).
+
+        ``_tag``: the port hub's note of which attached tool sent the frame.
 
         Raises
         ------
@@ -286,6 +235,9 @@ class Link:
         with self._tx_lock:
             seq = self._seq
             self._seq = (seq + 1) & 0xFF
+            hub = self._hub
+            if hub is not None:
+                hub.note_sent(msg, seq, _tag)
             self._send(msg, seq)
             self.sent += 1
         return seq
@@ -297,6 +249,10 @@ class Link:
         self._ingest(got)
 
     def _ingest(self, got: list[tuple[M.Message, int | None]]) -> None:
+        hub = self._hub
+        if hub is not None and got:
+            # answers to an attached tool's requests go to that tool, not into this queue
+            got = hub.dispatch(got)
         for m, _ in got:
             if isinstance(m, _HEARTBEAT):
                 self.last_heartbeat = m
@@ -578,6 +534,9 @@ class Link:
         """Release the port or bus (idempotent)."""
         if not self._closed:
             self.stop_heartbeat()
+            hub, self._hub = self._hub, None
+            if hub is not None:
+                hub.close()
             self._closed = True
             with self._tx_lock:
                 self._close()
@@ -606,8 +565,10 @@ class SerialLink(Link):
     """Serial framing over pyserial (any ``serial_for_url`` URL: a device, ``loop://``, a pty).
 
     A device (a tty, a pty's slave) is opened exclusively (pyserial ``exclusive=True``, an
-    ``flock`` on the device): a second tool on the same port gets :class:`PortBusy` naming
-    the process that holds it, instead of both reading half the frames.
+    ``flock`` on the device), and the link serves the device's other upright tools through a
+    local hub (:mod:`host.link.porthub`): a second tool on the same port attaches to it
+    (:attr:`via_hub`) instead of both reading half the frames; a port held by anything else
+    is refused with :class:`PortBusy`, naming the process that holds it.
 
     Parameters
     ----------
@@ -617,21 +578,35 @@ class SerialLink(Link):
         Baud rate (ignored by ptys and USB CDC).
     backlog : int
         See :class:`Link`.
+    hub : bool
+        Serve (or attach to) the port's hub; False: exclusive only.
+
     """
 
     def __init__(self, url: str, baudrate: int = BOARD_BAUD, *, backlog: int = 10000,
-                 check_identity: bool = True) -> None:
+                 check_identity: bool = True, hub: bool = True) -> None:
         super().__init__(backlog=backlog, check_identity=check_identity)
         import serial
 
         self._serial_mod = serial
         kw: dict[str, Any] = {"exclusive": True} if _exclusive_ok(url) else {}
+        #: True when another tool holds the port and this link goes through its hub
+        self.via_hub = False
+        #: ``(pid, command)`` of the tool whose hub this link uses
+        self.hub_owner: list[tuple[int, str]] = []
         try:
             self._ser = serial.serial_for_url(url, baudrate=baudrate, timeout=0, **kw)
         except (serial.SerialException, OSError, ValueError) as exc:
-            if kw and "exclusively lock" in str(exc):
+            if not (kw and "exclusively lock" in str(exc)):
+                raise LinkError(f"cannot open serial port {url!r}: {exc}") from exc
+            from host.link import porthub
+
+            sp = porthub.attach(url) if hub and os.environ.get("UPRIGHT_PORT_HUB", "1") != "0" else None
+            if sp is None:
                 raise PortBusy(url, port_holders(url)) from exc
-            raise LinkError(f"cannot open serial port {url!r}: {exc}") from exc
+            self._ser = sp
+            self.via_hub = True
+            self.hub_owner = port_holders(url)
         self.url = url
         self.decoder = M.SerialStreamDecoder()
         # the port stays non-blocking (timeout 0): waiting is a select() on its file
@@ -640,6 +615,13 @@ class SerialLink(Link):
             self._fd: int | None = self._ser.fileno()
         except (AttributeError, OSError, ValueError, serial.SerialException):
             self._fd = None
+        if kw and hub and not self.via_hub and os.environ.get("UPRIGHT_PORT_HUB", "1") != "0":
+            from host.link import porthub
+
+            try:
+                self._hub = porthub.PortHub(self, url)
+            except OSError:
+                self._hub = None  # no hub: the port is exclusive all the same
 
     @property
     def drops(self) -> dict[str, int]:
