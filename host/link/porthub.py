@@ -290,6 +290,8 @@ class PortHub:
             self._srv.close()
             raise
         self._srv.setblocking(False)
+        # close() wakes the thread through this pipe: without tools it sleeps in select
+        self._wake_r, self._wake_w = os.pipe()
         self._lock = threading.Lock()
         self.clients: list[_Client] = []
         # seq -> (client or None for the owner, the client's seq, reply key, time sent)
@@ -342,12 +344,14 @@ class PortHub:
                 self.clients = [c for c in self.clients if c.alive]
                 socks = [c.sock for c in self.clients]
             try:
-                r = select.select([self._srv, *socks], [], [], PUMP_S)[0]
+                r = select.select([self._wake_r, self._srv, *socks], [], [], PUMP_S if socks else None)[0]
             except (OSError, ValueError):
                 r = []
                 if self._stop.is_set():
                     return
             for s in r:
+                if s is self._wake_r:
+                    continue
                 if s is self._srv:
                     self._accept()
                 else:
@@ -402,8 +406,17 @@ class PortHub:
     def close(self) -> None:
         """Stop serving: the tools' links report the lost link; the socket file is removed."""
         self._stop.set()
+        try:
+            os.write(self._wake_w, b"x")
+        except OSError:
+            pass
         if self._thread is not threading.current_thread():
             self._thread.join(timeout=2)
+        for fd in (self._wake_r, self._wake_w):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
         try:
             self._srv.close()
         except OSError:
