@@ -216,3 +216,17 @@ def test_hil_plan_estimates_up_front_and_per_scenario(monkeypatch) -> None:
     assert "[2/2] b: 33% (1000/3000 ticks), ~20 s left" in out, out
     # the step-time column says what it measures
     assert "not a 100 % load" in H.STEP_NOTE
+
+
+def test_status_prefers_the_boards_full_uptime_and_names_loop_starts() -> None:
+    from host.cli.board import render_status, uptime_text
+
+    st = {"heartbeat": {"uptime_ms": 1900}, "identity": {}, "board_status": {"uptime_ms": 67436, "starts": 2,
+                                                                             "cfg_slot": 1, "cfg_seq": 7}}
+    assert uptime_text(st) == "uptime 67.4 s"  # not "1.9 s": the 16-bit heartbeat field wrapped once
+    full = {"port": "p", "identity": {}, "heartbeat": st["heartbeat"], "state": "disarmed", "faults": 0,
+            "heartbeat_hz": 10.0, "link": {"sent": 1, "received": 1, "drops": {}}, "board_stats": {},
+            "board_status": st["board_status"]}
+    text = render_status(full)
+    assert "started 2 time(s) since boot (MODE switches back to the robot, no reset)" in text, text
+    assert "saved configuration: copy b, sequence 7" in text, text

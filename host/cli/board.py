@@ -182,6 +182,21 @@ def render_status(st: dict[str, Any]) -> str:
                      (f"; gains CRC low byte {crc8:#04x}" if isinstance(crc8, int) else ""))
     lines.append(f"  state {st['state']}  boot {hb.get('boot')}{_mod_text('boot')}  {uptime_text(st)}"
                  + (f"  arming epoch {hb['epoch']}" if "epoch" in hb else ""))
+    bst = st.get("board_status", {})
+    if bst:
+        extra = []
+        if "starts" in bst:
+            extra.append(f"control loop started {bst['starts']} time(s) since boot"
+                         + (" (MODE switches back to the robot, no reset)" if bst["starts"] > 1 else ""))
+        if "cfg_slot" in bst:
+            slot = bst["cfg_slot"]
+            extra.append("saved configuration: " + ("none (defaults)" if slot < 0 else
+                                                    f"copy {'ab'[slot] if slot in (0, 1) else slot}, "
+                                                    f"sequence {bst.get('cfg_seq', '?')}"))
+        rest = {k: v for k, v in bst.items() if k not in ("uptime_ms", "starts", "cfg_slot", "cfg_seq")}
+        if rest:
+            extra.append(", ".join(f"{k} {v}" for k, v in rest.items()))
+        lines.extend("  " + e for e in extra)
     if st["faults"]:
         ft = fault_table()
         lines.append(f"  faults {st['faults']:#x}:")
@@ -240,7 +255,11 @@ def uptime_text(st: dict[str, Any]) -> str:
     """The board's uptime as it reports it: the widest ``uptime*`` field of its heartbeat or
     identity, and ``(mod N s)`` when the field wraps within a day (the heartbeat's 16-bit
     ``uptime_ms`` wraps every 65.5 s: 67 s reads "1.5 s (mod 65.5 s)", not a reboot)."""
-    best: tuple[int, float, int] | None = None  # (bits, seconds, wrap s)
+    best: tuple[int, float, float] | None = None  # (bits, seconds, wrap s)
+    full = st.get("board_status", {}).get("uptime_ms")
+    if isinstance(full, int):
+        # the board's own figure in full (msgtable STATUS, an int below 2**30 ms: 12.4 days)
+        best = (30, full / 1000.0, float(1 << 30) / 1000.0)
     for src in (st.get("heartbeat", {}), st.get("identity", {})):
         for k, v in src.items():
             if not k.startswith("uptime") or not isinstance(v, (int, float)):

@@ -464,6 +464,23 @@ class Board:
             pass
         return out
 
+    def status_values(self) -> dict[str, int]:
+        """The board's read-only status figures (``msgtable.STATUS``: uptime in full, loop
+        starts, the saved copy in force...), read as PARAM_GET(``STATUS_BASE`` + k) where the
+        table has them; empty otherwise or when the firmware does not answer them."""
+        rows = getattr(T, "STATUS", ())
+        base = getattr(T, "STATUS_BASE", None)
+        out: dict[str, int] = {}
+        if not rows or base is None:
+            return out
+        for row in rows:
+            k, name = row[0], row[1]
+            try:
+                out[name] = int(self.request(M.BY_NAME["param_get"](index=base + k)).value)
+            except BoardError:
+                break  # older firmware: bad_index for the first, no point asking the rest
+        return out
+
     def status(self, listen: float = 1.0) -> dict[str, Any]:
         """Everything ``upright board status`` shows, as one dict (JSON-ready).
 
@@ -484,6 +501,7 @@ class Board:
             "heartbeat_hz": self.heartbeat_rate(),
             "link": {"sent": link.sent, "received": link.received, "drops": link.drops},
             "board_stats": self.stats(),
+            "board_status": self.status_values(),
         }
 
     # ---- commands ----
