@@ -11,13 +11,20 @@ Works the same on a real board (``--port /dev/ttyUSB0``), on the emulated Pico
     upright board --port /dev/ttyUSB0 gains upload --params robot.toml --save
     upright board --port /dev/ttyUSB0 log --seconds 10 --out run.parquet
     upright board --port /dev/ttyUSB0 calibrate --out robot.toml
-    upright board --port /dev/ttyUSB0 excite --arm --seconds 20 --amplitude 0.5 --out bal.csv
+    upright board --port /dev/ttyUSB0 excite --seconds 20 --amplitude 0.5 --out bal.csv
+    upright board params list                                  # the parameter table, no board needed
     upright board --port /dev/ttyUSB0 excite --cart-only --seconds 8 --amplitude 1 --out cart.csv
     upright board --port /dev/ttyUSB0 mode hil                 # robot | hil | repl, no reflash
 
+One port, many tools: the first tool on a port holds it and serves it to the others through
+a local hub (:mod:`host.link.porthub`), so ``status`` or ``log`` work while ``arm`` or the
+dashboard runs; a port held by another program is refused in one line naming its PID.
+``--seconds`` is wall-clock time on this host, not board time.
+
 Exit status: 0 done, 1 the board failed/refused/did not answer or the link was lost, 2 bad input
-(a parameter name or value outside the table, a file), 130 Ctrl-C -- after disarming the
-board where it can still be reached and closing every recording with all its rows.
+(a parameter name or value outside the table, a read-only parameter, a file), 130 Ctrl-C,
+143 SIGTERM, 129 SIGHUP (a closed terminal) -- each after disarming the board where it can
+still be reached and closing every recording with all its rows.
 """
 
 from __future__ import annotations
