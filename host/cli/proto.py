@@ -53,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sp.set_defaults(_proto=_cmd_dbc)
 
     sp = sub.add_parser("dump", help="print every message received on a live link (like candump)")
-    sp.add_argument("link", nargs="?", default=None, type=A.nonempty, metavar="PORT",
+    sp.add_argument("link", nargs="?", default=DEFAULT_DUMP_PORT, type=A.nonempty, metavar="PORT",
                     help=f"serial port/URL (loop://, /dev/ttyACM0) or can:INTERFACE:CHANNEL (default {DEFAULT_DUMP_PORT}); "
                          "the same as --port")
     sp.add_argument("--port", dest="port_opt", default=None, type=A.nonempty, metavar="PORT",
@@ -201,10 +201,12 @@ def _cmd_dbc(args: argparse.Namespace) -> int:
 
 
 def _dump_port(args: argparse.Namespace) -> str:
+    # (the positional's default is the default port: a positional that differs from it and
+    # from --port is a second port)
     pos, opt = args.link, args.port_opt
-    if pos is not None and opt is not None and pos != opt:
+    if opt is not None and pos not in (DEFAULT_DUMP_PORT, opt):
         raise A.UsageError(f"proto dump: two ports, {pos!r} and --port {opt!r}: give one")
-    return opt or pos or DEFAULT_DUMP_PORT
+    return opt or pos
 
 
 def _cmd_dump(args: argparse.Namespace) -> int:
