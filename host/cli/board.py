@@ -524,14 +524,15 @@ def _excite(b: Any, args: argparse.Namespace) -> int:
         raise RunFailed(str(exc)) from exc
     if not args.quiet and sys.stderr.isatty():
         sys.stderr.write("\n")
-    _err(f"upright board: {s['rows']} rows ({s['telemetry_frames']} telemetry frames) to {s['file']}; "
-         f"{s['lost']} lost; excitation {'cart-only' if args.cart_only else 'balancing'} "
-         f"+-{args.amplitude:g} N, {args.div} ticks per bit")
+    # the warning before the summary: the summary stays the last line
     if s.get("moved") is False:
         x0, phi0 = s["span"]["x"][0], s["span"]["phi"][0]
         _err(f"upright board: warning: nothing moved -- x ({x0:g} m) and phi ({phi0:g} rad) were the same in every "
              "excited row: is the motor supply on, the driver enabled, are the encoder and pot wired? "
              "`upright identify` cannot use this log")
+    _err(f"upright board: {s['rows']} rows ({s['telemetry_frames']} telemetry frames) to {s['file']}; "
+         f"{s['lost']} lost; excitation {'cart-only' if args.cart_only else 'balancing'} "
+         f"+-{args.amplitude:g} N, {args.div} ticks per bit")
     return 0
 
 
