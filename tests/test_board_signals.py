@@ -151,3 +151,40 @@ def test_a_port_held_by_another_program_is_refused_naming_it(relay):  # noqa: F8
     lines = p.stderr.strip().splitlines()
     assert p.returncode == 1 and len(lines) == 1, p.stderr
     assert "port busy" in lines[0] and f"PID {os.getpid()}" in lines[0], lines
+
+
+def test_sigterm_during_calibrates_motor_step_disarms(relay, tmp_path):  # noqa: F811
+    """Step 4 of ``calibrate`` arms the board (wheels lifted, low max_duty): SIGTERM there
+    disarms it and puts max_duty back, as Ctrl-C does."""
+    out = tmp_path / "robot.toml"
+    before = json.loads(board(relay, "params", "get", "max_duty", "--json").stdout)
+    proc = subprocess.Popen([*UPRIGHT, "board", "--port", relay.port, "calibrate", "--out", str(out)], cwd=ROOT,
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # the user's hands, as in test_board_cli.test_calibrate_scripted
+    hands = {"Step 1/4: hold": (2100, 0), "Step 2/4": (2252, 0), "Step 3/4: back upright": (2100, 1000),
+             "Step 3/4: roll": (2100, 1000 - 637), "Step 4/4: WHEELS": (2100, 363)}
+    lines = []
+    try:
+        while True:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if line.startswith("Step 4/4: tilt"):
+                time.sleep(0.3)  # armed, the host heartbeat running
+                proc.send_signal(signal.SIGTERM)
+                break
+            for key, (adc, enc) in hands.items():
+                if line.startswith(key):
+                    for _ in range(3):
+                        relay.sensors(adc, enc)
+                    time.sleep(0.2)
+                    proc.stdin.write("\n")
+                    proc.stdin.flush()
+        rest, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 143, "".join(lines) + err
+    _assert_disarmed_by_the_tool(relay)
+    assert json.loads(board(relay, "params", "get", "max_duty", "--json").stdout) == before
