@@ -188,3 +188,29 @@ def test_sigterm_during_calibrates_motor_step_disarms(relay, tmp_path):  # noqa:
     assert proc.returncode == 143, "".join(lines) + err
     _assert_disarmed_by_the_tool(relay)
     assert json.loads(board(relay, "params", "get", "max_duty", "--json").stdout) == before
+
+
+def test_a_tool_outlives_the_owner_of_the_port(relay, tmp_path):  # noqa: F811
+    """``status --watch`` holds the port, ``arm`` attaches to its hub; the watch is stopped
+    first: ``arm`` takes the port over and keeps the host heartbeat going -- no watchdog
+    fault, a clean disarm at the end of its --seconds."""
+    from host.link.porthub import port_holders
+
+    owner = subprocess.Popen([*UPRIGHT, "board", "--port", relay.port, "status", "--watch"], cwd=ROOT,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not any(pid == owner.pid for pid, _ in port_holders(relay.port)):
+        assert time.monotonic() < deadline and owner.poll() is None, owner.stderr.read()
+        time.sleep(0.1)
+    arm = subprocess.Popen([*UPRIGHT, "board", "--port", relay.port, "arm", "--seconds", "4"], cwd=ROOT,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    seen = _wait_line(arm, "armed;")
+    assert "sharing the board through its hub" in seen, seen  # it did attach to the watch's hub
+    owner.send_signal(signal.SIGINT)
+    _, oerr = owner.communicate(timeout=60)
+    assert owner.returncode == 130, oerr
+    _, err = arm.communicate(timeout=60)
+    assert arm.returncode == 0, seen + err
+    lines = [ln for ln in (seen + err).splitlines() if ln.startswith("upright board: ")]
+    assert lines[-1] == "upright board: disarmed", lines  # not a fault: the heartbeat never stopped
+    _assert_disarmed_by_the_tool(relay)

@@ -589,50 +589,100 @@ class SerialLink(Link):
         import serial
 
         self._serial_mod = serial
-        kw: dict[str, Any] = {"exclusive": True} if _exclusive_ok(url) else {}
+        self.url = url
+        self._baudrate = baudrate
+        self._exclusive = _exclusive_ok(url)
+        self._use_hub = bool(hub and self._exclusive and os.environ.get("UPRIGHT_PORT_HUB", "1") != "0")
+        self._reopen_lock = threading.Lock()
         #: True when another tool holds the port and this link goes through its hub
         self.via_hub = False
         #: ``(pid, command)`` of the tool whose hub this link uses
         self.hub_owner: list[tuple[int, str]] = []
+        #: times this link moved on after the tool whose hub it used left (to the port
+        #: itself, or to the hub of the tool that took the port)
+        self.rehomed = 0
+        self.decoder = M.SerialStreamDecoder()
+        self._ser: Any = None
+        self._fd: int | None = None
+        self._install(*self._open_port())
+
+    def _open_port(self) -> tuple[Any, bool]:
+        # (the port or the hub's socket, True for the hub)
+        serial = self._serial_mod
+        url = self.url
+        kw: dict[str, Any] = {"exclusive": True} if self._exclusive else {}
         try:
-            self._ser = serial.serial_for_url(url, baudrate=baudrate, timeout=0, **kw)
+            return serial.serial_for_url(url, baudrate=self._baudrate, timeout=0, **kw), False
         except (serial.SerialException, OSError, ValueError) as exc:
             if not (kw and "exclusively lock" in str(exc)):
                 raise LinkError(f"cannot open serial port {url!r}: {exc}") from exc
             from host.link import porthub
 
-            sp = porthub.attach(url) if hub and os.environ.get("UPRIGHT_PORT_HUB", "1") != "0" else None
+            sp = porthub.attach(url) if self._use_hub else None
             if sp is None:
                 raise PortBusy(url, port_holders(url)) from exc
-            self._ser = sp
-            self.via_hub = True
-            self.hub_owner = port_holders(url)
-        self.url = url
-        self.decoder = M.SerialStreamDecoder()
+            return sp, True
+
+    def _install(self, ser: Any, via_hub: bool) -> None:
+        self._ser = ser
+        self.via_hub = via_hub
+        self.hub_owner = port_holders(self.url) if via_hub else []
+        # a frame cut by the move is dropped, the counts go on
+        dec = M.SerialStreamDecoder()
+        dec.drops, dec.ok = self.decoder.drops, self.decoder.ok
+        self.decoder = dec
         # the port stays non-blocking (timeout 0): waiting is a select() on its file
         # descriptor when it has one (changing a pyserial timeout reconfigures the tty)
         try:
-            self._fd: int | None = self._ser.fileno()
-        except (AttributeError, OSError, ValueError, serial.SerialException):
+            self._fd = ser.fileno()
+        except (AttributeError, OSError, ValueError, self._serial_mod.SerialException):
             self._fd = None
-        if kw and hub and not self.via_hub and os.environ.get("UPRIGHT_PORT_HUB", "1") != "0":
+        if self._use_hub and not via_hub:
             from host.link import porthub
 
             try:
-                self._hub = porthub.PortHub(self, url)
+                self._hub = porthub.PortHub(self, self.url)
             except OSError:
                 self._hub = None  # no hub: the port is exclusive all the same
+
+    def _reopen(self, dead: Any, why: BaseException) -> None:
+        # the tool whose hub this link used has left: take the port, or attach to the hub
+        # of the tool that took it (a few seconds at most; the old owner's lock goes with it)
+        with self._reopen_lock:
+            if self._ser is not dead or self._closed:
+                return
+            try:
+                dead.close()
+            except OSError:
+                pass
+            deadline = time.monotonic() + 3.0
+            while True:
+                try:
+                    self._install(*self._open_port())
+                    self.rehomed += 1
+                    return
+                except PortBusy as exc:
+                    if time.monotonic() > deadline:
+                        raise LinkError(f"{self.url}: the tool whose hub this link used has left ({why}), and {exc}") \
+                            from exc
+                time.sleep(0.05)
 
     @property
     def drops(self) -> dict[str, int]:
         return dict(self.decoder.drops)
 
     def _send(self, msg: M.Message, seq: int) -> None:
-        try:
-            self._ser.write(M.encode_serial(msg, seq))
-            self._ser.flush()
-        except (self._serial_mod.SerialException, OSError) as exc:
-            raise LinkError(f"write to {self.url!r} failed: {exc}") from exc
+        data = M.encode_serial(msg, seq)
+        for attempt in range(2):
+            ser = self._ser
+            try:
+                ser.write(data)
+                ser.flush()
+                return
+            except (self._serial_mod.SerialException, OSError) as exc:
+                if not self.via_hub or attempt:
+                    raise LinkError(f"write to {self.url!r} failed: {exc}") from exc
+                self._reopen(ser, exc)
 
     def _recv_internal(self, timeout: float | None) -> list[tuple[M.Message, int | None]]:
         ser = self._ser
@@ -655,6 +705,9 @@ class SerialLink(Link):
                     data += ser.read(n)
                 ser.timeout = 0
         except (self._serial_mod.SerialException, OSError, ValueError) as exc:
+            if self.via_hub and not self._closed:
+                self._reopen(ser, exc)
+                return []
             raise LinkError(f"read from {self.url!r} failed: {exc}") from exc
         return list(self.decoder.feed(data))
 
