@@ -89,8 +89,10 @@ mutate: $(STAMP) $(NODE_STAMP)
 firmware: $(STAMP)
 	$(PY) -m host.boards.bundle --arch $(ARCH) --out $(OUT)/firmware
 
+# checks within FLASH_TIMEOUT s that PORT is a MicroPython REPL (mpremote alone waits minutes, silent)
+FLASH_TIMEOUT ?= 3
 flash: firmware
-	$(BIN)/mpremote connect $(PORT) fs cp -r $(OUT)/firmware/. : + reset
+	$(PY) -m host.boards.flash --port $(PORT) --bundle $(OUT)/firmware --mpremote $(BIN)/mpremote --timeout $(FLASH_TIMEOUT)
 
 # the README's dashboard picture, taken by the browser test (headless Chromium, virtual board)
 dashboard-screenshot: setup

@@ -165,6 +165,9 @@ def test_excite_recorded(relay, tmp_path):
     out = tmp_path / "prbs.parquet"
     p = board(relay, "excite", "--seconds", "2", "--amplitude", "0.5", "--div", "4", "--out", str(out))
     assert p.returncode == 0, p.stderr
+    # nobody moves the relay's sensors: the run is recorded, and the user is told it is useless
+    warn = [ln for ln in p.stderr.splitlines() if "nothing moved" in ln]
+    assert len(warn) == 1 and "upright identify` cannot use this log" in warn[0], p.stderr
     import pyarrow.parquet as pq
 
     t = pq.read_table(out).to_pydict()

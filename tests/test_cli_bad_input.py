@@ -95,7 +95,8 @@ SCENARIO_HALF_TICK = 'name = "half_tick"\nduration = 1.0\n[sensors]\ndelay = 0.0
     (["proto", "dump", "--count", "-1"], ("--count",)),
     (["proto", "dump", "--baudrate", "0"], ("--baudrate",)),
     (["proto", "dump", "--duration", "nan"], ("--duration",)),
-    (["proto", "dump", ""], ("link", "empty")),
+    (["proto", "dump", ""], ("PORT", "empty")),
+    (["proto", "dump", "--port", ""], ("--port", "empty")),
 ])
 def test_bad_flag_is_refused_in_one_line_exit_2(capsys, argv, needles) -> None:
     rc, _, err = _run(capsys, argv)
@@ -239,7 +240,7 @@ def test_a_failure_caused_by_ctrl_c_is_reported_as_the_interruption(capsys, monk
     from host.hil.errors import HilError
 
     def run(args):
-        monkeypatch.setattr(cli, "_INTERRUPTED", True)  # as SIGINT does, then the board dies of it
+        cli.note_signal(2)  # as SIGINT does, then the board dies of it
         raise HilError("firmware exited with status 130")
 
     monkeypatch.setattr(rep, "run", run)

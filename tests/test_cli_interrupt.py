@@ -123,3 +123,20 @@ def test_soak_interrupted_prints_the_finished_chunks(tmp_path: Path) -> None:
     assert "soak: PARTIAL: interrupted after" in out and "no verdict" in out
     assert "chunk" in out  # the finished chunks' table
     cmd.assert_children_gone()
+
+
+@pytest.mark.parametrize("sig,status", [(signal.SIGTERM, 143), (signal.SIGHUP, 129)], ids=["SIGTERM", "SIGHUP"])
+def test_hil_terminated_is_handled_as_ctrl_c(tmp_path: Path, sig: int, status: int) -> None:
+    """SIGTERM (kill) and SIGHUP (a closed terminal) end a run as Ctrl-C does -- the finished
+    scenarios written, the summary marked partial, the board process ended -- with 128 + signal."""
+    out = tmp_path / "hil"
+    cmd = Cmd(tmp_path, "hil", "--virtual", "--scenario", "tilt_0p1,ref_step_20cm,square_wave_20cm_2p2s",
+              "--no-plots", "--out", str(out))
+    cmd.wait_for(lambda: "ref_step_20cm:" in cmd.err.read_text(), "the second scenario")
+    os.kill(cmd.proc.pid, sig)
+    rc = cmd.proc.wait(60)
+    err = cmd.err.read_text()
+    assert rc == status, err
+    assert "Traceback" not in err and f"interrupted by {signal.Signals(sig).name}" in err.splitlines()[-1], err
+    assert (out / "summary.txt").read_text().startswith("PARTIAL: interrupted after")
+    cmd.assert_children_gone()

@@ -15,6 +15,8 @@ The exit statuses, shared by every command (implemented once in :mod:`host.cli.m
 2    refused before starting: usage, a flag value, a parameter or scenario file, an output
      path that cannot be written (:class:`UsageError`)
 130  interrupted (Ctrl-C): what finished has been written, marked partial
+143  the same after SIGTERM (``kill``), 129 after SIGHUP (a closed terminal): both are handled
+     as Ctrl-C -- a board the tool armed is disarmed before it exits
 ==== ======================================================================================
 """
 
@@ -28,7 +30,8 @@ from typing import Callable
 
 __all__ = [
     "EXIT_OK", "EXIT_FAILED", "EXIT_USAGE", "EXIT_INTERRUPTED",
-    "UsageError", "RunFailed", "OneLineParser",
+    "UsageError", "RunFailed", "Terminated", "OneLineParser",
+    "interrupted", "note_signal", "interrupt_signal", "reset_interrupted",
     "finite", "positive", "nonneg", "duration", "tilt", "in_range", "positive_int", "nonneg_int", "int_range",
     "nonempty", "scheduler_address", "can_interface", "check_out_dir", "check_out_file", "board_baud",
 ]
@@ -49,6 +52,53 @@ class UsageError(ValueError):
 
 class RunFailed(RuntimeError):
     """The command ran and its result failed a check (diverged, fell, ...): exit status 1."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, raised where Ctrl-C's KeyboardInterrupt would be, so every Ctrl-C
+    path (disarm the board, write what finished) runs; the exit status is 128 + signal.
+
+    Attributes
+    ----------
+    signum : int
+        The signal.
+    """
+
+    def __init__(self, signum: int) -> None:
+        self.signum = int(signum)
+        super().__init__(f"signal {self.signum}")
+
+
+# Ctrl-C / SIGTERM / SIGHUP seen by this process (set by host.cli.main's handlers)
+_INTERRUPT = {"seen": False, "signal": 0}
+
+
+def interrupted() -> bool:
+    """True once SIGINT (Ctrl-C), SIGTERM or SIGHUP reached this process: a failure that
+    follows it (a board that died of the same signal, a closed link) is reported as the
+    interruption."""
+    return bool(_INTERRUPT["seen"])
+
+
+def interrupt_signal() -> int:
+    """The terminating signal (SIGTERM, SIGHUP) that interrupted the run; 0 for none or Ctrl-C."""
+    return int(_INTERRUPT["signal"])
+
+
+def note_signal(signum: int) -> None:
+    """Record that ``signum`` interrupted the run (also for code that catches the signal
+    itself, such as ``upright board arm``'s hold loop): the exit status is 128 + signum
+    (130 for Ctrl-C)."""
+    import signal
+
+    _INTERRUPT["seen"] = True
+    if signum != signal.SIGINT and not _INTERRUPT["signal"]:
+        _INTERRUPT["signal"] = int(signum)
+
+
+def reset_interrupted() -> None:
+    """Forget an earlier interruption (a new command starts)."""
+    _INTERRUPT.update(seen=False, signal=0)
 
 
 class OneLineParser(argparse.ArgumentParser):

@@ -11,13 +11,20 @@ Works the same on a real board (``--port /dev/ttyUSB0``), on the emulated Pico
     upright board --port /dev/ttyUSB0 gains upload --params robot.toml --save
     upright board --port /dev/ttyUSB0 log --seconds 10 --out run.parquet
     upright board --port /dev/ttyUSB0 calibrate --out robot.toml
-    upright board --port /dev/ttyUSB0 excite --arm --seconds 20 --amplitude 0.5 --out bal.csv
+    upright board --port /dev/ttyUSB0 excite --seconds 20 --amplitude 0.5 --out bal.csv
+    upright board params list                                  # the parameter table, no board needed
     upright board --port /dev/ttyUSB0 excite --cart-only --seconds 8 --amplitude 1 --out cart.csv
     upright board --port /dev/ttyUSB0 mode hil                 # robot | hil | repl, no reflash
 
+One port, many tools: the first tool on a port holds it and serves it to the others through
+a local hub (:mod:`host.link.porthub`), so ``status`` or ``log`` work while ``arm`` or the
+dashboard runs; a port held by another program is refused in one line naming its PID.
+``--seconds`` is wall-clock time on this host, not board time.
+
 Exit status: 0 done, 1 the board failed/refused/did not answer or the link was lost, 2 bad input
-(a parameter name or value outside the table, a file), 130 Ctrl-C -- after disarming the
-board where it can still be reached and closing every recording with all its rows.
+(a parameter name or value outside the table, a read-only parameter, a file), 130 Ctrl-C,
+143 SIGTERM, 129 SIGHUP (a closed terminal) -- each after disarming the board where it can
+still be reached and closing every recording with all its rows.
 """
 
 from __future__ import annotations
@@ -36,11 +43,13 @@ __all__ = ["add_arguments", "run"]
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``upright board``."""
-    parser.add_argument("--port", required=True, metavar="DEV",
-                        help="serial device or pty (a CAN channel with --link can)")
+    parser.add_argument("--port", metavar="DEV",
+                        help="serial device or pty (a CAN channel with --link can); required but for `params list`. "
+                             "One tool per port: a second one is told which process holds it")
     parser.add_argument("--link", choices=("serial", "can"), default="serial", help="framing (default serial)")
-    parser.add_argument("--baud", "--baudrate", dest="baud", type=A.positive_int, default=A.board_baud(),
-                        help=f"serial line rate (default {A.board_baud()}: firmware/board.py UART_BAUD)")
+    parser.add_argument("--baudrate", "--baud", dest="baudrate", type=A.positive_int, default=A.board_baud(),
+                        help=f"serial line rate (default {A.board_baud()}: firmware/board.py UART_BAUD; "
+                             "--baud is the old spelling)")
     parser.add_argument("--node", type=A.int_range(0, 63), default=1, help="CAN node id (default 1)")
     parser.add_argument("--can-interface", type=A.can_interface, default="slcan", metavar="NAME",
                         help="python-can interface with --link can (default slcan)")
@@ -57,7 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     sp = sub.add_parser("arm", help="arm and keep the host heartbeat going; disarm on Ctrl-C, exit or --seconds")
     sp.add_argument("--seconds", type=A.in_range(0, 86400, lo_open=True), default=None,
-                    help="disarm after this long (default: until Ctrl-C)")
+                    help="disarm after this many wall-clock seconds (default: until Ctrl-C, SIGTERM or SIGHUP, "
+                         "which disarm too)")
     sp.add_argument("--clear", action="store_true", help="clear latched faults first")
     sub.add_parser("disarm", help="disarm (motor off)")
     sub.add_parser("clear", help="clear latched faults (while disarmed)")
@@ -73,7 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     s.add_argument("name", metavar="NAME")
     s.add_argument("value", metavar="VALUE")
     psub.add_parser("save", help="persist parameters and gain table on the board")
-    psub.add_parser("list", help="the parameter table (no board needed beyond the connection)")
+    psub.add_parser("list", help="the parameter table: names, units, ranges, defaults (no board needed)")
 
     sp = sub.add_parser("gains", help="gain tables")
     gsub = sp.add_subparsers(dest="gains_action", metavar="upload", required=True)
@@ -103,24 +113,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sp.add_argument("--cart-only", action="store_true",
                     help="pendulum removed/locked: PRBS open loop, then disarm and record the coast-down")
     sp.add_argument("--coast", type=A.in_range(0.5, 60), default=3.0, help="--cart-only: coast-down s (default 3)")
-    sp.add_argument("--arm", action="store_true", default=True, help="arm first and disarm at the end (default)")
-    sp.add_argument("--no-arm", dest="arm", action="store_false", help="the board is already balancing")
+    sp.add_argument("--arm", dest="arm_flag", action="store_true",
+                    help="deprecated, does nothing: arming first and disarming at the end is the default "
+                         "(--no-arm for a board that already balances)")
+    sp.add_argument("--no-arm", dest="arm", action="store_false", default=True,
+                    help="the board is already balancing (armed by another tool): do not arm or disarm")
 
 
 def _record_args(sp: argparse.ArgumentParser) -> None:
     sp.add_argument("--seconds", type=A.in_range(0, 86400, lo_open=True), default=10.0,
-                    help="how long (default 10 s)")
+                    help="how long, in wall-clock seconds on this host (default 10 s) -- not board time: a "
+                         "board slower than real time (the emulated Pico) records fewer ticks in it")
     sp.add_argument("--out", required=True, metavar="FILE", help=".csv or .parquet")
     sp.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 # ------------------------------------------------------------------ helpers
 def _say(text: str = "") -> None:
-    print(text, flush=True)
+    try:
+        print(text, flush=True)
+    except (OSError, ValueError):  # a closed terminal must not stop the disarm that follows
+        pass
 
 
 def _err(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)
+    try:
+        print(text, file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
 
 
 def _bar(k: float, n: float, extra: str = "", width: int = 30) -> None:
@@ -128,15 +148,22 @@ def _bar(k: float, n: float, extra: str = "", width: int = 30) -> None:
     fill = int(width * frac)
     tty = sys.stderr.isatty()
     line = f"[{'#' * fill}{'.' * (width - fill)}] {100 * frac:3.0f}% {k:5.1f}/{n:g} s {extra}"
-    sys.stderr.write(("\r" + line) if tty else (line + "\n"))
-    sys.stderr.flush()
+    try:
+        sys.stderr.write(("\r" + line) if tty else (line + "\n"))
+        sys.stderr.flush()
+    except (OSError, ValueError):  # a closed terminal: the run (and its disarm) goes on
+        pass
 
 
 def _open(args: argparse.Namespace) -> Any:
     from host.operate.board import Board
 
-    return Board.open(args.port, link=args.link, baudrate=args.baud, node=args.node,
-                      can_interface=args.can_interface, timeout=args.timeout, answer_timeout=args.answer_timeout)
+    b = Board.open(args.port, link=args.link, baudrate=args.baudrate, node=args.node,
+                   can_interface=args.can_interface, timeout=args.timeout, answer_timeout=args.answer_timeout)
+    if getattr(b.link, "via_hub", False):
+        who = "; ".join(f"PID {pid} ({cmd})" for pid, cmd in b.link.hub_owner) or "another upright tool"
+        _err(f"upright board: {args.port} is held by {who}: sharing the board through its hub")
+    return b
 
 
 def _fmt_hash(v: Any) -> str:
@@ -160,8 +187,23 @@ def render_status(st: dict[str, Any]) -> str:
         crc8 = hb.get("gains_crc")
         lines.append("  identity: this firmware has no VERSION message" +
                      (f"; gains CRC low byte {crc8:#04x}" if isinstance(crc8, int) else ""))
-    lines.append(f"  state {st['state']}  boot {hb.get('boot')}  uptime {hb.get('uptime_ms')} ms"
+    lines.append(f"  state {st['state']}  boot {hb.get('boot')}{_mod_text('boot')}  {uptime_text(st)}"
                  + (f"  arming epoch {hb['epoch']}" if "epoch" in hb else ""))
+    bst = st.get("board_status", {})
+    if bst:
+        extra = []
+        if "starts" in bst:
+            extra.append(f"control loop started {bst['starts']} time(s) since boot"
+                         + (" (MODE switches back to the robot, no reset)" if bst["starts"] > 1 else ""))
+        if "cfg_slot" in bst:
+            slot = bst["cfg_slot"]
+            extra.append("saved configuration: " + ("none (defaults)" if slot < 0 else
+                                                    f"copy {'ab'[slot] if slot in (0, 1) else slot}, "
+                                                    f"sequence {bst.get('cfg_seq', '?')}"))
+        rest = {k: v for k, v in bst.items() if k not in ("uptime_ms", "starts", "cfg_slot", "cfg_seq")}
+        if rest:
+            extra.append(", ".join(f"{k} {v}" for k, v in rest.items()))
+        lines.extend("  " + e for e in extra)
     if st["faults"]:
         ft = fault_table()
         lines.append(f"  faults {st['faults']:#x}:")
@@ -190,6 +232,62 @@ def render_status(st: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _field(name: str) -> Any:
+    # the widest message field of this name in the table (heartbeat, version, stats...)
+    from host.link import messages as M
+
+    best = None
+    for cls in M.MESSAGES.values():
+        for f in cls.FIELDS:
+            if f.name == name and not f.is_raw and (best is None or f.size > best.size):
+                best = f
+    return best
+
+
+def _mod_text(name: str) -> str:
+    # " (mod 256)" for a counter the table carries in one byte
+    f = _field(name)
+    return f" (mod {1 << (8 * f.size)})" if f is not None and f.size < 2 else ""
+
+
+def _duration_text(s: float) -> str:
+    if s < 120:
+        return f"{s:.1f} s"
+    m, sec = divmod(int(s), 60)
+    h, m = divmod(m, 60)
+    return f"{h} h {m:02d} min {sec:02d} s" if h else f"{m} min {sec:02d} s"
+
+
+def uptime_text(st: dict[str, Any]) -> str:
+    """The board's uptime as it reports it: the widest ``uptime*`` field of its heartbeat or
+    identity, and ``(mod N s)`` when the field wraps within a day (the heartbeat's 16-bit
+    ``uptime_ms`` wraps every 65.5 s: 67 s reads "1.5 s (mod 65.5 s)", not a reboot)."""
+    best: tuple[int, float, float] | None = None  # (bits, seconds, wrap s)
+    full = st.get("board_status", {}).get("uptime_ms")
+    if isinstance(full, int):
+        # the board's own figure in full (msgtable STATUS, an int below 2**30 ms: 12.4 days)
+        best = (30, full / 1000.0, float(1 << 30) / 1000.0)
+    for src in (st.get("heartbeat", {}), st.get("identity", {})):
+        for k, v in src.items():
+            if not k.startswith("uptime") or not isinstance(v, (int, float)):
+                continue
+            f = _field(k)
+            if f is None:
+                continue
+            unit = {"ms": 1e-3, "s": 1.0, "us": 1e-6}.get(f.unit, 1e-3)
+            bits = 8 * f.size
+            # v is physical (scale applied); the wrap is in raw counts
+            wrap = (1 << bits) * f.scale * unit
+            if best is None or bits > best[0]:
+                best = (bits, float(v) * unit, wrap)
+    if best is None:
+        return "uptime -"
+    bits, secs, wrap = best
+    if wrap < 86400:
+        return f"uptime {_duration_text(secs)} (mod {wrap:.1f} s: the board sends its low {bits} bits)"
+    return f"uptime {_duration_text(secs)}"
+
+
 # ------------------------------------------------------------------ actions
 def _status(b: Any, args: argparse.Namespace) -> int:
     if not args.watch:
@@ -214,31 +312,51 @@ def _status(b: Any, args: argparse.Namespace) -> int:
 
 
 def _hold_armed(b: Any, seconds: float | None, tick: Callable[[float], None] | None = None) -> str:
-    """Keep the host heartbeat going while armed; returns why it ended."""
+    """Keep the host heartbeat going while armed; returns why it ended.
+
+    Ctrl-C, SIGTERM and SIGHUP (a closed terminal) end it the same way: the loop raises
+    KeyboardInterrupt (:class:`host.cli.args.Terminated` for the two others) between two
+    link calls, and the caller disarms.
+    """
     import signal
     import threading
 
+    from host.cli.main import TERMINATING, note_signal
     from host.link import messages as M
 
-    # Ctrl-C sets a flag the loop checks between link calls: a KeyboardInterrupt raised inside
+    # a signal sets a flag the loop checks between link calls: a KeyboardInterrupt raised inside
     # the link (holding its lock, half a frame written) could leave the disarm that follows stuck
     stop = threading.Event()
-    prev = None
+    got: list[int] = []
+
+    def on_signal(signum: int, _frame: object) -> None:
+        note_signal(signum)
+        got.append(signum)
+        stop.set()
+
+    prev: dict[int, Any] = {}
     if threading.current_thread() is threading.main_thread():
-        prev = signal.signal(signal.SIGINT, lambda _s, _f: stop.set())
+        for s in (signal.SIGINT, *TERMINATING):
+            if s == signal.SIGINT or signal.getsignal(s) is not signal.SIG_IGN:
+                prev[s] = signal.signal(s, on_signal)
     try:
-        return _hold_loop(b, seconds, tick, stop, M)
+        return _hold_loop(b, seconds, tick, stop, M, got)
     finally:
-        if prev is not None:
-            signal.signal(signal.SIGINT, prev)
+        for s, h in prev.items():
+            signal.signal(s, h)
 
 
-def _hold_loop(b: Any, seconds: float | None, tick: Callable[[float], None] | None, stop: Any, M: Any) -> str:
+def _hold_loop(b: Any, seconds: float | None, tick: Callable[[float], None] | None, stop: Any, M: Any,
+               got: list[int]) -> str:
+    import signal
+
     t0 = time.monotonic()
     last_state = None
     armed_seen = False
     while True:
         if stop.is_set():
+            if got and got[0] != signal.SIGINT:
+                raise A.Terminated(got[0])
             raise KeyboardInterrupt
         b.keepalive()
         b.poll(0.02)
@@ -288,8 +406,7 @@ def _params(b: Any, args: argparse.Namespace) -> int:
 
     act = args.params_action
     if act == "list":
-        for name, p in param_table().items():
-            _say(f"{name:18s} {p['unit'] or '-':6s} {p['min']}..{p['max']} (default {p['default']})  {p['doc']}")
+        _params_list()
         return 0
     if act == "get":
         names = args.names or list(param_table())
@@ -311,6 +428,15 @@ def _params(b: Any, args: argparse.Namespace) -> int:
     name = b.save()
     _say(f"saved on the board ({name})")
     return 0
+
+
+def _params_list() -> None:
+    # the host's own parameter table (firmware/msgtable.py PARAMS): no board needed
+    from host.operate.board import param_read_only, param_table
+
+    for name, p in param_table().items():
+        ro = "  [read-only]" if param_read_only(name) is not None else ""
+        _say(f"{name:18s} {p['unit'] or '-':6s} {p['min']}..{p['max']} (default {p['default']}){ro}  {p['doc']}")
 
 
 def _gains(b: Any, args: argparse.Namespace) -> int:
@@ -398,6 +524,12 @@ def _excite(b: Any, args: argparse.Namespace) -> int:
         raise RunFailed(str(exc)) from exc
     if not args.quiet and sys.stderr.isatty():
         sys.stderr.write("\n")
+    # the warning before the summary: the summary stays the last line
+    if s.get("moved") is False:
+        x0, phi0 = s["span"]["x"][0], s["span"]["phi"][0]
+        _err(f"upright board: warning: nothing moved -- x ({x0:g} m) and phi ({phi0:g} rad) were the same in every "
+             "excited row: is the motor supply on, the driver enabled, are the encoder and pot wired? "
+             "`upright identify` cannot use this log")
     _err(f"upright board: {s['rows']} rows ({s['telemetry_frames']} telemetry frames) to {s['file']}; "
          f"{s['lost']} lost; excitation {'cart-only' if args.cart_only else 'balancing'} "
          f"+-{args.amplitude:g} N, {args.div} ticks per bit")
@@ -453,8 +585,19 @@ def run(args: argparse.Namespace) -> int:
     from host.operate.board import BoardError, ParamInputError, check_param, param_info
     from host.operate.record import format_of
 
+    if args.action == "params" and args.params_action == "list":
+        _params_list()
+        return 0
+    if not args.port:
+        raise A.UsageError("--port is required (the board's serial device, pty or CAN channel)")
+    if args.action == "excite" and args.arm_flag:
+        _err("upright board: note: excite --arm is deprecated and does nothing: arming first is the default "
+             "(--no-arm for a board that already balances)")
     # bad input is refused before the board is touched
     try:
+        if args.action == "gains" and args.file and (args.design or args.params):
+            # the conflict first: FILE's contents do not matter when it cannot be used
+            raise A.UsageError(f"gains upload: give FILE ({args.file}) or --design/--params, not both")
         if args.action in ("log", "excite"):
             A.check_out_file(args.out, "--out")
             format_of(args.out)

@@ -33,7 +33,14 @@ from typing import Any, Sequence, TextIO
 
 from host.cli import args as A
 
-__all__ = ["add_arguments", "run", "report", "Progress"]
+__all__ = ["add_arguments", "run", "report", "Progress", "Plan", "STEP_NOTE"]
+
+#: what the ``fw step us`` column measures (printed under the table)
+STEP_NOTE = ("fw step us: mean time of one firmware control step as the board timed it (telemetry step_us). "
+             "In lockstep the host paces the ticks and no period applies, so it is not a load figure: a board in "
+             "HIL mode runs the general step with the HIL sensor path, not the robot's fast tick -- a mean near "
+             "the period (2000 us at 500 Hz) is not a 100 % load. The robot's own tick against its period: "
+             "`upright hil --emulate rp2040` (cost per tick in emulated cycles).")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -56,7 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--can-interface", type=A.can_interface, default="slcan", metavar="NAME",
                         help="python-can interface for --port with --link can (default slcan)")
     parser.add_argument("--node", type=A.int_range(0, 63), default=1, help="CAN node id of the board (default 1)")
-    parser.add_argument("--baudrate", type=A.positive_int, default=A.board_baud(),
+    parser.add_argument("--baudrate", "--baud", dest="baudrate", type=A.positive_int, default=A.board_baud(),
                         help=f"serial line rate for --port (default {A.board_baud()}: firmware/board.py UART_BAUD)")
     parser.add_argument("--no-gif", action="store_true", help="skip the animated GIFs (faster)")
     parser.add_argument("--no-plots", action="store_true", help="skip PNG and GIF")
@@ -103,6 +110,104 @@ class Progress:
             self._last[name] = q
             self.stream.write(f"  {name}: {pct}% ({k}/{n} ticks)\n")
             self.stream.flush()
+
+
+class Plan:
+    """The whole run's progress: an estimate up front, ``[i/N]`` per scenario, time left.
+
+    Parameters
+    ----------
+    scenarios : sequence of Scenario
+        What will run, in order.
+    rate : float
+        Control ticks per second of robot time.
+    stream : text stream, optional
+        Default: the current ``sys.stderr``.
+    enabled : bool
+        False: silent.
+    """
+
+    def __init__(self, scenarios: Sequence[Any], rate: float, stream: TextIO | None = None,
+                 enabled: bool = True) -> None:
+        self.stream = sys.stderr if stream is None else stream
+        self.enabled = enabled
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.names = [sc.name for sc in scenarios]
+        self.ticks = {sc.name: int(round(sc.duration * rate)) for sc in scenarios}
+        self.robot_s = float(sum(sc.duration for sc in scenarios))
+        self.total = sum(self.ticks.values())
+        self.done = 0  # ticks of the finished scenarios
+        self._current: str | None = None
+        self._last_n = 0
+        self._t0: float | None = None
+        self._q: dict[str, int] = {}
+        self._estimated = False
+
+    def header(self) -> str:
+        """The line printed before the board starts."""
+        n = len(self.names)
+        return (f"{n} scenario(s), {self.robot_s:g} s of robot time ({self.total:,} control ticks); the time they "
+                "take depends on the link and board -- estimated once the first ticks are measured")
+
+    def _write(self, text: str) -> None:
+        try:
+            self.stream.write(text)
+            self.stream.flush()
+        except (OSError, ValueError):
+            pass
+
+    def left_s(self, k: int) -> float | None:
+        """Seconds left for the whole run at the tick rate measured so far (None: too early)."""
+        if self._t0 is None:
+            return None
+        el = time.perf_counter() - self._t0
+        got = self.done + k
+        if got < 50 or el < 1.0:
+            return None
+        return (self.total - got) * el / got
+
+    def __call__(self, name: str, k: int, n: int) -> None:
+        if not self.enabled or n <= 0:
+            return
+        if self._t0 is None:
+            self._t0 = time.perf_counter()
+        if name != self._current:
+            if self._current is not None:
+                self.done += self._last_n
+            self._current = name
+            i = self.names.index(name) + 1 if name in self.names else 0
+            if not self.tty:
+                self._write(f"  [{i}/{len(self.names)}] {name}: {n} ticks\n")
+        self._last_n = n
+        i = self.names.index(name) + 1 if name in self.names else 0
+        left = self.left_s(k)
+        if left is not None and not self._estimated:
+            self._estimated = True
+            el = time.perf_counter() - self._t0
+            rate = (self.done + k) / el
+            self._write(("\n" if self.tty else "") + f"  estimate: {_mmss(el + left)} in all at {rate:.0f} ticks/s "
+                        f"({_mmss(left)} left)\n")
+        eta = f", ~{_mmss(left)} left" if left is not None else ""
+        pct = int(100 * k / n)
+        if self.tty:
+            width = 24
+            fill = int(width * k / n)
+            self._write(f"\r  [{i}/{len(self.names)}] {name:24s} [{'#' * fill}{'.' * (width - fill)}] {pct:3d}%{eta}   ")
+            if k >= n:
+                self._write("\n")
+            return
+        q = pct // 25
+        if self._q.get(name, -1) != q:
+            self._q[name] = q
+            self._write(f"  [{i}/{len(self.names)}] {name}: {pct}% ({k}/{n} ticks){eta}\n")
+
+
+def _mmss(s: float) -> str:
+    s = max(0.0, s)
+    if s < 90:
+        return f"{s:.0f} s"
+    m, sec = divmod(int(round(s)), 60)
+    return f"{m} min {sec:02d} s"
 
 
 def report(runs: Sequence[Any], *, tolerance: float = 0.01, out: str | Path | None = None,
@@ -161,6 +266,10 @@ def report(runs: Sequence[Any], *, tolerance: float = 0.01, out: str | Path | No
         print(line, file=stream)
         if st.get("gains", "firmware default") != "firmware default":
             print(f"  {'':28s} (gain table uploaded: {st['gains']})", file=stream)
+    import textwrap
+
+    if any(r.mode == "lockstep" for r in runs):
+        print("\n" + textwrap.fill(STEP_NOTE, width=100, initial_indent="  ", subsequent_indent="  "), file=stream)
     if out is not None:
         print(f"\nCSV logs, PNG plots and GIF animations: {Path(out).resolve()}", file=stream)
     if bad:
@@ -221,8 +330,10 @@ def run(args: argparse.Namespace) -> int:
 
         return hil_emulated(args, out, scenarios, prog, json_path, cli=sys.modules[__name__], plant=plant)
     where = "virtual board (MicroPython unix port on a pty)" if args.port is None else args.port
+    plan = Plan(scenarios, float((plant or load_params()).values["loop.rate"]), enabled=not args.quiet)
+    prog = plan  # type: ignore[assignment]
     if not args.quiet:
-        print(f"upright hil: {len(scenarios)} scenario(s), {args.link} link, {args.mode}, {where}", file=sys.stderr)
+        print(f"upright hil: {args.link} link, {args.mode}, {where}: {plan.header()}", file=sys.stderr)
     done: list[Any] = []
     try:
         runs = hil_runs.run_scenarios(

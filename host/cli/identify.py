@@ -60,13 +60,24 @@ def run(args: argparse.Namespace) -> int:
         raise A.UsageError(str(exc)) from exc
     if not any(not lg.cart_only for lg in logs):
         raise A.UsageError("no balancing run among the logs (excite column 1): identify needs one")
+    import warnings
+
+    import numpy as np
+
     try:
-        res = identify(logs, params, fc=args.fc, max_delay=args.max_delay, n_boot=args.boot)
+        # numpy's RuntimeWarnings on a degenerate fit are not for the user: the fit either
+        # gives finite estimates or fails in one line below
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            res = identify(logs, params, fc=args.fc, max_delay=args.max_delay, n_boot=args.boot)
     except LogError as exc:
         raise A.UsageError(str(exc)) from exc
     except (ValueError, FloatingPointError, ArithmeticError) as exc:
         raise A.RunFailed(f"the fit failed: {exc}") from exc
     e, ci = res["estimates"], res["ci"]
+    bad = [k for k in PARAM_NAMES if not math.isfinite(float(e.get(k, math.nan)))]
+    if bad:
+        raise A.RunFailed(f"the fit failed: no finite estimate of {', '.join(bad)} (the logs do not excite them)")
     print(f"identified from {len(logs)} log(s), {res['rows']} rows; delay {res['delay_samples']} samples")
     for k in PARAM_NAMES:
         lo, hi = ci.get(k, [math.nan, math.nan])

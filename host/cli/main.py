@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import signal
 import sys
 from typing import Sequence
 
-from host.cli.args import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, OneLineParser, RunFailed, UsageError
+from host.cli import args as A
+from host.cli.args import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, OneLineParser, RunFailed, Terminated, UsageError
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -72,38 +74,52 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
-_INTERRUPTED = False
+#: signals handled as Ctrl-C (the board disarmed, what finished written), exit 128 + signal
+TERMINATING = (signal.SIGTERM, signal.SIGHUP)
+#: commands that handle SIGTERM/SIGHUP themselves
+_OWN_SIGNALS = ("emulate",)
 
-
-def interrupted() -> bool:
-    """True once SIGINT (Ctrl-C) reached this process: a failure that follows it (a board
-    that died of the same Ctrl-C, a closed link) is reported as the interruption."""
-    return _INTERRUPTED
+# the flags live in host.cli.args: ``python -m host.cli.main`` runs this file as __main__,
+# and a command module importing host.cli.main would get a second copy of module globals
+interrupted = A.interrupted
+note_signal = A.note_signal
 
 
 def _on_sigint(signum: int, frame: object) -> None:
-    global _INTERRUPTED
-    _INTERRUPTED = True
+    note_signal(signum)
     raise KeyboardInterrupt
 
 
-def _install_sigint() -> object:
-    global _INTERRUPTED
-    _INTERRUPTED = False
+def _on_terminate(signum: int, frame: object) -> None:
+    # the first SIGTERM/SIGHUP interrupts like Ctrl-C; one that comes while the tool winds
+    # down (a closed terminal sends SIGHUP, then the shell may send SIGTERM) must not cut
+    # the disarm short
+    first = not A.interrupt_signal()
+    note_signal(signum)
+    if first:
+        raise Terminated(signum)
+
+
+def _install_sigint(command: str | None = None) -> dict[int, object]:
+    A.reset_interrupted()
+    old: dict[int, object] = {}
     try:
-        old = signal.getsignal(signal.SIGINT)
-        if old is signal.default_int_handler:
-            signal.signal(signal.SIGINT, _on_sigint)
-            return old
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            old[signal.SIGINT] = signal.signal(signal.SIGINT, _on_sigint)
+        if command not in _OWN_SIGNALS:
+            for s in TERMINATING:
+                # a signal ignored by the caller (nohup) stays ignored
+                if signal.getsignal(s) is signal.SIG_DFL:
+                    old[s] = signal.signal(s, _on_terminate)
     except ValueError:  # pragma: no cover - not the main thread
         pass
-    return None
+    return old
 
 
-def _restore_sigint(old: object) -> None:
-    if old is not None:
+def _restore_sigint(old: dict[int, object]) -> None:
+    for s, h in old.items():
         try:
-            signal.signal(signal.SIGINT, old)  # type: ignore[arg-type]
+            signal.signal(s, h)  # type: ignore[arg-type]
         except ValueError:  # pragma: no cover
             pass
 
@@ -113,7 +129,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     Exit status (every command): 0 done; 1 the run failed (its checks, a diverged run, a
     port or scheduler that cannot be reached); 2 bad input or usage, refused before the work
-    starts; 130 interrupted (Ctrl-C), after writing what finished.
+    starts; 130 interrupted (Ctrl-C), after writing what finished; 143 / 129 the same after
+    SIGTERM / SIGHUP (a closed terminal): handled as Ctrl-C -- a board this tool armed is
+    disarmed first.
 
     Parameters
     ----------
@@ -125,11 +143,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     int
         Process exit status.
     """
-    old = _install_sigint()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    chosen = next((a for a in argv if not a.startswith("-")), None)
+    old = _install_sigint(chosen)
     name = "upright"
     try:
-        argv = list(sys.argv[1:] if argv is None else argv)
-        chosen = next((a for a in argv if not a.startswith("-")), None)
         parser = build_parser(only=chosen if chosen in COMMANDS else "")
         args = parser.parse_args(argv)
         if getattr(args, "_command", None) is None:
@@ -144,8 +162,35 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _interrupted(name: str) -> int:
-    print(f"\n{name}: interrupted", file=sys.stderr)
+    sig = A.interrupt_signal()
+    if sig:
+        _tell(f"\n{name}: interrupted by {signal.Signals(sig).name}")
+        _quiet_lost_streams()
+        return 128 + sig
+    _tell(f"\n{name}: interrupted")
     return EXIT_INTERRUPTED
+
+
+def _tell(text: str) -> None:
+    # stderr may be gone (a closed terminal): the exit status still says what happened
+    try:
+        print(text, file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
+
+
+def _quiet_lost_streams() -> None:
+    # a closed terminal: flushing stdout at exit would fail and turn the status into 120
+    for fd, stream in ((1, sys.stdout), (2, sys.stderr)):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            try:
+                null = os.open(os.devnull, os.O_WRONLY)
+                os.dup2(null, fd)
+                os.close(null)
+            except OSError:
+                pass
 
 
 def _run(name: str, args: argparse.Namespace) -> int:
@@ -172,7 +217,7 @@ def _run(name: str, args: argparse.Namespace) -> int:
         status, text = EXIT_FAILED, f"error: {exc}"
     if interrupted():
         return _interrupted(name)
-    print(f"{name}: {' '.join(text.split())}", file=sys.stderr)
+    _tell(f"{name}: {' '.join(text.split())}")
     return status
 
 

@@ -10,6 +10,7 @@ Examples::
     upright proto dbc --node 3 > node3.dbc                           # CAN database for another node
     upright proto dump                    # the board on /dev/ttyUSB0 at its UART rate (1 Mbaud)
     upright proto dump loop://            # or /dev/ttyACM0, can:socketcan:can0, can:serial:/dev/pts/3
+    upright proto dump --port /dev/pts/3  # --port as every other tool (positional kept)
 """
 
 from __future__ import annotations
@@ -52,10 +53,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sp.set_defaults(_proto=_cmd_dbc)
 
     sp = sub.add_parser("dump", help="print every message received on a live link (like candump)")
-    sp.add_argument("link", nargs="?", default=DEFAULT_DUMP_PORT, type=A.nonempty,
-                    help=f"serial port/URL (loop://, /dev/ttyACM0) or can:INTERFACE:CHANNEL (default {DEFAULT_DUMP_PORT})")
+    sp.add_argument("link", nargs="?", default=DEFAULT_DUMP_PORT, type=A.nonempty, metavar="PORT",
+                    help=f"serial port/URL (loop://, /dev/ttyACM0) or can:INTERFACE:CHANNEL (default {DEFAULT_DUMP_PORT}); "
+                         "the same as --port")
+    sp.add_argument("--port", dest="port_opt", default=None, type=A.nonempty, metavar="PORT",
+                    help="the link, as every other tool takes it (or give it positionally)")
     sp.add_argument("--node", type=A.int_range(0, 63), default=1, help="CAN node id (default 1)")
-    sp.add_argument("--baudrate", type=A.positive_int, default=A.board_baud(),
+    sp.add_argument("--baudrate", "--baud", dest="baudrate", type=A.positive_int, default=A.board_baud(),
                     help=f"serial baud rate (default {A.board_baud()}: firmware/board.py UART_BAUD)")
     sp.add_argument("--count", type=A.nonneg_int, default=0, help="stop after this many messages (0 = no limit)")
     sp.add_argument("--duration", type=A.in_range(0.0, 7 * 24 * 3600.0, unit="s"), default=0.0,
@@ -197,9 +201,19 @@ def _cmd_dbc(args: argparse.Namespace) -> int:
     return 0
 
 
+def _dump_port(args: argparse.Namespace) -> str:
+    # (the positional's default is the default port: a positional that differs from it and
+    # from --port is a second port)
+    pos, opt = args.link, args.port_opt
+    if opt is not None and pos not in (DEFAULT_DUMP_PORT, opt):
+        raise A.UsageError(f"proto dump: two ports, {pos!r} and --port {opt!r}: give one")
+    return opt or pos
+
+
 def _cmd_dump(args: argparse.Namespace) -> int:
     from host.link.clients import open_link
 
+    args.link = _dump_port(args)
     n = 0
     t0 = time.monotonic()
     with open_link(args.link, node_id=args.node, baudrate=args.baudrate) as link:

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import collections
 import importlib
+import os
 import select
 import threading
 import time
@@ -44,6 +45,8 @@ __all__ = [
     "LinkClosed",
     "CommandRefused",
     "IncompatibleBoard",
+    "PortBusy",
+    "port_holders",
     "Link",
     "SerialLink",
     "CanLink",
@@ -105,6 +108,43 @@ class IncompatibleBoard(LinkError):
         super().__init__(text)
 
 
+class PortBusy(LinkError):
+    """Another process holds the serial port: ports are opened exclusively, one tool per port.
+
+    Attributes
+    ----------
+    port : str
+        The port as given.
+    holders : list of (int, str)
+        ``(pid, command line)`` of the processes found holding it (may be empty).
+    """
+
+    def __init__(self, port: str, holders: list[tuple[int, str]]) -> None:
+        self.port = port
+        self.holders = holders
+        if holders:
+            who = "; ".join(f"PID {pid} ({cmd})" for pid, cmd in holders)
+            text = f"port busy: {port} is held by {who}"
+        else:
+            text = f"port busy: {port} is held exclusively by another process"
+        super().__init__(text + " (not an upright tool serving the port's hub): stop it first")
+
+
+def port_holders(path: str) -> list[tuple[int, str]]:
+    """Processes holding the device ``path`` (:func:`host.link.porthub.port_holders`)."""
+    from host.link.porthub import port_holders as holders
+
+    return holders(path)
+
+
+def _exclusive_ok(url: str) -> bool:
+    # a device path (not a pyserial URL) that is not the pty multiplexer: every open of
+    # /dev/ptmx is a new pty on the same inode, a lock there would serialise them all
+    if "://" in url or not os.path.exists(url):
+        return False
+    return os.path.basename(os.path.realpath(url)) != "ptmx"
+
+
 # reply class wanted by a request, by request message name (default: ACK)
 _REPLY: dict[str, str] = {"param_get": "param_value", "param_set": "param_value"}
 _HEARTBEAT = M.BY_NAME["heartbeat"]
@@ -152,6 +192,8 @@ class Link:
         self._hb_thread: threading.Thread | None = None
         self._hb_stop = threading.Event()
         self._board_period: float | None = None
+        #: the hub this link serves its port's other tools on (:mod:`host.link.porthub`)
+        self._hub: Any = None
 
     # ---- transport hooks ----
     def _send(self, msg: M.Message, seq: int) -> None:  # pragma: no cover - abstract
@@ -177,8 +219,10 @@ class Link:
         return {}
 
     # ---- public API ----
-    def send(self, msg: M.Message) -> int:
+    def send(self, msg: M.Message, *, _tag: Any = None) -> int:
         """Send one message; return the sequence number used (serial framing).
+
+        ``_tag``: the port hub's note of which attached tool sent the frame.
 
         Raises
         ------
@@ -191,6 +235,9 @@ class Link:
         with self._tx_lock:
             seq = self._seq
             self._seq = (seq + 1) & 0xFF
+            hub = self._hub
+            if hub is not None:
+                hub.note_sent(msg, seq, _tag)
             self._send(msg, seq)
             self.sent += 1
         return seq
@@ -202,6 +249,10 @@ class Link:
         self._ingest(got)
 
     def _ingest(self, got: list[tuple[M.Message, int | None]]) -> None:
+        hub = self._hub
+        if hub is not None and got:
+            # answers to an attached tool's requests go to that tool, not into this queue
+            got = hub.dispatch(got)
         for m, _ in got:
             if isinstance(m, _HEARTBEAT):
                 self.last_heartbeat = m
@@ -488,6 +539,9 @@ class Link:
         """Release the port or bus (idempotent)."""
         if not self._closed:
             self.stop_heartbeat()
+            hub, self._hub = self._hub, None
+            if hub is not None:
+                hub.close()
             self._closed = True
             with self._tx_lock:
                 self._close()
@@ -515,6 +569,12 @@ def _param_index(param: int | str) -> int:
 class SerialLink(Link):
     """Serial framing over pyserial (any ``serial_for_url`` URL: a device, ``loop://``, a pty).
 
+    A device (a tty, a pty's slave) is opened exclusively (pyserial ``exclusive=True``, an
+    ``flock`` on the device), and the link serves the device's other upright tools through a
+    local hub (:mod:`host.link.porthub`): a second tool on the same port attaches to it
+    (:attr:`via_hub`) instead of both reading half the frames; a port held by anything else
+    is refused with :class:`PortBusy`, naming the process that holds it.
+
     Parameters
     ----------
     url : str
@@ -523,37 +583,111 @@ class SerialLink(Link):
         Baud rate (ignored by ptys and USB CDC).
     backlog : int
         See :class:`Link`.
+    hub : bool
+        Serve (or attach to) the port's hub; False: exclusive only.
+
     """
 
     def __init__(self, url: str, baudrate: int = BOARD_BAUD, *, backlog: int = 10000,
-                 check_identity: bool = True) -> None:
+                 check_identity: bool = True, hub: bool = True) -> None:
         super().__init__(backlog=backlog, check_identity=check_identity)
         import serial
 
         self._serial_mod = serial
-        try:
-            self._ser = serial.serial_for_url(url, baudrate=baudrate, timeout=0)
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise LinkError(f"cannot open serial port {url!r}: {exc}") from exc
         self.url = url
+        self._baudrate = baudrate
+        self._exclusive = _exclusive_ok(url)
+        self._use_hub = bool(hub and self._exclusive and os.environ.get("UPRIGHT_PORT_HUB", "1") != "0")
+        self._reopen_lock = threading.Lock()
+        #: True when another tool holds the port and this link goes through its hub
+        self.via_hub = False
+        #: ``(pid, command)`` of the tool whose hub this link uses
+        self.hub_owner: list[tuple[int, str]] = []
+        #: times this link moved on after the tool whose hub it used left (to the port
+        #: itself, or to the hub of the tool that took the port)
+        self.rehomed = 0
         self.decoder = M.SerialStreamDecoder()
+        self._ser: Any = None
+        self._fd: int | None = None
+        self._install(*self._open_port())
+
+    def _open_port(self) -> tuple[Any, bool]:
+        # (the port or the hub's socket, True for the hub)
+        serial = self._serial_mod
+        url = self.url
+        kw: dict[str, Any] = {"exclusive": True} if self._exclusive else {}
+        try:
+            return serial.serial_for_url(url, baudrate=self._baudrate, timeout=0, **kw), False
+        except (serial.SerialException, OSError, ValueError) as exc:
+            if not (kw and "exclusively lock" in str(exc)):
+                raise LinkError(f"cannot open serial port {url!r}: {exc}") from exc
+            from host.link import porthub
+
+            sp = porthub.attach(url) if self._use_hub else None
+            if sp is None:
+                raise PortBusy(url, port_holders(url)) from exc
+            return sp, True
+
+    def _install(self, ser: Any, via_hub: bool) -> None:
+        self._ser = ser
+        self.via_hub = via_hub
+        self.hub_owner = port_holders(self.url) if via_hub else []
+        # a frame cut by the move is dropped, the counts go on
+        dec = M.SerialStreamDecoder()
+        dec.drops, dec.ok = self.decoder.drops, self.decoder.ok
+        self.decoder = dec
         # the port stays non-blocking (timeout 0): waiting is a select() on its file
         # descriptor when it has one (changing a pyserial timeout reconfigures the tty)
         try:
-            self._fd: int | None = self._ser.fileno()
-        except (AttributeError, OSError, ValueError, serial.SerialException):
+            self._fd = ser.fileno()
+        except (AttributeError, OSError, ValueError, self._serial_mod.SerialException):
             self._fd = None
+        if self._use_hub and not via_hub:
+            from host.link import porthub
+
+            try:
+                self._hub = porthub.PortHub(self, self.url)
+            except OSError:
+                self._hub = None  # no hub: the port is exclusive all the same
+
+    def _reopen(self, dead: Any, why: BaseException) -> None:
+        # the tool whose hub this link used has left: take the port, or attach to the hub
+        # of the tool that took it (a few seconds at most; the old owner's lock goes with it)
+        with self._reopen_lock:
+            if self._ser is not dead or self._closed:
+                return
+            try:
+                dead.close()
+            except OSError:
+                pass
+            deadline = time.monotonic() + 3.0
+            while True:
+                try:
+                    self._install(*self._open_port())
+                    self.rehomed += 1
+                    return
+                except PortBusy as exc:
+                    if time.monotonic() > deadline:
+                        raise LinkError(f"{self.url}: the tool whose hub this link used has left ({why}), and {exc}") \
+                            from exc
+                time.sleep(0.05)
 
     @property
     def drops(self) -> dict[str, int]:
         return dict(self.decoder.drops)
 
     def _send(self, msg: M.Message, seq: int) -> None:
-        try:
-            self._ser.write(M.encode_serial(msg, seq))
-            self._ser.flush()
-        except (self._serial_mod.SerialException, OSError) as exc:
-            raise LinkError(f"write to {self.url!r} failed: {exc}") from exc
+        data = M.encode_serial(msg, seq)
+        for attempt in range(2):
+            ser = self._ser
+            try:
+                ser.write(data)
+                ser.flush()
+                return
+            except (self._serial_mod.SerialException, OSError) as exc:
+                if not self.via_hub or attempt:
+                    raise LinkError(f"write to {self.url!r} failed: {exc}") from exc
+                self._reopen(ser, exc)
 
     def _recv_internal(self, timeout: float | None) -> list[tuple[M.Message, int | None]]:
         ser = self._ser
@@ -576,6 +710,9 @@ class SerialLink(Link):
                     data += ser.read(n)
                 ser.timeout = 0
         except (self._serial_mod.SerialException, OSError, ValueError) as exc:
+            if self.via_hub and not self._closed:
+                self._reopen(ser, exc)
+                return []
             raise LinkError(f"read from {self.url!r} failed: {exc}") from exc
         return list(self.decoder.feed(data))
 

@@ -31,7 +31,7 @@ from host.link.clients import CommandRefused, Link, LinkError, LinkTimeout, open
 
 __all__ = [
     "BoardError", "NotSupported", "ParamInputError", "IdentityMismatch",
-    "Board", "fault_table", "fault_names", "param_table", "param_info", "check_param",
+    "Board", "fault_table", "fault_names", "param_table", "param_info", "param_read_only", "check_param",
     "periodic_kinds", "has_message", "gains_blob_from_file", "gains_blob_from_design",
 ]
 
@@ -107,14 +107,34 @@ def param_info(name: str) -> dict[str, Any]:
     return table[name]
 
 
-def check_param(name: str, value: Any) -> int:
-    """``value`` as the parameter's integer, checked against its range.
+def param_read_only(name: str) -> str | None:
+    """Why a parameter cannot be written, from its row of the table (a doc that starts with
+    ``read-only``), or ``None`` when it can.
 
     Raises
     ------
     ParamInputError
-        Unknown name, not an integer, or outside ``min..max``.
+        Unknown name.
     """
+    doc = param_info(name)["doc"].strip()
+    if not doc.lower().startswith("read-only"):
+        return None
+    why = doc[len("read-only"):].lstrip(" :;,-")
+    return why.split("(")[0].strip().rstrip(";,.") or "the board refuses writes"
+
+
+def check_param(name: str, value: Any) -> int:
+    """``value`` as the parameter's integer, checked against its range (and refused for a
+    read-only parameter).
+
+    Raises
+    ------
+    ParamInputError
+        Unknown name, read-only, not an integer, or outside ``min..max``.
+    """
+    ro = param_read_only(name)
+    if ro is not None:
+        raise ParamInputError(f"{name} is read-only: {ro}")
     p = param_info(name)
     try:
         f = float(value)
@@ -150,6 +170,9 @@ def gains_blob_from_file(path: str | Path) -> bytes:
     """A gain table from a file: the raw upload bytes (``.bin``) or a gain module (``.py``,
     ``upright export --out FILE``; its ``FLAT`` list as little-endian int32).
 
+    A ``.py`` file is read as data -- its ``FLAT = (...)`` assignment parsed with
+    :func:`ast.literal_eval` -- and never executed.
+
     Raises
     ------
     ParamInputError
@@ -167,15 +190,36 @@ def gains_blob_from_file(path: str | Path) -> bytes:
             raise ParamInputError(f"gain table {str(path)!r}: {len(data)} bytes; expected a multiple of 4 "
                                   f"in 4..{T.GAINS_MAX} (int32 little-endian), or a .py gain module")
         return data
-    ns: dict[str, Any] = {}
-    try:
-        exec(compile(data.decode(), str(p), "exec"), {"const": lambda x: x, "__name__": "gains"}, ns)
-    except Exception as exc:  # noqa: BLE001 - any error in a user file is bad input
-        raise ParamInputError(f"gain table {str(path)!r}: not a gain module ({type(exc).__name__}: {exc})") from None
-    flat = ns.get("FLAT")
-    if not isinstance(flat, (list, tuple)) or not flat or not all(isinstance(v, int) for v in flat):
-        raise ParamInputError(f"gain table {str(path)!r}: no FLAT list of ints (write one with `upright export --out`)")
+    flat = _flat_of_module(data, str(path))
     return struct.pack(f"<{len(flat)}i", *flat)
+
+
+def _flat_of_module(data: bytes, name: str) -> list[int]:
+    # a gain module is data: its FLAT assignment is read with ast.literal_eval, never run
+    import ast
+
+    try:
+        tree = ast.parse(data.decode(), filename=name)
+    except (SyntaxError, ValueError, UnicodeDecodeError) as exc:
+        where = f" line {exc.lineno}" if getattr(exc, "lineno", None) else ""
+        raise ParamInputError(f"gain table {name!r}: not a gain module ({type(exc).__name__}{where}: "
+                              f"{getattr(exc, 'msg', exc)})") from None
+    value: Any = None
+    for node in tree.body:
+        if (isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name)
+                and node.targets[0].id == "FLAT"):
+            expr = node.value
+            if isinstance(expr, ast.Call) and isinstance(expr.func, ast.Name) and expr.func.id == "const" \
+                    and len(expr.args) == 1:
+                expr = expr.args[0]
+            try:
+                value = ast.literal_eval(expr)
+            except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError):
+                raise ParamInputError(f"gain table {name!r} line {node.lineno}: FLAT is not a literal list of "
+                                      "ints (gain modules are read as data, not run)") from None
+    if not isinstance(value, (list, tuple)) or not value or not all(type(v) is int for v in value):
+        raise ParamInputError(f"gain table {name!r}: no FLAT list of ints (write one with `upright export --out`)")
+    return list(value)
 
 
 def gains_blob_from_design(params: str | Path | None = None) -> tuple[bytes, str]:
@@ -420,6 +464,23 @@ class Board:
             pass
         return out
 
+    def status_values(self) -> dict[str, int]:
+        """The board's read-only status figures (``msgtable.STATUS``: uptime in full, loop
+        starts, the saved copy in force...), read as PARAM_GET(``STATUS_BASE`` + k) where the
+        table has them; empty otherwise or when the firmware does not answer them."""
+        rows = getattr(T, "STATUS", ())
+        base = getattr(T, "STATUS_BASE", None)
+        out: dict[str, int] = {}
+        if not rows or base is None:
+            return out
+        for row in rows:
+            k, name = row[0], row[1]
+            try:
+                out[name] = int(self.request(M.BY_NAME["param_get"](index=base + k)).value)
+            except BoardError:
+                break  # older firmware: bad_index for the first, no point asking the rest
+        return out
+
     def status(self, listen: float = 1.0) -> dict[str, Any]:
         """Everything ``upright board status`` shows, as one dict (JSON-ready).
 
@@ -440,6 +501,7 @@ class Board:
             "heartbeat_hz": self.heartbeat_rate(),
             "link": {"sent": link.sent, "received": link.received, "drops": link.drops},
             "board_stats": self.stats(),
+            "board_status": self.status_values(),
         }
 
     # ---- commands ----

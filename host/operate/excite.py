@@ -67,7 +67,9 @@ def run_excite(b: Board, out: str | Path, *, seconds: float, amplitude_n: float,
     Returns
     -------
     dict
-        The recorder's summary plus ``mode``, ``amplitude_n``, ``div``.
+        The recorder's summary plus ``mode``, ``amplitude_n``, ``div`` and ``moved``: False
+        when x and phi kept one value in every excited row (nothing moved: a dead drive,
+        sensors that do not read -- ``upright identify`` refuses such a log), None without rows.
 
     Raises
     ------
@@ -83,6 +85,7 @@ def run_excite(b: Board, out: str | Path, *, seconds: float, amplitude_n: float,
     rec.extra_values.update(excite=0, exc_amp_n=0.0, exc_div=0)
     armed_here = False
     started = False
+    moved: bool | None = None
     total = seconds + (coast_s if cart_only else 0.0)
     try:
         if arm:
@@ -99,9 +102,11 @@ def run_excite(b: Board, out: str | Path, *, seconds: float, amplitude_n: float,
         # the column says the mode from the first row received after the board's ACK (rows
         # before it still carry the estimate, not the sensors)
         rec.extra_values.update(excite=mode, exc_amp_n=float(amplitude_n), exc_div=int(div))
+        rec.reset_span()
         t0 = time.monotonic()
         last = -1.0
         disarmed = False
+        coast_span = False
         while True:
             el = time.monotonic() - t0
             if el >= total:
@@ -111,6 +116,9 @@ def run_excite(b: Board, out: str | Path, *, seconds: float, amplitude_n: float,
                 # stops, its telemetry keeps sending the sensors)
                 b.disarm()
                 disarmed = True
+            if disarmed and not coast_span:
+                coast_span = True
+                moved = rec.moved()
             if not disarmed:
                 b.keepalive()
             b.poll(0.02)
@@ -119,6 +127,8 @@ def run_excite(b: Board, out: str | Path, *, seconds: float, amplitude_n: float,
                 progress(el, total, rec)
         if progress is not None:
             progress(total, total, rec)
+        if not coast_span:
+            moved = rec.moved()
     except BoardError as exc:
         failure: BoardError | None = exc
     else:
@@ -142,5 +152,6 @@ def run_excite(b: Board, out: str | Path, *, seconds: float, amplitude_n: float,
     if failure is not None:
         raise BoardError(f"{failure} (kept {rec.rows} rows in {out})") from failure
     s = rec.summary()
-    s.update(mode=mode, amplitude_n=amplitude_n, div=div)
+    s.update(mode=mode, amplitude_n=amplitude_n, div=div, moved=moved,
+             span={k: tuple(v) for k, v in rec.span.items()})
     return s

@@ -100,6 +100,9 @@ class Recorder:
         self._state = None
         self._faults = None
         self._closed = False
+        #: smallest and largest x (m) and phi (rad) of the rows since :meth:`reset_span`
+        self.span: dict[str, list[float]] = {}
+        self.reset_span()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if self.fmt == "csv":
             self._fh = open(self.path, "w", newline="")
@@ -122,6 +125,18 @@ class Recorder:
         board.listeners.append(self._on)
 
     # ---- accounting ----
+    def reset_span(self) -> None:
+        """Start :attr:`span` afresh (``excite``: from the first excited row)."""
+        self.span = {"x": [float("inf"), float("-inf")], "phi": [float("inf"), float("-inf")]}
+
+    def moved(self) -> bool | None:
+        """Whether x or phi took more than one value in the rows since :meth:`reset_span`
+        (``None``: no row)."""
+        x, phi = self.span["x"], self.span["phi"]
+        if x[0] > x[1]:
+            return None
+        return x[1] > x[0] or phi[1] > phi[0]
+
     @property
     def lost(self) -> int:
         """Periodic frames lost (sequence gaps) plus halves of ticks whose pair was broken."""
@@ -160,6 +175,12 @@ class Recorder:
                    *(self.extra_values[k] for k in self.columns[len(COLUMNS):]))
             self._buf.append(row)
             self.rows += 1
+            for k, v in (("x", a["x"]), ("phi", a["phi"])):
+                sp = self.span[k]
+                if v < sp[0]:
+                    sp[0] = v
+                if v > sp[1]:
+                    sp[1] = v
             if t - self._last_flush >= self.flush_s:
                 self.flush()
 

@@ -129,6 +129,13 @@ def read_log(path: str | Path, cart_only: bool | None = None, min_rows: int = 50
             raise LogError(name, c, f"line {bad}: missing or non-finite value")
     if len(idx) < min_rows:
         raise LogError(name, "", f"{len(idx)} excitation rows, at least {min_rows} needed")
+    xs, ps = cols["x"][idx], cols["phi"][idx]
+    if np.all(xs == xs[0]) and np.all(ps == ps[0]):
+        # a frozen robot (dead drive, unwired sensors, an emulated board with nothing on its
+        # pins): no fit can come of it, and LAPACK would only say so in its own words
+        raise LogError(name, "", f"nothing moved: x ({xs[0]:g} m) and phi ({ps[0]:g} rad) are the same in every "
+                                 f"one of the {len(idx)} excitation rows -- record again with the motor powered "
+                                 "and the sensors wired (upright board excite warns when this happens)")
     seq = cols.get("seq")
     if seq is not None and np.all(np.isfinite(seq[idx])) and np.all(seq[idx] >= 0):
         # one sequence number per tick's telemetry pair, one more per heartbeat in between:
