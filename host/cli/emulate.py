@@ -1,14 +1,23 @@
-"""``upright emulate rp2040 --pty | --can``: an emulated Pico running the firmware, its host link on a
-pty or on a CAN bus other processes join.
+"""``upright emulate rp2040 --pty | --can``: the virtual robot -- an emulated Pico running the
+firmware with the simulated robot on its pins -- its host link on a pty or on a CAN bus.
 
 Starts the firmware bundle on the emulated RP2040 (rp2040js, MicroPython's rp2 port: the board
-as after ``make flash``), bridges its host link (UART0, 1 Mbaud) to a new pseudo-terminal, prints
-the port's path on stdout (one line) and runs until Ctrl-C or end of input on stdin.  Every tool
-that takes ``--port`` then works against it as against a board on ``/dev/ttyUSB0``::
+as after ``make flash``), closes the simulated robot around its pins (``--plant FILE``, default
+``sim/robot.toml``: :mod:`host.hil.virtual_robot` -- the plant of ``hil --emulate``, stepped
+with the board's own emulated clock), bridges its host link (UART0, 1 Mbaud) to a new
+pseudo-terminal and prints the port's path on stdout (one line).  Every tool that takes
+``--port`` then works against it as against a robot on ``/dev/ttyUSB0``::
 
     $ upright emulate rp2040 --pty
     /dev/pts/7
-    $ upright proto dump --port /dev/pts/7          # in another terminal
+    $ upright board --port /dev/pts/7 calibrate --out robot.toml   # in another terminal
+
+The pendulum starts upright at rest, held by the robot's stand-by person until the board
+balances (then let go); one that fell is picked up again once the motor is off.  What else a
+person does to a robot (hold it upright or tilted, roll the cart, lift the wheels, take the
+pendulum off, press reset) is asked for on the robot's hands, a Unix socket whose path is
+derived from the port (:func:`host.hil.virtual_robot.hands_path`; printed at start): ``upright
+board calibrate`` finds it there by itself (``--robot auto``), and a real robot has none.
 
 With ``--can [CHANNEL]`` the board runs its CAN link instead (``main.main(link="can")``: the
 MCP2515 on SPI1, modelled at the register level) and the emulated bus is bridged to a python-can
@@ -20,10 +29,12 @@ prints the bus as one ``can:INTERFACE:CHANNEL`` line (what ``upright proto dump`
     can:udp_multicast:ff11:7079:7468:6f6e:6465:6d6f:6d63:6173
     $ upright board --link can --can-interface udp_multicast --port ff11:7079:7468:6f6e:6465:6d6f:6d63:6173 status
 
-The pendulum is held upright (ADC at the potentiometer offset) and the cart still.  The
-emulation runs at about 0.1x real time: board time passes ten times slower than on the wall.
-A board that does not boot or whose firmware raises ends the command with exit status 1 and
-its last output.
+It serves until Ctrl-C (exit status 130, "interrupted", as every command) or SIGTERM / SIGHUP
+(exit status 0), whatever its standard input is (never read: ``nohup``, ``< /dev/null`` and
+``&`` serve the same), and leaves nothing behind (the board's node process, its temporary
+directory and the hands' socket are removed).  The emulation runs at about 0.1-0.4x real time:
+board time passes slower than on the wall, and the robot with it.  A board that does not boot
+or whose firmware raises ends the command with exit status 1 and its last output.
 """
 
 from __future__ import annotations
@@ -37,6 +48,7 @@ from typing import Any, Sequence
 
 __all__ = ["add_arguments", "run", "hil_emulated"]
 
+_SIGINT = 2
 UDP_LOCAL_GROUP = "ff11:7079:7468:6f6e:6465:6d6f:6d63:6173"
 """Default ``udp_multicast`` group (= ``host.boards.rp2040.can.UDP_LOCAL_GROUP``, not imported at
 start-up): interface-local IPv6 scope, delivered on this machine only."""
@@ -129,7 +141,7 @@ def _robot(args: argparse.Namespace) -> Any:
     return VirtualRobot(plant)
 
 
-def _serve(link: Any, robot: Any, port_key: str, stop: "_Stop") -> int:
+def _serve(link: Any, robot: Any, port_key: str, stop: _Stop) -> int:
     # the robot on the pins, its hands on a socket next to the port's name, until a stop signal
     from host.boards.rp2040.board import BoardError
     from host.hil.virtual_robot import HandsServer, hands_path, serve
@@ -147,14 +159,15 @@ def _serve(link: Any, robot: Any, port_key: str, stop: "_Stop") -> int:
                 return _board_failed(exc)
     finally:
         hands.close()
-    print("upright emulate: stopped", file=sys.stderr, flush=True)
+    if stop.signum != _SIGINT:
+        print("upright emulate: stopped", file=sys.stderr, flush=True)
     return 0
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``upright emulate``."""
-    from host.boards.rp2040.board import BoardError
-    from host.boards.rp2040.bridge import PtyBridge
+    import signal
+
     from host.cli.args import UsageError
 
     bundle = None
@@ -164,24 +177,31 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--bundle: {bundle} holds no main.py (make firmware writes one)")
     robot = _robot(args)
     with _Stop() as stop:
-        if args.can is not None:
-            return _serve_can(args, bundle, robot, stop)
-        print("upright emulate: booting the emulated RP2040 (main.py)...", file=sys.stderr, flush=True)
-        try:
-            bridge = PtyBridge(bundle, adc=robot.plant.read()[0])
-        except BoardError as exc:
-            if stop.stopped():
-                return 0
-            return _board_failed(exc)
-        try:
-            if stop():
-                return 0
-            print(bridge.port, flush=True)
-            print(f"upright emulate: host link (UART0, {bridge.board.uart_baud} baud) on {bridge.port}; "
-                  f"{_how_to_stop()}", file=sys.stderr, flush=True)
-            return _serve(bridge, robot, bridge.port, stop)
-        finally:
-            bridge.close()
+        status = _serve_can(args, bundle, robot, stop) if args.can is not None else _serve_pty(bundle, robot, stop)
+    if stop.signum == signal.SIGINT:
+        raise KeyboardInterrupt  # Ctrl-C: "interrupted", exit status 130 as every command (SIGTERM: 0)
+    return status
+
+
+def _serve_pty(bundle: Path | None, robot: Any, stop: _Stop) -> int:
+    """``--pty``: the board's UART0 on a new pty, the robot on its pins, until a stop signal."""
+    from host.boards.rp2040.board import BoardError
+    from host.boards.rp2040.bridge import PtyBridge
+
+    print("upright emulate: booting the emulated RP2040 (main.py)...", file=sys.stderr, flush=True)
+    try:
+        bridge = PtyBridge(bundle, adc=robot.plant.read()[0])
+    except BoardError as exc:
+        return 0 if stop.stopped() else _board_failed(exc)
+    try:
+        if stop():
+            return 0
+        print(bridge.port, flush=True)
+        print(f"upright emulate: host link (UART0, {bridge.board.uart_baud} baud) on {bridge.port}; "
+              f"{_how_to_stop()}", file=sys.stderr, flush=True)
+        return _serve(bridge, robot, bridge.port, stop)
+    finally:
+        bridge.close()
 
 
 def _can_channel(interface: str, channel: str) -> str:
@@ -211,11 +231,12 @@ def _can_channel(interface: str, channel: str) -> str:
     return channel
 
 
-def _serve_can(args: argparse.Namespace, bundle: Path | None, robot: Any, stop: "_Stop") -> int:
+def _serve_can(args: argparse.Namespace, bundle: Path | None, robot: Any, stop: _Stop) -> int:
     """``--can``: the board's CAN link bridged to a python-can bus, the robot on its pins, until a
     stop signal."""
     from host.boards.rp2040.board import BoardError
     from host.boards.rp2040.can import CanBoard
+
     interface = args.can_interface
     channel = _can_channel(interface, args.can)
     print(f"upright emulate: booting the emulated RP2040 (main.py, CAN link) on python-can {interface} "

@@ -109,7 +109,8 @@ class Hand:
 class RobotPlant(PlantSim):
     """:class:`PlantSim` with a person's hands on it and no per-tick log (it runs for hours).
 
-    Free: the plant's own equations (:meth:`PlantSim.step`'s RK4).  Held (:attr:`hand`): the
+    Free: the plant's own equations (:meth:`PlantSim.step`'s RK4); the drive's force only while the
+    H-bridge is enabled (``driven``).  Held (:attr:`hand`): the
     pendulum at the hand's angle and at rest, the cart still, rolled, or free -- then the cart
     and the held pendulum move together under the motor force and the friction (exact for the
     linear drive: ``(M + m) xdd = a duty - (c + b) xd``).  Pendulum off (:attr:`pendulum_on`
@@ -137,10 +138,24 @@ class RobotPlant(PlantSim):
         x[0] += v_inf * T + (x[1] - v_inf) * (1.0 - e) / k
         x[1] = v_inf + (x[1] - v_inf) * e
 
-    def step(self, duty: int, *, u_cmd: float = math.nan, u_sat: float = math.nan) -> None:
-        """Apply ``duty`` for one plant tick (hands and pendulum as they are) and take the next reading."""
-        d = min(max(int(duty), -motor.DUTY_MAX), motor.DUTY_MAX)
+    def step(self, duty: int, *, u_cmd: float = math.nan, u_sat: float = math.nan, driven: bool = True) -> None:
+        """Apply ``duty`` for one plant tick (hands and pendulum as they are) and take the next reading.
+
+        ``driven`` false: the H-bridge is disabled (EN low), its outputs float -- no current, so
+        no force and no back-EMF braking (the coast-down of ``excite --cart-only``); at duty 0
+        with the bridge enabled the motor is shorted and brakes (:func:`sim.motor.force_from_duty`).
+        """
+        d = min(max(int(duty), -motor.DUTY_MAX), motor.DUTY_MAX) if driven else 0
         self.duty = d
+        ce = self._c_emf
+        if not driven:
+            self._c_emf = 0.0
+        try:
+            self._step(d)
+        finally:
+            self._c_emf = ce
+
+    def _step(self, d: int) -> None:
         hand = self.hand
         x = self._x
         if not self.pendulum_on:
@@ -227,8 +242,8 @@ class VirtualRobot:
         assert self.pins is not None
         duty = self.pins.duty(r, c0, r.cycles)
         p = self.plant
-        p.step(int(round(duty)))
         driving = self.pins.driving
+        p.step(int(round(duty)), driven=driving)
         hand = p.hand
         if hand is not None:
             if hand.until_driving and driving:
