@@ -1,0 +1,352 @@
+"""The README's section "On a real robot", every command as shown, against the virtual robot.
+
+The commands are read from README.md's section (as tests/test_readme_commands.py reads the
+whole README) and run in order with ``/dev/ttyUSB0`` replaced by the pty of ONE
+``upright emulate rp2040 --pty --plant PLANT`` (the emulated Pico, the simulated robot on its
+pins) shared by the module; each is checked for what its step promises.  The robot
+(:data:`PLANT`) is the design's with other sensors and friction, so calibration and
+identification have something to find.  Where a step asks a person to act (hold the pendulum
+upright before ``arm``, take the pendulum off for ``excite --cart-only``, reset the board),
+the test asks the robot's hands (:mod:`host.hil.virtual_robot`), as the person would act;
+``calibrate`` finds the hands by itself.
+
+Extra flags (the reason next to each in :data:`EXTRA`) only shorten or bound what serves until
+Ctrl-C, and give the identification runs enough board time: the emulator runs at 0.1-0.4x real
+time and the tools' ``--seconds`` are wall seconds.  Wall time of the module: about 5-6 minutes
+on 2 cores (measured 2026-12: see the report of issue 22).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import re
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from host.boards.rp2040.board import FIRMWARE, ROOT
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.rp2040,
+    pytest.mark.skipif(shutil.which("node") is None, reason="node not installed"),
+    pytest.mark.skipif(not (ROOT / "node_modules" / "rp2040js").is_dir(), reason="rp2040js not installed (make setup)"),
+    pytest.mark.skipif(not FIRMWARE.is_file(), reason="MicroPython RP2040 image missing (make rp2040)"),
+]
+
+UPRIGHT = [sys.executable, "-m", "host.cli.main"]
+README = ROOT / "README.md"
+SHOWN_PORT = "/dev/ttyUSB0"
+
+# the robot on the pins: the design's, with a pot offset, an encoder and a cart friction of its own
+PLANT_CHANGES = {"pot_offset": 2010, "enc_cpr": 1100, "b": 0.2}
+
+# README command -> flags added (and why)
+EXTRA: dict[str, list[str]] = {
+    # serves until Ctrl-C: the test sends SIGINT itself (arm) or bounds it (dashboard)
+    "upright dashboard --port /dev/ttyUSB0": ["--http-port", "0", "--seconds", "90"],
+    # the identification needs board seconds: at ~0.15x real time 30 s of wall time is ~4-5 s of
+    # board time; the coast-down (3 s of wall time by default = ~0.4 s of board time) must be a few
+    # of the cart's time constants M / b = 2.5 s long to separate friction from back-EMF
+    "upright board --port /dev/ttyUSB0 excite --cart-only --seconds 15 --amplitude 1 --out cart.csv": [
+        "--coast", "30"],
+    # eight scenarios of 5-8 s by default: minutes each on the emulated board; a 1 s tilt shows the
+    # same loop, and --virtual runs it too
+    "upright hil --port /dev/ttyUSB0": ["--scenario", "SHORT_TILT", "--no-gif", "--no-plots", "--out", "hil_port"],
+}
+SHORT_TILT = ('name = "short_tilt"\nduration = 1.0\nseed = 1\n[initial]\nphi = 0.05\n'
+              '[expect]\nphi_max = "pass"\nsettle = "any"\na_max = "any"\n')
+
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_readme_commands import ROBOT_COMMANDS as COMMANDS  # noqa: E402 - the section's commands, in order
+
+RAN: set[str] = set()
+
+
+class Robot:
+    """``upright emulate rp2040 --pty --plant FILE`` in its own process group, and its hands."""
+
+    def __init__(self, tmp: Path) -> None:
+        from sim.params import DEFAULT_PATH
+
+        text = Path(DEFAULT_PATH).read_text()
+        for k, v in PLANT_CHANGES.items():
+            text, n = re.subn(rf"^{k} = \S+", f"{k} = {v}", text, flags=re.M)
+            assert n == 1, k
+        self.plant_file = tmp / "plant.toml"
+        self.plant_file.write_text(text)
+        self.tmp = tmp
+        self.env = dict(os.environ, TMPDIR=str(tmp / "tmpdir"))
+        (tmp / "tmpdir").mkdir()
+        self.proc = subprocess.Popen(UPRIGHT + ["emulate", "rp2040", "--pty", "--plant", str(self.plant_file)],
+                                     cwd=tmp, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                     stderr=open(tmp / "emulate.err", "w"), text=True, start_new_session=True,
+                                     env=self.env)
+        self.port = self.proc.stdout.readline().strip()  # type: ignore[union-attr]
+        assert self.port.startswith("/dev/pts/"), (tmp / "emulate.err").read_text()
+        from host.hil.virtual_robot import find_hands
+
+        t0 = time.monotonic()
+        self.hands = None
+        while self.hands is None and time.monotonic() - t0 < 30:
+            self.hands = find_hands(self.port)
+            time.sleep(0.2)
+        assert self.hands is not None, (tmp / "emulate.err").read_text()
+
+    def argv(self, cmd: str) -> list[str]:
+        """A README command as argv for this robot: the port substituted, :data:`EXTRA` added."""
+        assert cmd in COMMANDS, f"README.md's section no longer shows: {cmd}"
+        RAN.add(cmd)
+        argv = shlex.split(cmd.replace(SHOWN_PORT, self.port))[1:] + EXTRA.get(cmd, [])
+        if "SHORT_TILT" in argv:
+            (self.tmp / "short_tilt.toml").write_text(SHORT_TILT)
+            argv[argv.index("SHORT_TILT")] = str(self.tmp / "short_tilt.toml")
+        return argv
+
+    def run(self, cmd: str, timeout: float = 300) -> subprocess.CompletedProcess:
+        r = subprocess.run(UPRIGHT + self.argv(cmd), cwd=self.tmp, capture_output=True, text=True,
+                           timeout=timeout, env=self.env)
+        assert r.returncode == 0, f"{cmd}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
+        assert "Traceback" not in r.stderr
+        return r
+
+    def board(self, *argv: str) -> subprocess.CompletedProcess:
+        r = subprocess.run(UPRIGHT + ["board", "--port", self.port, *argv], cwd=self.tmp, capture_output=True,
+                           text=True, timeout=120, env=self.env)
+        assert r.returncode == 0, r.stderr
+        return r
+
+    def params(self, *names: str) -> dict:
+        return json.loads(self.board("params", "get", *names, "--json").stdout)
+
+    def close(self) -> None:
+        if self.hands is not None:
+            self.hands.close()
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+
+
+@pytest.fixture(scope="module")
+def robot(tmp_path_factory: pytest.TempPathFactory):
+    r = Robot(tmp_path_factory.mktemp("robot"))
+    try:
+        yield r
+    finally:
+        r.close()
+    # SIGTERM stops it cleanly: exit 0, no temporary directory, no socket left
+    assert r.proc.returncode == 0, (r.tmp / "emulate.err").read_text()
+    assert list((r.tmp / "tmpdir").iterdir()) == []
+    from host.hil.virtual_robot import hands_path
+
+    assert not hands_path(r.port).exists()
+
+
+@pytest.fixture(scope="module")
+def plant(robot: Robot):
+    from sim.params import load_params
+
+    return load_params(robot.plant_file)
+
+
+def test_the_section_shows_every_step() -> None:
+    for word in ("status", "calibrate", "params set", "params save", "gains upload", " arm", " log ", "excite",
+                 "identify", "dashboard", "upright hil --port", "mode robot"):
+        assert any(word in c for c in COMMANDS), (word, COMMANDS)
+
+
+def test_2_status_shows_disarmed(robot: Robot) -> None:
+    r = robot.run("upright board --port /dev/ttyUSB0 status")
+    assert "state disarmed" in r.stdout and "faults none" in r.stdout, r.stdout
+    assert "(matches this host)" in r.stdout
+
+
+def test_3_calibrate_finds_the_robots_sensors(robot: Robot, plant) -> None:
+    from sim.params import load_params
+
+    r = robot.run("upright board --port /dev/ttyUSB0 calibrate --out robot.toml")
+    assert "the virtual robot on" in r.stdout, r.stdout
+    cal = load_params(robot.tmp / "robot.toml")
+    assert abs(cal.pot_offset - plant.pot_offset) <= 1
+    assert abs(cal.pot_range / plant.pot_range - 1) < 0.01  # 10 deg = 152 counts: a count of quantisation
+    assert abs(cal.enc_cpr / plant.enc_cpr - 1) < 0.005
+    # the signs of the robot (the model's: ADC, encoder and motor all +1), set and saved on the board
+    assert robot.params("pot_offset", "adc_sign", "enc_sign", "motor_sign") == {
+        "pot_offset": plant.pot_offset, "adc_sign": 1, "enc_sign": 1, "motor_sign": 1}
+    assert "motor_sign +1 is right" in r.stdout
+
+
+def test_4_params_saved_survive_a_reset(robot: Robot, plant) -> None:
+    robot.run("upright board --port /dev/ttyUSB0 params set max_duty 8000")
+    robot.run("upright board --port /dev/ttyUSB0 params save")
+    boot = json.loads(robot.board("status", "--json").stdout)["heartbeat"]["boot"]
+    robot.hands.do("reset")  # the board's reset button: the flash kept
+    after = robot.params("max_duty", "pot_offset")
+    assert after == {"max_duty": 8000, "pot_offset": plant.pot_offset}
+    st = json.loads(robot.board("status", "--json").stdout)
+    assert st["state"] == "disarmed" and st["heartbeat"]["boot"] is not None
+    del boot
+
+
+def test_5_gains_designed_for_the_calibration_read_back_by_crc(robot: Robot) -> None:
+    r = robot.run("upright board --port /dev/ttyUSB0 gains upload --design --params robot.toml --save")
+    m = re.search(r"CRC (0x[0-9a-f]{4}); board reports (0x[0-9a-f]{4}): verified", r.stdout)
+    assert m and m.group(1) == m.group(2), r.stdout
+    assert "saved on the board" in r.stdout
+    st = json.loads(robot.board("status", "--json").stdout)
+    assert st["identity"]["gains_crc"] == int(m.group(1), 16)
+
+
+def test_6_arm_balances_and_ctrl_c_disarms(robot: Robot) -> None:
+    # "hold the pendulum upright, then arm": held 30 mrad off upright, let go when the board
+    # balances -- the controller must catch it
+    robot.hands.do("hold", phi=0.03, until="driving")
+    p = subprocess.Popen(UPRIGHT + robot.argv("upright board --port /dev/ttyUSB0 arm"), cwd=robot.tmp,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=robot.env,
+                         start_new_session=True)
+    try:
+        t0 = time.monotonic()
+        st = robot.hands.do("state")
+        while st["hand"] is not None and time.monotonic() - t0 < 120:
+            time.sleep(0.5)
+            st = robot.hands.do("state")
+        assert st["hand"] is None and st["driving"], st  # let go: the board balances
+        b0 = st["board_s"]
+        worst = 0.0
+        while st["board_s"] - b0 < 2.0:  # two seconds of board time, balancing
+            st = robot.hands.do("wait", seconds=0.1)
+            assert st["driving"] and not st["lying"], st
+            worst = max(worst, abs(st["phi"]))
+        assert worst < 0.05 and abs(st["phi"]) < 0.01, (worst, st)
+        os.killpg(p.pid, signal.SIGINT)  # Ctrl-C
+        _, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode == 130, err
+    assert "balancing" in err and "disarmed" in err, err
+    st = json.loads(robot.board("status", "--json").stdout)
+    assert st["state"] == "disarmed", st
+    robot.run("upright board --port /dev/ttyUSB0 params set max_duty 32767")
+    robot.run("upright board --port /dev/ttyUSB0 params save")
+    assert robot.params("max_duty") == {"max_duty": 32767}
+
+
+def test_7_log_has_every_frame(robot: Robot) -> None:
+    import pyarrow.parquet as pq
+
+    r = robot.run("upright board --port /dev/ttyUSB0 log --seconds 10 --out run.parquet")
+    assert re.search(r"; 0 lost", r.stderr), r.stderr
+    t = pq.read_table(robot.tmp / "run.parquet").to_pydict()
+    assert len(t["t"]) > 20  # the telemetry while disarmed: a few rows a second
+    m = re.search(r"(\d+) rows \((\d+) telemetry frames\)", r.stderr)
+    assert m and 2 * int(m.group(1)) == int(m.group(2)) and int(m.group(1)) == len(t["t"]), r.stderr
+    # every frame the board sent: the board numbers its periodic frames with one counter, so
+    # consecutive rows are 1 apart, or 2 with a heartbeat between them (10 a board second)
+    gaps = [(b - a) % 256 for a, b in zip(t["seq"], t["seq"][1:])]
+    assert set(gaps) <= {1, 2} and gaps.count(2) < len(gaps) / 5, sorted(set(gaps))
+
+
+def _truth(plant) -> dict:
+    from host.studies.identify import truth_of
+
+    return truth_of(plant)
+
+
+def test_7_excite_and_identify_recover_the_plant(robot: Robot, plant) -> None:
+    from sim.params import load_params
+
+    # the pendulum upright (the stand-by person holds it until the board balances)
+    robot.hands.do("hold", phi=0.0, until="driving")
+    robot.run("upright board --port /dev/ttyUSB0 excite --seconds 30 --amplitude 0.5 --out bal.csv")
+    rows = list(csv.DictReader(open(robot.tmp / "bal.csv")))
+    phis = [abs(float(r["phi"])) for r in rows]
+    assert len(rows) > 500 and max(phis) > 0.005, "the excitation moved the pendulum"
+    assert {int(float(r["state"])) for r in rows} == {2}, "balancing all through"
+    robot.hands.do("pendulum", on=False)  # "take the pendulum off"
+    try:
+        robot.run("upright board --port /dev/ttyUSB0 excite --cart-only --seconds 15 --amplitude 1 --out cart.csv")
+    finally:
+        robot.hands.do("pendulum", on=True)
+    r = robot.run("upright identify bal.csv cart.csv --params robot.toml --out robot_id.toml")
+    ident = load_params(robot.tmp / "robot_id.toml")
+    truth = _truth(plant)
+    got = _truth(ident)
+    # the identify bench's tolerance (host/bench/identify.py): every parameter within 10 %, the
+    # delay to the sample, the pot offset to a few counts
+    for k in ("I", "mL", "b", "kt"):
+        assert abs(got[k] / truth[k] - 1) < 0.10, (k, got[k], truth[k], r.stdout)
+    assert round(got["delay"] * plant.rate) == round(truth["delay"] * plant.rate)
+    assert abs(got["pot_offset"] - truth["pot_offset"]) <= 2
+
+
+def test_7_dashboard_step_moves_the_cart(robot: Robot) -> None:
+    from test_dashboard_emulated import _Page, _req, _wait
+
+    robot.hands.do("hold", phi=0.0, until="driving")
+    p = subprocess.Popen(UPRIGHT + robot.argv("upright dashboard --port /dev/ttyUSB0"), cwd=robot.tmp,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=robot.env,
+                         start_new_session=True)
+    page = None
+    try:
+        url = p.stdout.readline().strip()  # type: ignore[union-attr]
+        assert url.startswith("http://127.0.0.1:"), p.stderr.read() if p.poll() is not None else url  # type: ignore[union-attr]
+        page = _Page(url)
+        _req(url + "api/ping", b"{}", page.id)
+        code, body = _req(url + "api/arm", b"{}", page.id)
+        assert code == 200, body
+        _wait(url, lambda s: (s.get("heartbeat") or {}).get("state_name") == "balancing", 120, "balancing")
+        x0 = robot.hands.do("state")["x"]
+        code, body = _req(url + "api/reference", json.dumps({"x": 0.1}).encode(), page.id)
+        assert code == 200, body
+        st = robot.hands.do("wait", seconds=2.5)  # the step settles in about 2 s of board time
+        assert st["driving"] and abs(st["phi"]) < 0.1, st
+        assert abs(st["x"] - x0 - 0.1) < 0.03, (x0, st)  # the cart moved by the step
+        code, body = _req(url + "api/disarm", b"{}", page.id)
+        assert code == 200, body
+    finally:
+        if page is not None:
+            page.close()
+        os.killpg(p.pid, signal.SIGINT)
+        try:
+            p.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def test_8_hil_on_the_board_agrees_with_the_virtual_board(robot: Robot) -> None:
+    r = robot.run("upright hil --port /dev/ttyUSB0", timeout=600)
+    v = subprocess.run(UPRIGHT + ["hil", "--virtual", "--scenario", str(robot.tmp / "short_tilt.toml"), "--no-gif",
+                                  "--no-plots", "--out", "hil_virtual"], cwd=robot.tmp, capture_output=True,
+                       text=True, timeout=600, env=robot.env)
+    assert v.returncode == 0, v.stderr
+
+    def row(text: str) -> list[float]:
+        line = next(ln for ln in text.splitlines() if ln.startswith("short_tilt"))
+        return [float(w) for w in line.split()[1:5] if w != "-"]
+
+    hp, hv = row(r.stdout), row(v.stdout)
+    assert hp[0] == pytest.approx(hv[0], abs=1e-3), (r.stdout, v.stdout)  # |phi| max: the start
+    assert all(a == pytest.approx(b, rel=0.05, abs=0.05) for a, b in zip(hp, hv)), (r.stdout, v.stdout)
+    robot.run("upright board --port /dev/ttyUSB0 mode robot")
+    st = json.loads(robot.board("status", "--json").stdout)
+    assert st["state"] == "disarmed", st
+
+
+def test_every_command_of_the_section_ran() -> None:
+    assert RAN == set(COMMANDS), sorted(set(COMMANDS) - RAN)
