@@ -62,6 +62,10 @@ EXTRA: dict[str, list[str]] = {
     # same loop, and --virtual runs it too
     "upright hil --port /dev/ttyUSB0": ["--scenario", "SHORT_TILT", "--no-gif", "--no-plots", "--out", "hil_port"],
 }
+# every `upright board` command: the board's clock runs 3-10x slower than the wall's, so a
+# request attempt of the default 0.3 s of wall time is 30-100 ms of board time -- less than the
+# emulated board takes for a gains_commit under load; the first answer likewise
+SLOW = ["--timeout", "3", "--answer-timeout", "60"]
 SHORT_TILT = ('name = "short_tilt"\nduration = 1.0\nseed = 1\n[initial]\nphi = 0.05\n'
               '[expect]\nphi_max = "pass"\nsettle = "any"\na_max = "any"\n')
 
@@ -107,6 +111,8 @@ class Robot:
         assert cmd in COMMANDS, f"README.md's section no longer shows: {cmd}"
         RAN.add(cmd)
         argv = shlex.split(cmd.replace(SHOWN_PORT, self.port))[1:] + EXTRA.get(cmd, [])
+        if argv[0] == "board":
+            argv[3:3] = SLOW
         if "SHORT_TILT" in argv:
             (self.tmp / "short_tilt.toml").write_text(SHORT_TILT)
             argv[argv.index("SHORT_TILT")] = str(self.tmp / "short_tilt.toml")
@@ -120,7 +126,7 @@ class Robot:
         return r
 
     def board(self, *argv: str) -> subprocess.CompletedProcess:
-        r = subprocess.run(UPRIGHT + ["board", "--port", self.port, *argv], cwd=self.tmp, capture_output=True,
+        r = subprocess.run(UPRIGHT + ["board", "--port", self.port, *SLOW, *argv], cwd=self.tmp, capture_output=True,
                            text=True, timeout=120, env=self.env)
         assert r.returncode == 0, r.stderr
         return r
@@ -256,9 +262,10 @@ def test_7_log_has_every_frame(robot: Robot) -> None:
     m = re.search(r"(\d+) rows \((\d+) telemetry frames\)", r.stderr)
     assert m and 2 * int(m.group(1)) == int(m.group(2)) and int(m.group(1)) == len(t["t"]), r.stderr
     # every frame the board sent: the board numbers its periodic frames with one counter, so
-    # consecutive rows are 1 apart, or 2 with a heartbeat between them (10 a board second)
-    gaps = [(b - a) % 256 for a, b in zip(t["seq"], t["seq"][1:])]
-    assert set(gaps) <= {1, 2} and gaps.count(2) < len(gaps) / 5, sorted(set(gaps))
+    # consecutive rows are 1 apart, or 2 with a heartbeat between them (none lost: the recorder's
+    # count of every gap over all periodic frames, above)
+    gaps = {(b - a) % 256 for a, b in zip(t["seq"], t["seq"][1:])}
+    assert gaps <= {1, 2}, sorted(gaps)
 
 
 def _truth(plant) -> dict:
