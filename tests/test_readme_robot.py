@@ -60,7 +60,8 @@ EXTRA: dict[str, list[str]] = {
         "--coast", "30"],
     # eight scenarios of 5-8 s by default: minutes each on the emulated board; a 1 s tilt shows the
     # same loop, and --virtual runs it too
-    "upright hil --port /dev/ttyUSB0": ["--scenario", "SHORT_TILT", "--no-gif", "--no-plots", "--out", "hil_port"],
+    "upright hil --port /dev/ttyUSB0": ["--scenario", "SHORT_TILT", "--no-plots", "--out", "hil_port",
+                                        "--json", "hil_port.json"],
 }
 # every `upright board` command: the board's clock runs 3-10x slower than the wall's, so a
 # request attempt of the default 0.3 s of wall time is 30-100 ms of board time -- less than the
@@ -269,6 +270,17 @@ def test_7_log_has_every_frame(robot: Robot) -> None:
     assert gaps <= {1, 2}, sorted(gaps)
 
 
+def _deadline_xfail(rows: list[dict], what: str) -> None:
+    # issue 23 (being fixed in the firmware): asking a balancing board for its state (the tools'
+    # stats requests) can make a tick late and latch `deadline` -- the check below is the right
+    # behaviour (no fault during an excitation); until the fix it is an expected failure
+    from firmware import msgtable as T
+
+    bit = next(b for b, name, *_ in T.FAULTS if name == "deadline")
+    if any(int(float(r["faults"])) & bit for r in rows):
+        pytest.xfail(f"issue 23: the board latched `deadline` during {what} (a tool's request made a tick late)")
+
+
 def _truth(plant) -> dict:
     from host.studies.identify import truth_of
 
@@ -281,7 +293,10 @@ def test_7_excite_and_identify_recover_the_plant(robot: Robot, plant) -> None:
     # the pendulum upright (the stand-by person holds it until the board balances)
     robot.hands.do("hold", phi=0.0, until="driving")
     robot.run("upright board --port /dev/ttyUSB0 excite --seconds 30 --amplitude 0.5 --out bal.csv")
-    rows = [r for r in csv.DictReader(open(robot.tmp / "bal.csv")) if r["excite"] == "1"]
+    rows = list(csv.DictReader(open(robot.tmp / "bal.csv")))
+    _deadline_xfail(rows, "excite")
+    assert not any(int(float(r["faults"])) for r in rows), "no fault during the excitation"
+    rows = [r for r in rows if r["excite"] == "1"]
     phis = [abs(float(r["phi"])) for r in rows]
     assert len(rows) > 500 and max(phis) > 0.005, "the excitation moved the pendulum"
     assert {int(float(r["state"])) for r in rows} == {2}, "balancing all through the excitation"
@@ -290,6 +305,10 @@ def test_7_excite_and_identify_recover_the_plant(robot: Robot, plant) -> None:
         robot.run("upright board --port /dev/ttyUSB0 excite --cart-only --seconds 15 --amplitude 1 --out cart.csv")
     finally:
         robot.hands.do("pendulum", on=True)
+    rows = list(csv.DictReader(open(robot.tmp / "cart.csv")))
+    _deadline_xfail(rows, "excite --cart-only")
+    assert not any(int(float(r["faults"])) for r in rows), "no fault during the cart-only excitation"
+    assert sum(r["excite"] == "2" and int(r["duty"]) != 0 for r in rows) > 200, "the PRBS drove the cart"
     r = robot.run("upright identify bal.csv cart.csv --params robot.toml --out robot_id.toml")
     IDENT["got"] = got = _truth(load_params(robot.tmp / "robot_id.toml"))
     IDENT["out"] = r.stdout
@@ -327,6 +346,7 @@ def test_7_dashboard_step_moves_the_cart(robot: Robot) -> None:
         assert url.startswith("http://127.0.0.1:"), p.stderr.read() if p.poll() is not None else url  # type: ignore[union-attr]
         page = _Page(url)
         _req(url + "api/ping", b"{}", page.id)
+        assert _req(url + "api/clear", b"{}", page.id)[0] == 200  # Clear (a fault an earlier step latched)
         code, body = _req(url + "api/arm", b"{}", page.id)
         assert code == 200, body
         _wait(url, lambda s: (s.get("heartbeat") or {}).get("state_name") == "balancing", 120, "balancing")
@@ -351,18 +371,16 @@ def test_7_dashboard_step_moves_the_cart(robot: Robot) -> None:
 
 def test_8_hil_on_the_board_agrees_with_the_virtual_board(robot: Robot) -> None:
     r = robot.run("upright hil --port /dev/ttyUSB0", timeout=600)
-    v = subprocess.run(UPRIGHT + ["hil", "--virtual", "--scenario", str(robot.tmp / "short_tilt.toml"), "--no-gif",
-                                  "--no-plots", "--out", "hil_virtual"], cwd=robot.tmp, capture_output=True,
-                       text=True, timeout=600, env=robot.env)
+    v = subprocess.run(UPRIGHT + ["hil", "--virtual", "--scenario", str(robot.tmp / "short_tilt.toml"), "--no-plots",
+                                  "--out", "hil_virtual", "--json", "hil_virtual.json"], cwd=robot.tmp,
+                       capture_output=True, text=True, timeout=600, env=robot.env)
     assert v.returncode == 0, v.stderr
-
-    def row(text: str) -> list[float]:
-        line = next(ln for ln in text.splitlines() if ln.startswith("short_tilt"))
-        return [float(w) for w in line.split()[1:5] if w != "-"]
-
-    hp, hv = row(r.stdout), row(v.stdout)
-    assert hp[0] == pytest.approx(hv[0], abs=1e-3), (r.stdout, v.stdout)  # |phi| max: the start
-    assert all(a == pytest.approx(b, rel=0.05, abs=0.05) for a, b in zip(hp, hv)), (r.stdout, v.stdout)
+    [hp] = json.loads((robot.tmp / "hil_port.json").read_text())
+    [hv] = json.loads((robot.tmp / "hil_virtual.json").read_text())
+    # the same firmware in the same lockstep loop, on the emulated Pico and on the unix port
+    assert hp["passed"] and hv["passed"], (r.stdout, v.stdout)
+    assert hp["phi_max"] == pytest.approx(hv["phi_max"], abs=2e-3), (hp, hv)
+    assert hp["accel_max"] == pytest.approx(hv["accel_max"], rel=0.05), (hp, hv)
     robot.run("upright board --port /dev/ttyUSB0 mode robot")
     st = json.loads(robot.board("status", "--json").stdout)
     assert st["state"] == "disarmed", st

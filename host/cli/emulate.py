@@ -13,7 +13,7 @@ pseudo-terminal and prints the port's path on stdout (one line).  Every tool tha
     $ upright board --port /dev/pts/7 calibrate --out robot.toml   # in another terminal
 
 The pendulum starts upright at rest, held by the robot's stand-by person until the board
-balances (then let go); one that fell is picked up again once the motor is off.  What else a
+balances (then let go), and caught again when the motor goes off (a disarm, a fault).  What else a
 person does to a robot (hold it upright or tilted, roll the cart, lift the wheels, take the
 pendulum off, press reset) is asked for on the robot's hands, a Unix socket whose path is
 derived from the port (:func:`host.hil.virtual_robot.hands_path`; printed at start): ``upright

@@ -14,9 +14,10 @@ over that run (averaged) drives the next.  The emulator runs slower than real ti
 
 A person stands by (:class:`Hand`): at start the pendulum is held upright at rest, the cart
 still, until the board drives its motor (EN high: the firmware enables the driver only while
-balancing) -- "hold the pendulum upright, then arm; let go gently".  A pendulum that fell and
-lies on its stop with the driver off is picked up again after :data:`CATCH_S` and held the
-same way.  Everything else a person does is asked for through :class:`HandsServer`, a Unix
+balancing) -- "hold the pendulum upright, then arm; let go gently".  When the motor goes off
+(a disarm, a fault) the person catches the pendulum and the cart and holds them the same way,
+so the next tool can arm again; one that lies on its stop otherwise (let go by ``release``) is
+picked up after :data:`CATCH_S`.  Everything else a person does is asked for through :class:`HandsServer`, a Unix
 socket at :func:`hands_path` of the port (the path is derived from the port, so a tool given
 only ``--port`` finds it; a real robot has none): one JSON object per line each way,
 ``{"do": ACTION, ...}`` -> ``{"ok": true, ...}`` (or ``{"ok": false, "error": ...}``), the
@@ -199,7 +200,8 @@ class VirtualRobot:
     seed : int
         Seed of the (unused unless the plant file says so) noise generator.
     catch : bool
-        The stand-by person picks up a fallen pendulum (:data:`CATCH_S`).
+        The stand-by person catches the pendulum when the motor goes off, and picks up a fallen one
+        (:data:`CATCH_S`).
     """
 
     def __init__(self, plant: RobotParams, *, oversample: int = OVERSAMPLE, seed: int = 0,
@@ -213,6 +215,7 @@ class VirtualRobot:
         self._pending: list[tuple[float, Callable[[], dict[str, Any]], _Done]] = []
         self.reset_wanted: list[_Done] = []
         self._lying_since: float | None = None
+        self._was_driving = False
         self._moved_from = 0.0
 
     # ------------------------------------------------------------------ the board side
@@ -250,6 +253,9 @@ class VirtualRobot:
                 p.hand = None  # let go gently: the board balances
             elif hand.cart == "move" and p.t >= hand.t1:
                 hand.cart, p._x[0], p._x[1] = "still", hand.x1, 0.0
+        elif self.catch and self._was_driving and not driving and p.pendulum_on:
+            p.hand = Hand(until_driving=True)  # the motor went off: caught, stood upright, the cart held
+            p._x[1] = 0.0
         elif self.catch and p.lying and not driving:
             if self._lying_since is None:
                 self._lying_since = p.t
@@ -258,6 +264,7 @@ class VirtualRobot:
                 self._lying_since = None
         else:
             self._lying_since = None
+        self._was_driving = driving
         while self._pending and self._pending[0][0] <= p.t:
             _, answer, done = self._pending.pop(0)
             done(answer())
