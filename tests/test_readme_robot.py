@@ -273,15 +273,13 @@ def test_7_log_has_every_frame(robot: Robot) -> None:
     assert gaps <= {1, 2}, sorted(gaps)
 
 
-def _deadline_xfail(rows: list[dict], what: str) -> None:
+def _deadline(rows: list[dict]) -> bool:
     # issue 23 (being fixed in the firmware): asking a balancing board for its state (the tools'
-    # stats requests) can make a tick late and latch `deadline` -- the check below is the right
-    # behaviour (no fault during an excitation); until the fix it is an expected failure
+    # stats requests) can make a tick late and latch `deadline`
     from firmware import msgtable as T
 
     bit = next(b for b, name, *_ in T.FAULTS if name == "deadline")
-    if any(int(float(r["faults"])) & bit for r in rows):
-        pytest.xfail(f"issue 23: the board latched `deadline` during {what} (a tool's request made a tick late)")
+    return any(int(float(r["faults"])) & bit for r in rows)
 
 
 def _truth(plant) -> dict:
@@ -296,23 +294,36 @@ def test_7_excite_and_identify_recover_the_plant(robot: Robot, plant) -> None:
     # the pendulum upright (the stand-by person holds it until the board balances)
     robot.hands.do("hold", phi=0.0, until="driving")
     robot.run("upright board --port /dev/ttyUSB0 excite --seconds 30 --amplitude 0.5 --out bal.csv")
+    late: list[str] = []  # runs in which the board latched `deadline` (issue 23)
     rows = list(csv.DictReader(open(robot.tmp / "bal.csv")))
-    _deadline_xfail(rows, "excite")
-    assert not any(int(float(r["faults"])) for r in rows), "no fault during the excitation"
-    rows = [r for r in rows if r["excite"] == "1"]
-    phis = [abs(float(r["phi"])) for r in rows]
-    assert len(rows) > 500 and max(phis) > 0.005, "the excitation moved the pendulum"
-    assert {int(float(r["state"])) for r in rows} == {2}, "balancing all through the excitation"
+    if _deadline(rows):
+        late.append("excite")
+    else:
+        assert not any(int(float(r["faults"])) for r in rows), "no fault during the excitation"
+        rows = [r for r in rows if r["excite"] == "1"]
+        phis = [abs(float(r["phi"])) for r in rows]
+        assert len(rows) > 500 and max(phis) > 0.005, "the excitation moved the pendulum"
+        assert {int(float(r["state"])) for r in rows} == {2}, "balancing all through the excitation"
     robot.hands.do("pendulum", on=False)  # "take the pendulum off"
     try:
         robot.run("upright board --port /dev/ttyUSB0 excite --cart-only --seconds 15 --amplitude 1 --out cart.csv")
     finally:
         robot.hands.do("pendulum", on=True)
     rows = list(csv.DictReader(open(robot.tmp / "cart.csv")))
-    _deadline_xfail(rows, "excite --cart-only")
-    assert not any(int(float(r["faults"])) for r in rows), "no fault during the cart-only excitation"
-    assert sum(r["excite"] == "2" and int(r["duty"]) != 0 for r in rows) > 200, "the PRBS drove the cart"
-    r = robot.run("upright identify bal.csv cart.csv --params robot.toml --out robot_id.toml")
+    if _deadline(rows):
+        late.append("excite --cart-only")
+    else:
+        assert not any(int(float(r["faults"])) for r in rows), "no fault during the cart-only excitation"
+        assert sum(r["excite"] == "2" and int(r["duty"]) != 0 for r in rows) > 200, "the PRBS drove the cart"
+    cmd = "upright identify bal.csv cart.csv --params robot.toml --out robot_id.toml"
+    r = subprocess.run(UPRIGHT + robot.argv(cmd), cwd=robot.tmp, capture_output=True, text=True, timeout=300,
+                       env=robot.env)
+    if late:
+        # the right behaviour is asserted above (no fault during an excitation); until issue 23's
+        # fix a `deadline` cuts a run short and the identification has too little to go on
+        pytest.xfail(f"issue 23: the board latched `deadline` during {' and '.join(late)} (a tool's state "
+                     "request made a tick late)")
+    assert r.returncode == 0, f"{cmd}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
     IDENT["got"] = got = _truth(load_params(robot.tmp / "robot_id.toml"))
     IDENT["out"] = r.stdout
     truth = _truth(plant)
