@@ -408,6 +408,9 @@ def test_8_hil_on_the_board_agrees_with_the_virtual_board(robot: Robot) -> None:
     r = subprocess.run(UPRIGHT + robot.argv(cmd), cwd=robot.tmp, capture_output=True, text=True, timeout=600,
                        env=robot.env)
     if r.returncode != 0 and "no answer to" in r.stderr:
+        # the README's way back by hand (step 8), then the known limitation
+        robot.run("upright board --port /dev/ttyUSB0 mode robot")
+        assert json.loads(robot.board("status", "--json").stdout)["state"] == "disarmed"
         pytest.xfail("hil --port gives its HilSession a fixed 2 s (wall) answer time (host/cli/hil.py has no "
                      "--timeout): the emulated board under load, re-importing for MODE hil, can take longer -- "
                      f"reported with issue 22: {r.stderr.strip().splitlines()[-1]}")
