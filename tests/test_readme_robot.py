@@ -110,7 +110,7 @@ class Robot:
                                      env=self.env)
         self.port = self.proc.stdout.readline().strip()  # type: ignore[union-attr]
         assert self.port.startswith("/dev/pts/"), (tmp / "emulate.err").read_text()
-        from host.hil.virtual_robot import find_hands
+        from host.hil.hands import find_hands
 
         t0 = time.monotonic()
         self.hands = None
@@ -176,7 +176,7 @@ def robot(tmp_path_factory: pytest.TempPathFactory):
     # SIGTERM stops it cleanly: exit 0, no temporary directory, no socket left
     assert r.proc.returncode == 0, (r.tmp / "emulate.err").read_text()
     assert list((r.tmp / "tmpdir").iterdir()) == []
-    from host.hil.virtual_robot import hands_path
+    from host.hil.hands import hands_path
 
     assert not hands_path(r.port).exists()
 

@@ -127,7 +127,7 @@ def test_emulate_pty_serves_the_host_link_until_sigterm_whatever_stdin_is(tmp_pa
     import os
     import signal
 
-    from host.hil.virtual_robot import Hands, hands_path
+    from host.hil.hands import Hands, hands_path
     from host.link.clients import SerialLink
 
     env = dict(os.environ, TMPDIR=str(tmp_path))

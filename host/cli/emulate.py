@@ -16,7 +16,7 @@ The pendulum starts upright at rest, held by the robot's stand-by person until t
 balances (then let go), and caught again when the motor goes off (a disarm, a fault).  What else a
 person does to a robot (hold it upright or tilted, roll the cart, lift the wheels, take the
 pendulum off, press reset) is asked for on the robot's hands, a Unix socket whose path is
-derived from the port (:func:`host.hil.virtual_robot.hands_path`; printed at start): ``upright
+derived from the port (:func:`host.hil.hands.hands_path`; printed at start): ``upright
 board calibrate`` finds it there by itself (``--robot auto``), and a real robot has none.
 
 With ``--can [CHANNEL]`` the board runs its CAN link instead (``main.main(link="can")``: the
@@ -144,7 +144,8 @@ def _robot(args: argparse.Namespace) -> Any:
 def _serve(link: Any, robot: Any, port_key: str, stop: _Stop) -> int:
     # the robot on the pins, its hands on a socket next to the port's name, until a stop signal
     from host.boards.rp2040.board import BoardError
-    from host.hil.virtual_robot import HandsServer, hands_path, serve
+    from host.hil.hands import HandsServer, hands_path
+    from host.hil.virtual_robot import serve
 
     robot.port = port_key
     hands = HandsServer(hands_path(port_key), robot)

@@ -21,7 +21,7 @@ The result is a robot TOML in ``sim/params.py``'s format (the input robot file w
 when it has a save command -- calibrating never means editing code or reflashing.
 
 The steps that need a person can be done by a robot's own hands instead: ``robot`` is an object
-with ``do(action, idle=None, **kw)`` -- :class:`host.hil.virtual_robot.Hands`, the virtual
+with ``do(action, idle=None, **kw)`` -- :class:`host.hil.hands.Hands`, the virtual
 robot of ``upright emulate rp2040`` (``upright board calibrate --robot auto`` finds it from the
 port; a real robot has none, and the prompts go to the person).  Each step's prompt is printed
 all the same, followed by what the robot did.
@@ -45,7 +45,7 @@ __all__ = ["CalibrationError", "sample", "robot_toml", "run_calibration", "robot
 
 ROBOT_HELP = ("who does the steps that need a person: auto (default) -- the virtual robot of `upright emulate "
               "rp2040` behind this port does them through its hands (a Unix socket named after the port, "
-              "host/hil/virtual_robot.py), a real robot has none and you are prompted; person -- always prompt; "
+              "host/hil/hands.py), a real robot has none and you are prompted; person -- always prompt; "
               "or the path of a virtual robot's socket")
 
 Ask = Callable[[str, "Callable[[], None] | None"], str]
@@ -65,7 +65,7 @@ def robot_hands(choice: str, port_key: str) -> Any:
     BoardError
         A socket path given, but no robot answers there.
     """
-    from host.hil.virtual_robot import Hands, HandsError, find_hands
+    from host.hil.hands import Hands, HandsError, find_hands
 
     if choice == "person":
         return None
