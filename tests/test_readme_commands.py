@@ -4,7 +4,9 @@ The command lines are read from README.md itself (inline code and code blocks), 
 is run without touching this file.  Each runs in a temporary directory with exit status 0
 expected.  Long ones get short settings added (:data:`SHORTEN`, the reason next to each);
 the ones that cannot run here are in :data:`SKIP`, each with its reason -- a README command
-in neither list is run as it stands.
+in neither list is run as it stands.  The section "On a real robot" runs in
+tests/test_readme_robot.py instead, against one virtual robot (:data:`ROBOT_COMMANDS`: its
+commands, the port substituted; none is skipped for want of a board).
 """
 
 from __future__ import annotations
@@ -25,46 +27,13 @@ README = ROOT / "README.md"
 SKIP: dict[str, str] = {
     "upright proto dump": "needs a board on /dev/ttyUSB0 (its default link); "
                           "tests/test_proto_cli.py dumps a live pty instead",
-    "upright emulate rp2040 --pty": "serves its pty until Ctrl-C; "
-                                    "tests/test_rp2040_hil.py::test_emulate_pty_serves_the_host_link opens it",
+    "upright emulate rp2040 --pty": "serves its pty until Ctrl-C; tests/test_rp2040_hil.py::"
+                                    "test_emulate_pty_serves_the_host_link_until_sigterm_whatever_stdin_is opens it, "
+                                    "tests/test_readme_robot.py runs the README's robot section on it",
     "upright emulate rp2040 --can": "serves its CAN bus until Ctrl-C; tests/test_rp2040_can_hil.py::"
                                     "test_emulate_can_serves_board_status_over_udp_multicast runs upright board on it",
     "upright generate": "rewrites the repository's tracked generated files; the `--check` form is run, "
                         "and tests/test_generated.py renders every file",
-    # "On a real robot": the same code against the virtual board (tests/test_board_cli.py, through a
-    # pullable relay) and the emulated Pico running the flashed bundle (tests/test_rp2040_modes.py)
-    "upright board --port /dev/ttyUSB0 status": "needs a board on /dev/ttyUSB0; "
-                                                "tests/test_board_cli.py::test_status_json",
-    "upright board --port /dev/ttyUSB0 calibrate --out robot.toml": "needs a board and a person to move the robot; "
-                                                                    "tests/test_board_cli.py::test_calibrate_scripted",
-    "upright board --port /dev/ttyUSB0 params set max_duty 8000": "needs a board on /dev/ttyUSB0; "
-                                                                  "tests/test_board_cli.py::test_params_by_name",
-    "upright board --port /dev/ttyUSB0 params set max_duty 32767": "needs a board on /dev/ttyUSB0; "
-                                                                   "tests/test_board_cli.py::test_params_by_name",
-    "upright board --port /dev/ttyUSB0 params save": "needs a board on /dev/ttyUSB0; tests/test_board_cli.py::"
-                                                     "test_calibrate_scripted saves, tests/test_firmware_store.py "
-                                                     "reloads at boot",
-    "upright board --port /dev/ttyUSB0 gains upload --design --params robot.toml --save":
-        "needs a board on /dev/ttyUSB0; tests/test_board_cli.py::test_gains_upload_crc_read_back",
-    "upright board --port /dev/ttyUSB0 arm": "needs a board; arms until Ctrl-C: "
-                                            "tests/test_board_cli.py::test_arm_feeds_watchdog_then_disarms, "
-                                            "::test_ctrl_c_disarms_and_exits_130",
-    "upright board --port /dev/ttyUSB0 log --seconds 10 --out run.parquet":
-        "needs a board on /dev/ttyUSB0; tests/test_board_cli.py::test_log_csv_rows_match_telemetry",
-    "upright board --port /dev/ttyUSB0 excite --seconds 30 --amplitude 0.5 --out bal.csv":
-        "needs a board on /dev/ttyUSB0; tests/test_board_cli.py::test_excite_recorded",
-    "upright board --port /dev/ttyUSB0 excite --cart-only --seconds 15 --amplitude 1 --out cart.csv":
-        "needs a board on /dev/ttyUSB0 (the pendulum off); tests/test_board_cli.py::test_excite_recorded, "
-        "tests/test_excite.py (open-loop mode)",
-    "upright identify bal.csv cart.csv --params robot.toml --out robot_id.toml":
-        "needs the two logs of a board; tests/test_identify.py identifies simulated ones (and the firmware's)",
-    "upright dashboard --port /dev/ttyUSB0": "needs a board; serves until Ctrl-C: the same page and hub on the "
-                                             "virtual board in tests/test_dashboard_browser.py (--virtual)",
-    "upright hil --port /dev/ttyUSB0": "needs a board on /dev/ttyUSB0; tests/test_rp2040_modes.py::"
-                                       "test_mode_hil_over_uart0_then_a_lockstep_hil_run_then_back_to_the_robot "
-                                       "runs the same HilSession (mode hil, lockstep, mode robot) on the emulated Pico",
-    "upright board --port /dev/ttyUSB0 mode robot": "needs a board on /dev/ttyUSB0; tests/test_rp2040_modes.py "
-                                                    "(mode hil/robot over UART0 on the emulated Pico)",
     "upright board --port /dev/ttyACM0 mode repl": "needs a board on its USB serial; tests/test_rp2040_modes.py::"
                                                    "test_usb_link_heartbeat_mode_hil_and_back_to_the_repl",
 }
@@ -126,6 +95,19 @@ def readme_commands(text: str | None = None) -> list[str]:
 
 
 COMMANDS = readme_commands()
+ROBOT_SECTION = "## On a real robot"
+
+
+def robot_commands(text: str | None = None) -> list[str]:
+    """The commands of README.md's section "On a real robot" (but :data:`SKIP`'s): run by
+    tests/test_readme_robot.py against the virtual robot, in the order a user follows them."""
+    text = README.read_text() if text is None else text
+    start = text.index(ROBOT_SECTION)
+    end = text.find("\n## ", start + len(ROBOT_SECTION))
+    return [c for c in readme_commands(text[start:end if end >= 0 else None]) if c not in SKIP]
+
+
+ROBOT_COMMANDS = robot_commands()
 
 
 def test_the_readme_shows_commands() -> None:
@@ -134,9 +116,12 @@ def test_the_readme_shows_commands() -> None:
               "upright report seed", "upright report seed --json", "upright design --out outdir"):
         assert c in COMMANDS, COMMANDS
     assert set(SKIP) <= set(COMMANDS), "a skip for a command the README no longer shows"
+    # the robot section's commands are run elsewhere, all of them (tests/test_readme_robot.py)
+    assert "upright board --port /dev/ttyUSB0 calibrate --out robot.toml" in ROBOT_COMMANDS
+    assert "upright hil --port /dev/ttyUSB0" in ROBOT_COMMANDS and len(ROBOT_COMMANDS) >= 14, ROBOT_COMMANDS
 
 
-@pytest.mark.parametrize("cmd", COMMANDS)
+@pytest.mark.parametrize("cmd", [c for c in COMMANDS if c not in ROBOT_COMMANDS])
 def test_readme_command_works_as_shown(cmd: str, tmp_path: Path) -> None:
     if cmd in SKIP:
         pytest.skip(SKIP[cmd])

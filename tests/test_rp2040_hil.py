@@ -1,6 +1,7 @@
 """HIL on the emulated RP2040: the board firmware (main.py: HalPico, the paced loop, the UART0
 link) balancing the simulated pendulum through its pins; ``upright hil --emulate rp2040``
-and ``upright emulate rp2040 --pty``.  Needs node, rp2040js and build/rp2040/firmware.bin.
+and ``upright emulate rp2040 --pty`` (its serving and stopping; the robot on its pins:
+tests/test_readme_robot.py).  Needs node, rp2040js and build/rp2040/firmware.bin.
 
 One board running ``main.py`` is shared by the module (boot ~10 s); the CLI tests start
 their own in a subprocess.  Wall time of the module: about 1.5-2 minutes on 2 cores.
@@ -120,14 +121,22 @@ def test_hil_emulate_cli_writes_json_csv_and_table(bundle: Path, tmp_path: Path)
     assert (out / "short_tilt.csv").is_file() and (out / "summary.txt").is_file()
 
 
-def test_emulate_pty_serves_the_host_link(tmp_path: Path) -> None:
+def test_emulate_pty_serves_the_host_link_until_sigterm_whatever_stdin_is(tmp_path: Path) -> None:
+    """``upright emulate rp2040 --pty`` with stdin at end of input (``< /dev/null``, as under
+    nohup) serves on; a SIGTERM stops it with exit status 0 and removes its temporary files."""
+    import os
+    import signal
+
+    from host.hil.hands import Hands, hands_path
     from host.link.clients import SerialLink
 
-    p = subprocess.Popen(UPRIGHT + ["emulate", "rp2040", "--pty"], cwd=ROOT, stdin=subprocess.PIPE,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    env = dict(os.environ, TMPDIR=str(tmp_path))
+    p = subprocess.Popen(UPRIGHT + ["emulate", "rp2040", "--pty"], cwd=ROOT, stdin=subprocess.DEVNULL,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:
         port = p.stdout.readline().strip()
         assert port.startswith("/dev/pts/"), p.stderr.read() if p.poll() is not None else port
+        assert any(tmp_path.iterdir()), "the board's temporary directory"
         with SerialLink(port, 1_000_000) as link:
             hb = link.expect("heartbeat", timeout=60)
             assert hb.state == 0 and hb.faults == 0
@@ -143,13 +152,22 @@ def test_emulate_pty_serves_the_host_link(tmp_path: Path) -> None:
                     break
                 hb = link.query("heartbeat", timeout=3, retries=3)
             assert hb.state == 2 and hb.faults == 0, hb  # upright: balancing
-            assert hb.uptime_ms <= 100, f"balancing only at {hb.uptime_ms} ms (warm-up: 32 ms)"
             time.sleep(1.0)  # the host heartbeat keeps it balancing (link watchdog 250 ms)
             assert link.query("heartbeat", timeout=3, retries=3).state == 2
+            # the robot on the pins: the stand-by hand let go once the board drove its motor
+            with Hands(hands_path(port)) as hands:
+                st = hands.do("state")
+                assert st["hand"] is None and st["driving"] and abs(st["phi"]) < 0.01, st
             link.disarm(timeout=3, retries=3)
             assert link.query("heartbeat", timeout=3, retries=3).state == 0
-        p.stdin.close()  # end of input stops it
+        time.sleep(8.0)  # stdin has been at its end all along (it stopped after ~6 s before issue 22)
+        assert p.poll() is None, p.stderr.read()
+        p.send_signal(signal.SIGTERM)
         assert p.wait(timeout=60) == 0
+        err = p.stderr.read()
+        assert "SIGTERM" in err and "stopped" in err and "Traceback" not in err, err
+        assert list(tmp_path.iterdir()) == [], "temporary files left behind"
+        assert not hands_path(port).exists()
     finally:
         if p.poll() is None:
             p.kill()

@@ -104,6 +104,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sp.add_argument("--yes", action="store_true", help="do not wait for Enter (scripted runs)")
     sp.add_argument("--no-motor", action="store_true", help="skip the motor-sign step")
     sp.add_argument("--no-save", action="store_true", help="set the parameters on the board but do not persist them")
+    sp.add_argument("--robot", default="auto", metavar="auto|person|SOCKET", help=_robot_help())
 
     sp = sub.add_parser("excite", help="the firmware's PRBS on the cart force (upright identify), recorded")
     _record_args(sp)
@@ -126,6 +127,12 @@ def _record_args(sp: argparse.ArgumentParser) -> None:
                          "board slower than real time (the emulated Pico) records fewer ticks in it")
     sp.add_argument("--out", required=True, metavar="FILE", help=".csv or .parquet")
     sp.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _robot_help() -> str:
+    from host.operate.calibrate import ROBOT_HELP
+
+    return ROBOT_HELP
 
 
 # ------------------------------------------------------------------ helpers
@@ -560,12 +567,21 @@ def _ask_factory(args: argparse.Namespace) -> Callable[..., str]:
 
 
 def _calibrate(b: Any, args: argparse.Namespace) -> int:
-    from host.operate.calibrate import run_calibration
+    from host.operate.calibrate import robot_hands, run_calibration
 
     A.check_out_file(args.out, "--out")
-    res = run_calibration(b, _ask_factory(args), _say, robot_in=args.params, robot_out=args.out,
-                          tilt_deg=args.tilt_deg, move_m=args.move_cm / 100, motor_check=not args.no_motor,
-                          save=not args.no_save)
+    key = f"can:{args.can_interface}:{args.port}" if args.link == "can" else args.port
+    robot = robot_hands(args.robot, key)
+    if robot is not None:
+        _say(f"the virtual robot on {args.port} does the steps that need a person (its hands: {robot.path}; "
+             "--robot person prompts instead)")
+    try:
+        res = run_calibration(b, _ask_factory(args), _say, robot_in=args.params, robot_out=args.out,
+                              tilt_deg=args.tilt_deg, move_m=args.move_cm / 100, motor_check=not args.no_motor,
+                              save=not args.no_save, robot=robot)
+    finally:
+        if robot is not None:
+            robot.close()
     _say(f"calibration written to {res['robot_out']}; next: upright board --port {args.port} gains upload "
          f"--params {res['robot_out']} --save")
     return 0

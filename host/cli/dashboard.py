@@ -209,8 +209,8 @@ def _shutdown(hub: Any, server: Any, plant: Any, pump: Any, link: Any, emu: Any)
                 pass
         if emu is not None:
             try:
-                emu.stdin.close()
-                emu.wait(timeout=5.0)
+                emu.terminate()  # SIGTERM: upright emulate stops and removes its files
+                emu.wait(timeout=15.0)
             except (OSError, subprocess.TimeoutExpired):
                 emu.kill()
                 emu.wait()

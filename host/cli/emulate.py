@@ -1,14 +1,23 @@
-"""``upright emulate rp2040 --pty | --can``: an emulated Pico running the firmware, its host link on a
-pty or on a CAN bus other processes join.
+"""``upright emulate rp2040 --pty | --can``: the virtual robot -- an emulated Pico running the
+firmware with the simulated robot on its pins -- its host link on a pty or on a CAN bus.
 
 Starts the firmware bundle on the emulated RP2040 (rp2040js, MicroPython's rp2 port: the board
-as after ``make flash``), bridges its host link (UART0, 1 Mbaud) to a new pseudo-terminal, prints
-the port's path on stdout (one line) and runs until Ctrl-C or end of input on stdin.  Every tool
-that takes ``--port`` then works against it as against a board on ``/dev/ttyUSB0``::
+as after ``make flash``), closes the simulated robot around its pins (``--plant FILE``, default
+``sim/robot.toml``: :mod:`host.hil.virtual_robot` -- the plant of ``hil --emulate``, stepped
+with the board's own emulated clock), bridges its host link (UART0, 1 Mbaud) to a new
+pseudo-terminal and prints the port's path on stdout (one line).  Every tool that takes
+``--port`` then works against it as against a robot on ``/dev/ttyUSB0``::
 
     $ upright emulate rp2040 --pty
     /dev/pts/7
-    $ upright proto dump --port /dev/pts/7          # in another terminal
+    $ upright board --port /dev/pts/7 calibrate --out robot.toml   # in another terminal
+
+The pendulum starts upright at rest, held by the robot's stand-by person until the board
+balances (then let go), and caught again when the motor goes off (a disarm, a fault).  What else a
+person does to a robot (hold it upright or tilted, roll the cart, lift the wheels, take the
+pendulum off, press reset) is asked for on the robot's hands, a Unix socket whose path is
+derived from the port (:func:`host.hil.hands.hands_path`; printed at start): ``upright
+board calibrate`` finds it there by itself (``--robot auto``), and a real robot has none.
 
 With ``--can [CHANNEL]`` the board runs its CAN link instead (``main.main(link="can")``: the
 MCP2515 on SPI1, modelled at the register level) and the emulated bus is bridged to a python-can
@@ -20,23 +29,26 @@ prints the bus as one ``can:INTERFACE:CHANNEL`` line (what ``upright proto dump`
     can:udp_multicast:ff11:7079:7468:6f6e:6465:6d6f:6d63:6173
     $ upright board --link can --can-interface udp_multicast --port ff11:7079:7468:6f6e:6465:6d6f:6d63:6173 status
 
-The pendulum is held upright (ADC at the potentiometer offset) and the cart still.  The
-emulation runs at about 0.1x real time: board time passes ten times slower than on the wall.
-A board that does not boot or whose firmware raises ends the command with exit status 1 and
-its last output.
+It serves until Ctrl-C (exit status 130, "interrupted", as every command) or SIGTERM / SIGHUP
+(exit status 0), whatever its standard input is (never read: ``nohup``, ``< /dev/null`` and
+``&`` serve the same), and leaves nothing behind (the board's node process, its temporary
+directory and the hands' socket are removed).  The emulation runs at about 0.1-0.4x real time:
+board time passes slower than on the wall, and the robot with it.  A board that does not boot
+or whose firmware raises ends the command with exit status 1 and its last output.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-import select
 import sys
+import time
 from pathlib import Path
 from typing import Any, Sequence
 
 __all__ = ["add_arguments", "run", "hil_emulated"]
 
+_SIGINT = 2
 UDP_LOCAL_GROUP = "ff11:7079:7468:6f6e:6465:6d6f:6d63:6173"
 """Default ``udp_multicast`` group (= ``host.boards.rp2040.can.UDP_LOCAL_GROUP``, not imported at
 start-up): interface-local IPv6 scope, delivered on this machine only."""
@@ -58,28 +70,105 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--can-interface", type=can_interface, default="udp_multicast", metavar="NAME",
                         help="python-can interface of --can: udp_multicast (default; other processes on this "
                              "machine), socketcan (a vcan/can interface), ... -- not virtual (one process only)")
+    parser.add_argument("--plant", metavar="TOML", default=None,
+                        help="the simulated robot on the board's pins: a robot TOML or a name from sim/plants/ "
+                             "(default sim/robot.toml, the design the firmware ships for)")
     parser.add_argument("--bundle", metavar="DIR", default=None,
                         help="firmware bundle to put on the board's flash (default: built from firmware/)")
 
 
-def _stdin_closed() -> bool:
-    # end of input on stdin ends the run (a pipe closed, Ctrl-D on a terminal)
+class _Stop:
+    """Ctrl-C (SIGINT), SIGTERM and SIGHUP (the terminal went away) end the serve loop cleanly:
+    the board's node process and temporary files are removed, the robot's socket too.  Standard
+    input is never read, so the command serves the same under ``nohup``, ``< /dev/null`` or ``&``."""
+
+    SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP")
+
+    def __init__(self) -> None:
+        self.signum = 0
+        self._old: dict[int, Any] = {}
+
+    def __enter__(self) -> "_Stop":
+        import signal
+
+        for name in self.SIGNALS:
+            sig = getattr(signal, name)
+            try:
+                old = signal.getsignal(sig)
+                if sig == signal.SIGHUP and old == signal.SIG_IGN:
+                    continue  # nohup: keep ignoring it
+                self._old[sig] = old
+                signal.signal(sig, self._on)
+            except (ValueError, OSError):  # pragma: no cover - not the main thread
+                pass
+        return self
+
+    def _on(self, signum: int, frame: object) -> None:
+        self.signum = signum
+
+    def __call__(self) -> bool:
+        return bool(self.signum)
+
+    def __exit__(self, *exc: object) -> None:
+        import signal
+
+        for sig, old in self._old.items():
+            try:
+                signal.signal(sig, old)
+            except (ValueError, OSError):  # pragma: no cover
+                pass
+
+    def stopped(self) -> bool:
+        """A stop signal came (or comes within a moment: a Ctrl-C on the terminal reaches the
+        board's node process too, which may end first)."""
+        if not self.signum:
+            time.sleep(0.3)
+        return bool(self.signum)
+
+
+def _how_to_stop() -> str:
+    return f"Ctrl-C or SIGTERM (kill {os.getpid()}) stops it"
+
+
+def _robot(args: argparse.Namespace) -> Any:
+    """The simulated robot: ``--plant`` or the design (``sim/robot.toml``)."""
+    from host.cli.plant import load_plant
+    from host.hil.virtual_robot import VirtualRobot
+    from sim.params import load_params
+
+    design = load_params()
+    plant = load_plant(args.plant, design) or design
+    return VirtualRobot(plant)
+
+
+def _serve(link: Any, robot: Any, port_key: str, stop: _Stop) -> int:
+    # the robot on the pins, its hands on a socket next to the port's name, until a stop signal
+    from host.boards.rp2040.board import BoardError
+    from host.hil.hands import HandsServer, hands_path
+    from host.hil.virtual_robot import serve
+
+    robot.port = port_key
+    hands = HandsServer(hands_path(port_key), robot)
     try:
-        fd = sys.stdin.fileno()
-    except (AttributeError, OSError, ValueError):
-        return False
-    try:
-        if not select.select([fd], [], [], 0)[0]:
-            return False
-        return os.read(fd, 4096) == b""
-    except OSError:
-        return True
+        print(f"upright emulate: the simulated robot ({robot.params.source}) on the board's pins, the pendulum "
+              f"held upright until the board balances; its hands (calibrate --robot auto, tests) on {hands.path}",
+              file=sys.stderr, flush=True)
+        try:
+            serve(link, robot, stop, hands)
+        except BoardError as exc:
+            if not stop.stopped():
+                return _board_failed(exc)
+    finally:
+        hands.close()
+    if stop.signum != _SIGINT:
+        print("upright emulate: stopped", file=sys.stderr, flush=True)
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``upright emulate``."""
-    from host.boards.rp2040.board import BoardError
-    from host.boards.rp2040.bridge import PtyBridge
+    import signal
+
     from host.cli.args import UsageError
 
     bundle = None
@@ -87,24 +176,33 @@ def run(args: argparse.Namespace) -> int:
         bundle = Path(args.bundle)
         if not (bundle / "main.py").is_file():
             raise UsageError(f"--bundle: {bundle} holds no main.py (make firmware writes one)")
-    if args.can is not None:
-        return _serve_can(args, bundle)
+    robot = _robot(args)
+    with _Stop() as stop:
+        status = _serve_can(args, bundle, robot, stop) if args.can is not None else _serve_pty(bundle, robot, stop)
+    if stop.signum == signal.SIGINT:
+        raise KeyboardInterrupt  # Ctrl-C: "interrupted", exit status 130 as every command (SIGTERM: 0)
+    return status
+
+
+def _serve_pty(bundle: Path | None, robot: Any, stop: _Stop) -> int:
+    """``--pty``: the board's UART0 on a new pty, the robot on its pins, until a stop signal."""
+    from host.boards.rp2040.board import BoardError
+    from host.boards.rp2040.bridge import PtyBridge
+
     print("upright emulate: booting the emulated RP2040 (main.py)...", file=sys.stderr, flush=True)
     try:
-        bridge = PtyBridge(bundle)
+        bridge = PtyBridge(bundle, adc=robot.plant.read()[0])
     except BoardError as exc:
-        return _board_failed(exc)
+        return 0 if stop.stopped() else _board_failed(exc)
     try:
+        if stop():
+            return 0
         print(bridge.port, flush=True)
         print(f"upright emulate: host link (UART0, {bridge.board.uart_baud} baud) on {bridge.port}; "
-              "Ctrl-C or end of input stops", file=sys.stderr, flush=True)
-        try:
-            bridge.serve(stop=_stdin_closed)
-        except BoardError as exc:
-            return _board_failed(exc)
+              f"{_how_to_stop()}", file=sys.stderr, flush=True)
+        return _serve(bridge, robot, bridge.port, stop)
     finally:
         bridge.close()
-    return 0
 
 
 def _can_channel(interface: str, channel: str) -> str:
@@ -134,11 +232,11 @@ def _can_channel(interface: str, channel: str) -> str:
     return channel
 
 
-def _serve_can(args: argparse.Namespace, bundle: Path | None) -> int:
-    """``--can``: the board's CAN link bridged to a python-can bus until Ctrl-C / end of input."""
+def _serve_can(args: argparse.Namespace, bundle: Path | None, robot: Any, stop: _Stop) -> int:
+    """``--can``: the board's CAN link bridged to a python-can bus, the robot on its pins, until a
+    stop signal."""
     from host.boards.rp2040.board import BoardError
     from host.boards.rp2040.can import CanBoard
-    from sim.params import load_params
 
     interface = args.can_interface
     channel = _can_channel(interface, args.can)
@@ -146,8 +244,10 @@ def _serve_can(args: argparse.Namespace, bundle: Path | None) -> int:
           f"{channel}...", file=sys.stderr, flush=True)
     try:
         board = CanBoard(channel=channel, interface=interface, bundle_dir=bundle,
-                         adc=int(round(load_params().pot_offset)))
+                         adc=robot.plant.read()[0])
     except BoardError as exc:
+        if stop.stopped():
+            return 0
         return _board_failed(exc)
     except Exception as exc:  # python-can could not open the bus (no such interface, no vcan0, ...)
         if type(exc).__module__.split(".")[0] != "can" and not isinstance(exc, (OSError, ImportError)):
@@ -160,16 +260,12 @@ def _serve_can(args: argparse.Namespace, bundle: Path | None) -> int:
 
         print(f"can:{interface}:{channel}", flush=True)
         print(f"upright emulate: host link (CAN, MCP2515 on SPI1, {fb.CAN_BITRATE // 1000} kbit/s, node 1) on "
-              f"python-can {interface} {channel}; Ctrl-C or end of input stops\n"
+              f"python-can {interface} {channel}; {_how_to_stop()}\n"
               f"upright emulate: e.g. upright board --link can --can-interface {interface} --port {channel} status",
               file=sys.stderr, flush=True)
-        try:
-            board.serve(stop=_stdin_closed)
-        except BoardError as exc:
-            return _board_failed(exc)
+        return _serve(board, robot, f"can:{interface}:{channel}", stop)
     finally:
         board.close()
-    return 0
 
 
 def _board_failed(exc: BaseException, who: str = "upright emulate") -> int:

@@ -26,7 +26,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "generate": ("host.cli.generate", "regenerate every generated file (or --check that none is stale)"),
     "proto": ("host.cli.proto", "encode/decode protocol messages (serial or CAN framing) and dump a live link"),
     "hil": ("host.cli.hil", "close the firmware in a hardware-in-the-loop run with the simulated plant"),
-    "emulate": ("host.cli.emulate", "run the firmware on an emulated board (rp2040) with its host link on a pty"),
+    "emulate": ("host.cli.emulate", "the virtual robot: the firmware on an emulated board (rp2040), the simulated "
+                                     "robot on its pins, its host link on a pty (--pty) or CAN bus (--can); "
+                                     "Ctrl-C or SIGTERM stops it"),
     "board": ("host.cli.board", "operate a board: status, arm/disarm, parameters, gains, log, calibrate, excite"),
     "identify": ("host.cli.identify", "estimate the robot's parameters (inertia, mL, friction, motor, delay, pot "
                                       "offset) from excite logs; write a robot TOML"),

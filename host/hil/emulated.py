@@ -67,7 +67,7 @@ from sim.params import RobotParams, load_params
 from sim.plantsim import PlantSim
 from sim.scenario import Scenario
 
-__all__ = ["EmulatedHil", "run_emulated", "duty_over", "BoardError"]
+__all__ = ["EmulatedHil", "PinDrive", "run_emulated", "duty_over", "BoardError"]
 
 EDGE_US = 0.25
 """Shortest spacing of two generated encoder edges (us; 31 cycles, several PIO sampling passes)."""
@@ -123,6 +123,67 @@ def duty_over(state: dict[str, Any], r: StepResult, c0: int, c1: int, *, pwm_pin
     state["compare"], state["top"], state["enabled"] = r.pwm_compare, r.pwm_top, r.pwm_enabled
     state["dir"], state["en"] = r.dir or 0, r.en or 0
     return acc / max(1, c1 - c0)
+
+
+class PinDrive:
+    """The robot's side of the Pico's pins, as ``firmware/board.py`` wires them: the sensor
+    readings of :class:`sim.plantsim.PlantSim` put on ADC0 and the quadrature encoder, the duty
+    read back from the PWM slice and the DIR/EN pins (:func:`duty_over`).  Shared by
+    :class:`EmulatedHil` and the virtual robot (:mod:`host.hil.virtual_robot`).
+
+    Parameters
+    ----------
+    board : EmulatedBoard
+        The board (or a proxy with ``set_adc`` / ``set_encoder``: :class:`~host.boards.rp2040.can.CanBoard`).
+    enc_within_us : float
+        The encoder edges of a reading are generated within this long of the next run's start
+        (or at :data:`EDGE_US` per edge for a larger jump).
+    lazy : bool
+        Write a pin only when its value changed (the virtual robot, many short runs); ``False``
+        writes both every time (the lockstep HIL, which also sets pins between runs).
+    """
+
+    def __init__(self, board: Any, *, enc_within_us: float = 40.0, lazy: bool = False) -> None:
+        from firmware import board as fwboard
+
+        self.board = board
+        self.enc_within_us = float(enc_within_us)
+        self.lazy = bool(lazy)
+        self.motor: dict[str, Any] = {"compare": 0, "top": 0, "enabled": False, "dir": 0, "en": 0,
+                                      "dir_pin": fwboard.DIR_PIN, "en_pin": fwboard.EN_PIN}
+        self.enc_total = 0  # the position handed to the harness (x4 counts since its start)
+        self._enc_last = 0
+        self._adc: int | None = None
+
+    def set(self, adc: int, enc: int) -> None:
+        """Put a reading on the pins for the next run: ADC counts and the 16-bit encoder counter
+        (unwrapped: the harness drives the absolute position)."""
+        d = int(sensors.encoder_delta(enc, self._enc_last))
+        self.enc_total += d
+        self._enc_last = int(enc)
+        if not self.lazy or adc != self._adc:
+            self.board.set_adc(int(adc))
+            self._adc = int(adc)
+        if not self.lazy or d:
+            self.board.set_encoder(self.enc_total, within_us=max(self.enc_within_us, abs(d) * EDGE_US))
+
+    def duty(self, r: StepResult, c0: int, c1: int) -> float:
+        """The average duty the H-bridge applied over cycles ``[c0, c1)`` of run ``r``."""
+        return duty_over(self.motor, r, c0, c1)
+
+    @property
+    def driving(self) -> bool:
+        """The H-bridge drives: the PWM slice on and EN high (the firmware enables the driver only
+        while balancing)."""
+        m = self.motor
+        return bool(m["enabled"] and m["en"])
+
+    def rebase(self) -> None:
+        """The board was powered up again (a new harness): its encoder position starts at 0, its
+        ADC input is unset, its motor pins are inputs."""
+        self.enc_total = 0
+        self._adc = None
+        self.motor.update(compare=0, top=0, enabled=False, dir=0, en=0)
 
 
 class _HostSide:
@@ -190,14 +251,11 @@ class EmulatedHil:
         self.boot_wall_s = 0.0
         self._table_key: Any = (None, None)
         self.gains = "firmware default"
-        self._enc_total = 0
-        self._enc_last = 0
+        self.pins: PinDrive | None = None
         self._iters: list[tuple[int, int]] = []
         self._last_iter_end = 0
         self._state = -1
         self._faults = -1
-        self._motor: dict[str, Any] = {"compare": 0, "top": 0, "enabled": False, "dir": 0, "en": 0,
-                                       "dir_pin": 17, "en_pin": 18}
 
     # ------------------------------------------------------------------ lifetime
     def open(self) -> "EmulatedHil":
@@ -212,9 +270,7 @@ class EmulatedHil:
         if self.board is None:
             self.board = EmulatedBoard(self.bundle_dir, firmware=self.firmware, main=True)
         self.boot_wall_s = time.perf_counter() - t0
-        from firmware import board as fwboard
-
-        self._motor["dir_pin"], self._motor["en_pin"] = fwboard.DIR_PIN, fwboard.EN_PIN
+        self.pins = PinDrive(self.board, enc_within_us=self.enc_within_us)
         self.board.loop_probe(gap_us=50.0, min_reads=3)
         self.host = _HostSide(self.board)
         self._last_iter_end = self.board.cycles
@@ -252,12 +308,9 @@ class EmulatedHil:
 
     def _set_pins(self, adc: int, enc: int) -> None:
         # the ADC input and the encoder position for the next run (16-bit reading unwrapped)
-        b = self._b()
-        d = int(sensors.encoder_delta(enc, self._enc_last))
-        self._enc_total += d
-        self._enc_last = int(enc)
-        b.set_adc(int(adc))
-        b.set_encoder(self._enc_total, within_us=max(self.enc_within_us, abs(d) * EDGE_US))
+        self._b()
+        assert self.pins is not None
+        self.pins.set(adc, enc)
 
     def _run(self, us: float, sink: Sink | None, tick: int = -1) -> tuple[StepResult, list[tuple[M.Message, int]]]:
         # run the board; decode its UART output; keep the loop iterations; check it still loops
@@ -427,7 +480,8 @@ class EmulatedHil:
         t_wall = time.perf_counter()
         c_start = b.cycles
         self._iters.clear()
-        motor = self._motor
+        pins = self.pins
+        assert pins is not None
         for k in range(n):
             adc, enc = sim.read()
             self._set_pins(adc, enc)
@@ -442,7 +496,7 @@ class EmulatedHil:
                 self.host.send(_HOST_HEARTBEAT())  # type: ignore[union-attr]
             c0 = b.cycles
             r, _ = self._run(period_us, sink, k)
-            duty = duty_over(motor, r, c0, r.cycles)
+            duty = pins.duty(r, c0, r.cycles)
             fw_state[k], fw_faults[k] = self._state, self._faults
             sim.step(int(round(duty)))
             if progress is not None and k % 250 == 0:

@@ -4,8 +4,10 @@
 callback: a terminal, scripted answers in tests, a dashboard):
 
 1. the pendulum held upright and still -> ``pot_offset`` (mean ADC counts) and the noise;
-2. tilted by a known angle towards the cart's forward (+x) direction -> the ADC sign and
-   scale (``pot_range``, the potentiometer's electrical travel in rad);
+2. tilted by a known angle BACKWARD (away from the cart's forward, +x, direction: the model's
+   positive tilt, ``theta = pi + phi`` of the report -- a cart accelerating forward tips the
+   pendulum back, ``sim/plant.py``) -> the ADC sign and scale (``pot_range``, the
+   potentiometer's electrical travel in rad);
 3. the cart rolled forward by a known distance -> the encoder sign and counts per metre
    (``enc_cpr`` with the robot's wheel radius);
 4. wheels lifted, the board armed at a low ``max_duty``, the pendulum tilted forward by
@@ -17,6 +19,12 @@ The result is a robot TOML in ``sim/params.py``'s format (the input robot file w
 ``upright board gains upload --params``, and the board's own parameters (``pot_offset``,
 ``adc_sign``, ``enc_sign``, ``motor_sign`` where its table has them), saved on the board
 when it has a save command -- calibrating never means editing code or reflashing.
+
+The steps that need a person can be done by a robot's own hands instead: ``robot`` is an object
+with ``do(action, idle=None, **kw)`` -- :class:`host.hil.hands.Hands`, the virtual
+robot of ``upright emulate rp2040`` (``upright board calibrate --robot auto`` finds it from the
+port; a real robot has none, and the prompts go to the person).  Each step's prompt is printed
+all the same, followed by what the robot did.
 """
 
 from __future__ import annotations
@@ -30,13 +38,43 @@ from typing import Any, Callable
 
 from host.operate.board import Board, BoardError, NotSupported, has_message, param_table
 
-__all__ = ["CalibrationError", "sample", "robot_toml", "run_calibration"]
+MOTOR_TILT_RAD = 0.05
+"""Step 4 with a robot's hands: the forward tilt (rad) held while the wheels turn."""
+
+__all__ = ["CalibrationError", "sample", "robot_toml", "run_calibration", "robot_hands", "ROBOT_HELP"]
+
+ROBOT_HELP = ("who does the steps that need a person: auto (default) -- the virtual robot of `upright emulate "
+              "rp2040` behind this port does them through its hands (a Unix socket named after the port, "
+              "host/hil/hands.py), a real robot has none and you are prompted; person -- always prompt; "
+              "or the path of a virtual robot's socket")
 
 Ask = Callable[[str, "Callable[[], None] | None"], str]
 
 
 class CalibrationError(BoardError):
     """A step's measurement makes no sense (nothing moved, a reading railed)."""
+
+
+def robot_hands(choice: str, port_key: str) -> Any:
+    """The hands of ``--robot``: ``"person"`` -> ``None``; ``"auto"`` -> the virtual robot behind
+    ``port_key`` (the port, or ``can:INTERFACE:CHANNEL``) if one listens, else ``None``; a path ->
+    that socket's robot.
+
+    Raises
+    ------
+    BoardError
+        A socket path given, but no robot answers there.
+    """
+    from host.hil.hands import Hands, HandsError, find_hands
+
+    if choice == "person":
+        return None
+    if choice == "auto":
+        return find_hands(port_key)
+    try:
+        return Hands(choice)
+    except HandsError as exc:
+        raise BoardError(f"--robot: {exc}") from None
 
 
 def sample(board: Board, seconds: float = 1.0, keepalive: bool = False) -> dict[str, Any]:
@@ -104,8 +142,10 @@ def _fmt(v: float) -> str:
 def run_calibration(board: Board, ask: Ask, say: Callable[[str], None], *, robot_in: str | Path | None = None,
                     robot_out: str | Path = "robot.toml", tilt_deg: float = 10.0, move_m: float = 0.1,
                     sample_s: float = 1.0, test_duty: int = 6000, motor_check: bool = True,
-                    save: bool = True) -> dict[str, Any]:
+                    save: bool = True, robot: Any = None) -> dict[str, Any]:
     """The guided calibration (module docstring); returns what was measured and written.
+
+    ``robot``: hands that do the person's steps (module docstring); ``None``: ``ask`` the person.
 
     Raises
     ------
@@ -127,9 +167,18 @@ def run_calibration(board: Board, ask: Ask, say: Callable[[str], None], *, robot
         board.disarm()
     res: dict[str, Any] = {"robot_in": str(src), "robot_out": str(robot_out)}
 
+    def step(prompt: str, action: str | None = None, idle: Callable[[], None] | None = None,
+             **kw: Any) -> dict[str, Any]:
+        # the person (ask) or the robot's hands do what the prompt says
+        if robot is None:
+            ask(prompt, idle)
+            return {}
+        say(prompt.replace(", then press Enter", "").replace("Press Enter to arm", "arming") + " -- the robot does it")
+        return robot.do(action, idle=idle, **kw) if action else {}
+
     # 1. upright
-    ask("Step 1/4: hold the pendulum exactly upright and still (wheels lifted or the cart held), "
-        "then press Enter", None)
+    step("Step 1/4: hold the pendulum exactly upright and still (wheels lifted or the cart held), "
+         "then press Enter", "hold", phi=0.0, cart="still")
     up = sample(board, sample_s)
     if up["adc_mean"] <= 0 or up["adc_mean"] >= full - 1:
         raise CalibrationError(f"angle ADC reads {up['adc_mean']:.0f} (a rail): potentiometer open, shorted "
@@ -139,8 +188,8 @@ def run_calibration(board: Board, ask: Ask, say: Callable[[str], None], *, robot
     say(f"  upright: ADC {up['adc_mean']:.1f} counts (noise {up['adc_std']:.2f} counts rms, {up['n']} samples)")
 
     # 2. tilt
-    ask(f"Step 2/4: tilt the pendulum {tilt_deg:g} degrees towards the cart's FORWARD direction and hold it, "
-        "then press Enter", None)
+    step(f"Step 2/4: tilt the pendulum {tilt_deg:g} degrees BACKWARD (away from the cart's forward direction) "
+         "and hold it, then press Enter", "hold", phi=math.radians(tilt_deg), cart="still")
     tl = sample(board, sample_s)
     d = tl["adc_mean"] - up["adc_mean"]
     if abs(d) < max(5.0, 6 * (up["adc_std"] + tl["adc_std"])):
@@ -153,9 +202,9 @@ def run_calibration(board: Board, ask: Ask, say: Callable[[str], None], *, robot
         f"{counts_per_rad:.1f} counts/rad, pot_range {res['pot_range']:.4f} rad")
 
     # 3. move
-    ask("Step 3/4: back upright; put the cart at a mark, then press Enter", None)
+    step("Step 3/4: back upright; put the cart at a mark, then press Enter", "hold", phi=0.0, cart="still")
     a = sample(board, min(sample_s, 0.3))
-    ask(f"Step 3/4: roll the cart FORWARD by exactly {move_m * 100:g} cm, then press Enter", None)
+    step(f"Step 3/4: roll the cart FORWARD by exactly {move_m * 100:g} cm, then press Enter", "move", dx=move_m)
     b = sample(board, min(sample_s, 0.3))
     de = _enc_delta(a["enc_raw_last"], b["enc_raw_last"])
     if abs(de) < 10:
@@ -176,7 +225,7 @@ def run_calibration(board: Board, ask: Ask, say: Callable[[str], None], *, robot
     # 4. motor sign
     res["motor_sign"] = board.param_get("motor_sign") if "motor_sign" in table else 1
     if motor_check:
-        res["motor_sign"] = _motor_sign(board, ask, say, res, test_duty)
+        res["motor_sign"] = _motor_sign(board, ask, say, res, test_duty, step, robot is not None)
         if "motor_sign" in table:
             board.param_set("motor_sign", res["motor_sign"])
             on_board["motor_sign"] = res["motor_sign"]
@@ -192,6 +241,9 @@ def run_calibration(board: Board, ask: Ask, say: Callable[[str], None], *, robot
     else:
         say(f"  set on the board (not saved): {on_board}")
 
+    if robot is not None:
+        # the robot back on its wheels, the pendulum held upright until the board balances
+        robot.do("hold", phi=0.0, cart="still", until="driving")
     values = {"pot_offset": res["pot_offset"], "pot_range": round(res["pot_range"], 6), "enc_cpr": res["enc_cpr"]}
     note = (f"calibrated by `upright board calibrate` on {time.strftime('%Y-%m-%d %H:%M')}: adc_sign "
             f"{res['adc_sign']:+d}, enc_sign {res['enc_sign']:+d}, motor_sign {res['motor_sign']:+d} (board parameters)")
@@ -205,14 +257,15 @@ def run_calibration(board: Board, ask: Ask, say: Callable[[str], None], *, robot
     return res
 
 
-def _motor_sign(board: Board, ask: Ask, say: Callable[[str], None], res: dict[str, Any], test_duty: int) -> int:
+def _motor_sign(board: Board, ask: Ask, say: Callable[[str], None], res: dict[str, Any], test_duty: int,
+                step: Callable[..., dict[str, Any]], by_robot: bool) -> int:
     table = param_table()
     sign = res["motor_sign"]
     old_duty = board.param_get("max_duty")
     board.param_set("max_duty", min(old_duty, test_duty))
     try:
-        ask(f"Step 4/4: WHEELS LIFTED. Press Enter to arm (max_duty {min(old_duty, test_duty)}), "
-            "then hold the pendulum upright", None)
+        step(f"Step 4/4: WHEELS LIFTED. Press Enter to arm (max_duty {min(old_duty, test_duty)}), "
+             "then hold the pendulum upright", "hold", phi=0.0, cart="free")
         st = board.state(fresh=True)
         if st["faults"]:
             board.clear_faults()
@@ -223,7 +276,8 @@ def _motor_sign(board: Board, ask: Ask, say: Callable[[str], None], res: dict[st
             board.keepalive()
             board.poll(0.02)
 
-        ask("Step 4/4: tilt the pendulum slightly FORWARD and hold it about a second, then press Enter", idle)
+        moved = step("Step 4/4: tilt the pendulum slightly FORWARD and hold it about a second, then press Enter",
+                     "hold", idle, phi=-MOTOR_TILT_RAD, cart="free", seconds=1.0)
         b = sample(board, 0.3, keepalive=True)
         state = board.state(fresh=True)
     finally:
@@ -233,6 +287,8 @@ def _motor_sign(board: Board, ask: Ask, say: Callable[[str], None], res: dict[st
     say(f"  armed and tilted: the encoder moved {de:+d} counts forward (board {state['state_name']})")
     if abs(de) >= 20:
         ok = de > 0
+    elif by_robot:
+        ok = float(moved.get("moved_m", 0.0)) > 0  # the robot saw its wheels turn
     else:
         ans = ask("Did the wheels turn so as to drive the cart FORWARD, towards the tilt? [y/n]", None)
         ok = ans.strip().lower().startswith("y")

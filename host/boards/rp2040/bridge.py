@@ -3,9 +3,10 @@
 :class:`PtyBridge` runs an :class:`~host.boards.rp2040.board.EmulatedBoard` with ``main.py`` (the
 board as after ``make flash``) and copies bytes between its UART0 and the master end of a pty:
 what a tool writes to the slave (``/dev/pts/N``) goes onto the board's RX line at the line's
-byte timing, what the board sends comes out of the slave.  The sensors are held still (the
-pendulum upright at the potentiometer's offset, the encoder at 0) unless ``set_adc`` /
-``set_encoder`` of :attr:`PtyBridge.board` say otherwise.
+byte timing, what the board sends comes out of the slave.  On its own the bridge holds the
+sensors still (the pendulum upright at the potentiometer's offset, the encoder at 0); the
+virtual robot (:mod:`host.hil.virtual_robot`, ``upright emulate rp2040 --pty``) drives them
+between :meth:`PtyBridge.run` calls from the simulated robot instead.
 
 The emulation runs at most as fast as real time (in practice slower: about 0.1 board
 seconds per wall second with the firmware's busy-waiting loop), so a tool's timeouts, counted
@@ -27,7 +28,7 @@ import tty
 from pathlib import Path
 from typing import Callable
 
-from host.boards.rp2040.board import CYCLES_PER_US, FIRMWARE, EmulatedBoard
+from host.boards.rp2040.board import CYCLES_PER_US, FIRMWARE, EmulatedBoard, StepResult
 
 __all__ = ["PtyBridge"]
 
@@ -114,8 +115,11 @@ class PtyBridge:
             view = view[n:]
         self.tx_bytes += len(data)
 
-    def step(self) -> None:
-        """Copy what a tool wrote onto the board's RX line, run ``chunk_us``, copy the board's output out."""
+    def run(self, us: float) -> StepResult:
+        """Copy what a tool wrote onto the board's RX line, run ``us`` of board time, copy the
+        board's output to the pty; returns the run's :class:`StepResult` (its ``uart_tx`` already
+        delivered).  The pins are whatever the caller set (the virtual robot sets them between
+        runs: :mod:`host.hil.virtual_robot`)."""
         try:
             data = os.read(self._master, 4096)
         except BlockingIOError:
@@ -127,12 +131,17 @@ class PtyBridge:
         if data:
             self.rx_bytes += len(data)
             self.board.uart_write(data)
-        r = self.board.run(self.chunk_us)
+        r = self.board.run(us)
         if r.uart_tx:
             self._write(r.uart_tx)
+        return r
+
+    def step(self) -> None:
+        """:meth:`run` for ``chunk_us``."""
+        self.run(self.chunk_us)
 
     def serve(self, stop: Callable[[], bool] = lambda: False) -> None:
-        """Run until ``stop()`` is true, never faster than real time.
+        """Run until ``stop()`` is true, never faster than real time (the sensors held).
 
         Raises
         ------

@@ -1,0 +1,451 @@
+"""The README's section "On a real robot", every command as shown, against the virtual robot.
+
+The commands are read from README.md's section (as tests/test_readme_commands.py reads the
+whole README) and run in order with ``/dev/ttyUSB0`` replaced by the pty of ONE
+``upright emulate rp2040 --pty --plant PLANT`` (the emulated Pico, the simulated robot on its
+pins) shared by the module; each is checked for what its step promises.  The robot
+(:data:`PLANT`) is the design's with other sensors and friction, so calibration and
+identification have something to find.  Where a step asks a person to act (hold the pendulum
+upright before ``arm``, take the pendulum off for ``excite --cart-only``, reset the board),
+the test asks the robot's hands (:mod:`host.hil.virtual_robot`), as the person would act;
+``calibrate`` finds the hands by itself.
+
+Extra flags (the reason next to each in :data:`EXTRA`) only shorten or bound what serves until
+Ctrl-C, and give the identification runs enough board time: the emulator runs at 0.1-0.4x real
+time and the tools' ``--seconds`` are wall seconds.  Wall time of the module: 4.5-6 minutes on
+this 2-core machine with a load average of 8-11 (eight runs: 189-362 s, the last three 189, 209, 209 s), most of
+it the identification runs, whose wall time follows the emulator's speed.  Known problems are
+expected failures with their reason: issue 23 (``deadline`` latched while a tool talks to a
+balancing board), ``hil --port``'s fixed answer time, the identification's spread on short logs.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import re
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from host.boards.rp2040.board import FIRMWARE, ROOT
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.rp2040,
+    pytest.mark.skipif(shutil.which("node") is None, reason="node not installed"),
+    pytest.mark.skipif(not (ROOT / "node_modules" / "rp2040js").is_dir(), reason="rp2040js not installed (make setup)"),
+    pytest.mark.skipif(not FIRMWARE.is_file(), reason="MicroPython RP2040 image missing (make rp2040)"),
+]
+
+UPRIGHT = [sys.executable, "-m", "host.cli.main"]
+README = ROOT / "README.md"
+SHOWN_PORT = "/dev/ttyUSB0"
+
+# the robot on the pins: the design's, with a pot offset, an encoder and a cart friction of its own
+# (a friction of 0.5 N s/m: the cart's coast-down time constant M / b is 1 s, so the coast the
+# test records -- 30 s of wall time, 1.5-4 s of board time depending on the machine's load --
+# separates the friction from the back-EMF)
+PLANT_CHANGES = {"pot_offset": 2010, "enc_cpr": 1100, "b": 0.5}
+
+# README command -> flags added (and why)
+EXTRA: dict[str, list[str]] = {
+    # serves until Ctrl-C: the test sends SIGINT itself (arm) or bounds it (dashboard)
+    "upright dashboard --port /dev/ttyUSB0": ["--http-port", "0", "--seconds", "90"],
+    # the two excite runs get --seconds (and --coast) at test time: the identification needs
+    # board seconds, and at 0.05-0.15x real time 30 s of wall time is 1.5-4.5 s of board time; the
+    # coast-down (3 s of wall time by default) must be a few of the cart's time constants
+    # M / b = 1 s long to separate friction from back-EMF (BAL_BOARD_S, ...)
+    # eight scenarios of 5-8 s by default: minutes each on the emulated board; a 1 s tilt shows the
+    # same loop, and --virtual runs it too
+    "upright hil --port /dev/ttyUSB0": ["--scenario", "SHORT_TILT", "--no-plots", "--out", "hil_port",
+                                        "--json", "hil_port.json"],
+}
+# every `upright board` command: the board's clock runs 3-10x slower than the wall's, so a
+# request attempt of the default 0.3 s of wall time is 30-100 ms of board time -- less than the
+# emulated board takes for a gains_commit under load; the first answer likewise
+SLOW = ["--timeout", "3", "--answer-timeout", "60"]
+# board seconds the identification runs get at least (--seconds and --coast are wall seconds,
+# set from the emulator's measured speed): the bench identifies from 30 s of balancing and 15 s
+# cart-only logs; 5 s of balancing identified I within 3 % here, 2 s missed it by 28 %
+BAL_BOARD_S = 5.0
+CART_BOARD_S = 1.5
+COAST_BOARD_S = 2.5
+SHORT_TILT = ('name = "short_tilt"\nduration = 1.0\nseed = 1\n[initial]\nphi = 0.05\n'
+              '[expect]\nphi_max = "pass"\nsettle = "any"\na_max = "any"\n')
+
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_readme_commands import ROBOT_COMMANDS as COMMANDS  # noqa: E402 - the section's commands, in order
+
+RAN: set[str] = set()
+IDENT: dict[str, object] = {}
+
+
+class Robot:
+    """``upright emulate rp2040 --pty --plant FILE`` in its own process group, and its hands."""
+
+    def __init__(self, tmp: Path) -> None:
+        from sim.params import DEFAULT_PATH
+
+        text = Path(DEFAULT_PATH).read_text()
+        for k, v in PLANT_CHANGES.items():
+            text, n = re.subn(rf"^{k} = \S+", f"{k} = {v}", text, flags=re.M)
+            assert n == 1, k
+        self.plant_file = tmp / "plant.toml"
+        self.plant_file.write_text(text)
+        self.tmp = tmp
+        self.env = dict(os.environ, TMPDIR=str(tmp / "tmpdir"))
+        (tmp / "tmpdir").mkdir()
+        self.proc = subprocess.Popen(UPRIGHT + ["emulate", "rp2040", "--pty", "--plant", str(self.plant_file)],
+                                     cwd=tmp, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                     stderr=open(tmp / "emulate.err", "w"), text=True, start_new_session=True,
+                                     env=self.env)
+        self.port = self.proc.stdout.readline().strip()  # type: ignore[union-attr]
+        assert self.port.startswith("/dev/pts/"), (tmp / "emulate.err").read_text()
+        from host.hil.hands import find_hands
+
+        t0 = time.monotonic()
+        self.hands = None
+        while self.hands is None and time.monotonic() - t0 < 30:
+            self.hands = find_hands(self.port)
+            time.sleep(0.2)
+        assert self.hands is not None, (tmp / "emulate.err").read_text()
+
+    def argv(self, cmd: str) -> list[str]:
+        """A README command as argv for this robot: the port substituted, :data:`EXTRA` added."""
+        assert cmd in COMMANDS, f"README.md's section no longer shows: {cmd}"
+        RAN.add(cmd)
+        argv = shlex.split(cmd.replace(SHOWN_PORT, self.port))[1:] + EXTRA.get(cmd, [])
+        if argv[0] == "board":
+            argv[3:3] = SLOW
+        if "SHORT_TILT" in argv:
+            (self.tmp / "short_tilt.toml").write_text(SHORT_TILT)
+            argv[argv.index("SHORT_TILT")] = str(self.tmp / "short_tilt.toml")
+        return argv
+
+    def run(self, cmd: str, timeout: float = 300) -> subprocess.CompletedProcess:
+        r = subprocess.run(UPRIGHT + self.argv(cmd), cwd=self.tmp, capture_output=True, text=True,
+                           timeout=timeout, env=self.env)
+        assert r.returncode == 0, f"{cmd}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
+        assert "Traceback" not in r.stderr
+        return r
+
+    def board(self, *argv: str) -> subprocess.CompletedProcess:
+        r = subprocess.run(UPRIGHT + ["board", "--port", self.port, *SLOW, *argv], cwd=self.tmp, capture_output=True,
+                           text=True, timeout=120, env=self.env)
+        assert r.returncode == 0, r.stderr
+        return r
+
+    def speed(self, wall_s: float = 3.0) -> float:
+        """The emulator's speed now: board seconds per wall second (the robot's clock)."""
+        s0, t0 = self.hands.do("state")["board_s"], time.monotonic()
+        time.sleep(wall_s)
+        s1, t1 = self.hands.do("state")["board_s"], time.monotonic()
+        return max(0.02, (s1 - s0) / (t1 - t0))
+
+    def params(self, *names: str) -> dict:
+        return json.loads(self.board("params", "get", *names, "--json").stdout)
+
+    def close(self) -> None:
+        if self.hands is not None:
+            self.hands.close()
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+
+
+@pytest.fixture(scope="module")
+def robot(tmp_path_factory: pytest.TempPathFactory):
+    r = Robot(tmp_path_factory.mktemp("robot"))
+    try:
+        yield r
+    finally:
+        r.close()
+    # SIGTERM stops it cleanly: exit 0, no temporary directory, no socket left
+    assert r.proc.returncode == 0, (r.tmp / "emulate.err").read_text()
+    assert list((r.tmp / "tmpdir").iterdir()) == []
+    from host.hil.hands import hands_path
+
+    assert not hands_path(r.port).exists()
+
+
+@pytest.fixture(scope="module")
+def plant(robot: Robot):
+    from sim.params import load_params
+
+    return load_params(robot.plant_file)
+
+
+def test_the_section_shows_every_step() -> None:
+    for word in ("status", "calibrate", "params set", "params save", "gains upload", " arm", " log ", "excite",
+                 "identify", "dashboard", "upright hil --port", "mode robot"):
+        assert any(word in c for c in COMMANDS), (word, COMMANDS)
+
+
+def test_2_status_shows_disarmed(robot: Robot) -> None:
+    r = robot.run("upright board --port /dev/ttyUSB0 status")
+    assert "state disarmed" in r.stdout and "faults none" in r.stdout, r.stdout
+    assert "(matches this host)" in r.stdout
+
+
+def test_3_calibrate_finds_the_robots_sensors(robot: Robot, plant) -> None:
+    from sim.params import load_params
+
+    r = robot.run("upright board --port /dev/ttyUSB0 calibrate --out robot.toml")
+    assert "the virtual robot on" in r.stdout, r.stdout
+    cal = load_params(robot.tmp / "robot.toml")
+    assert abs(cal.pot_offset - plant.pot_offset) <= 1
+    assert abs(cal.pot_range / plant.pot_range - 1) < 0.01  # 10 deg = 152 counts: a count of quantisation
+    assert abs(cal.enc_cpr / plant.enc_cpr - 1) < 0.005
+    # the signs of the robot (the model's: ADC, encoder and motor all +1), set and saved on the board
+    assert robot.params("pot_offset", "adc_sign", "enc_sign", "motor_sign") == {
+        "pot_offset": plant.pot_offset, "adc_sign": 1, "enc_sign": 1, "motor_sign": 1}
+    assert "motor_sign +1 is right" in r.stdout
+
+
+def test_4_params_saved_survive_a_reset(robot: Robot, plant) -> None:
+    robot.run("upright board --port /dev/ttyUSB0 params set max_duty 8000")
+    robot.run("upright board --port /dev/ttyUSB0 params save")
+    boot = json.loads(robot.board("status", "--json").stdout)["heartbeat"]["boot"]
+    robot.hands.do("reset")  # the board's reset button: the flash kept
+    after = robot.params("max_duty", "pot_offset")
+    assert after == {"max_duty": 8000, "pot_offset": plant.pot_offset}
+    st = json.loads(robot.board("status", "--json").stdout)
+    assert st["state"] == "disarmed" and st["heartbeat"]["boot"] is not None
+    del boot
+
+
+def test_5_gains_designed_for_the_calibration_read_back_by_crc(robot: Robot) -> None:
+    r = robot.run("upright board --port /dev/ttyUSB0 gains upload --design --params robot.toml --save")
+    m = re.search(r"CRC (0x[0-9a-f]{4}); board reports (0x[0-9a-f]{4}): verified", r.stdout)
+    assert m and m.group(1) == m.group(2), r.stdout
+    assert "saved on the board" in r.stdout
+    st = json.loads(robot.board("status", "--json").stdout)
+    assert st["identity"]["gains_crc"] == int(m.group(1), 16)
+
+
+def test_6_arm_balances_and_ctrl_c_disarms(robot: Robot) -> None:
+    # "hold the pendulum upright, then arm": held 30 mrad off upright, let go when the board
+    # balances -- the controller must catch it
+    robot.hands.do("hold", phi=0.03, until="driving")
+    p = subprocess.Popen(UPRIGHT + robot.argv("upright board --port /dev/ttyUSB0 arm"), cwd=robot.tmp,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=robot.env,
+                         start_new_session=True)
+    try:
+        t0 = time.monotonic()
+        st = robot.hands.do("state")
+        while st["hand"] is not None and time.monotonic() - t0 < 120:
+            time.sleep(0.5)
+            st = robot.hands.do("state")
+        assert st["hand"] is None and st["driving"], st  # let go: the board balances
+        b0 = st["board_s"]
+        worst = 0.0
+        while st["board_s"] - b0 < 2.0:  # two seconds of board time, balancing
+            st = robot.hands.do("wait", seconds=0.1)
+            assert st["driving"] and not st["lying"], st
+            worst = max(worst, abs(st["phi"]))
+        assert worst < 0.05 and abs(st["phi"]) < 0.01, (worst, st)
+        os.killpg(p.pid, signal.SIGINT)  # Ctrl-C
+        _, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode == 130, err
+    assert "balancing" in err and "disarmed" in err, err
+    st = json.loads(robot.board("status", "--json").stdout)
+    assert st["state"] == "disarmed", st
+    robot.run("upright board --port /dev/ttyUSB0 params set max_duty 32767")
+    robot.run("upright board --port /dev/ttyUSB0 params save")
+    assert robot.params("max_duty") == {"max_duty": 32767}
+
+
+def test_7_log_has_every_frame(robot: Robot) -> None:
+    import pyarrow.parquet as pq
+
+    r = robot.run("upright board --port /dev/ttyUSB0 log --seconds 10 --out run.parquet")
+    assert re.search(r"; 0 lost", r.stderr), r.stderr
+    t = pq.read_table(robot.tmp / "run.parquet").to_pydict()
+    assert len(t["t"]) > 20  # the telemetry while disarmed: a few rows a second
+    m = re.search(r"(\d+) rows \((\d+) telemetry frames\)", r.stderr)
+    assert m and 2 * int(m.group(1)) == int(m.group(2)) and int(m.group(1)) == len(t["t"]), r.stderr
+    # every frame the board sent: the board numbers its periodic frames with one counter, so
+    # consecutive rows are 1 apart, or 2 with a heartbeat between them (none lost: the recorder's
+    # count of every gap over all periodic frames, above)
+    gaps = {(b - a) % 256 for a, b in zip(t["seq"], t["seq"][1:])}
+    assert gaps <= {1, 2}, sorted(gaps)
+
+
+def _deadline(rows: list[dict]) -> bool:
+    # issue 23 (being fixed in the firmware): asking a balancing board for its state (the tools'
+    # stats requests) can make a tick late and latch `deadline`
+    from firmware import msgtable as T
+
+    bit = next(b for b, name, *_ in T.FAULTS if name == "deadline")
+    return any(int(float(r["faults"])) & bit for r in rows)
+
+
+def _truth(plant) -> dict:
+    from host.studies.identify import truth_of
+
+    return truth_of(plant)
+
+
+def test_7_excite_and_identify_recover_the_plant(robot: Robot, plant) -> None:
+    from sim.params import load_params
+
+    # the pendulum upright (the stand-by person holds it until the board balances)
+    robot.hands.do("hold", phi=0.0, until="driving")
+    # --seconds is wall time: the runs get at least BAL_BOARD_S / CART_BOARD_S of board time at the
+    # emulator's speed measured now (a loaded machine runs it at 0.05x, an idle one at 0.15x)
+    speed = robot.speed()
+    bal = "upright board --port /dev/ttyUSB0 excite --seconds 30 --amplitude 0.5 --out bal.csv"
+    cart = "upright board --port /dev/ttyUSB0 excite --cart-only --seconds 15 --amplitude 1 --out cart.csv"
+    EXTRA[bal] = ["--seconds", f"{max(30.0, min(150.0, BAL_BOARD_S / speed)):.0f}"]
+    EXTRA[cart] = ["--seconds", f"{max(15.0, min(60.0, CART_BOARD_S / speed)):.0f}",
+                                 "--coast", f"{max(30.0, min(90.0, COAST_BOARD_S / speed)):.0f}"]
+    robot.run(bal)
+    late: list[str] = []  # runs in which the board latched `deadline` (issue 23)
+    rows = list(csv.DictReader(open(robot.tmp / "bal.csv")))
+    if _deadline(rows):
+        late.append("excite")
+    else:
+        assert not any(int(float(r["faults"])) for r in rows), "no fault during the excitation"
+        rows = [r for r in rows if r["excite"] == "1"]
+        phis = [abs(float(r["phi"])) for r in rows]
+        assert len(rows) > 500 and max(phis) > 0.005, "the excitation moved the pendulum"
+        # balancing all through (the recorder labels a row with the last heartbeat it has: the first
+        # rows of the run may still carry the one from before the arm)
+        states = [int(float(r["state"])) for r in rows]
+        first = states.index(2, 3) if 2 in states[3:] else len(states)
+        assert first < len(states) / 10 and set(states[first:]) == {2}, "balancing all through the excitation"
+    robot.hands.do("pendulum", on=False)  # "take the pendulum off"
+    try:
+        robot.run(cart)
+    finally:
+        robot.hands.do("pendulum", on=True)
+    rows = list(csv.DictReader(open(robot.tmp / "cart.csv")))
+    if _deadline(rows):
+        late.append("excite --cart-only")
+    else:
+        assert not any(int(float(r["faults"])) for r in rows), "no fault during the cart-only excitation"
+        assert sum(r["excite"] == "2" and int(r["duty"]) != 0 for r in rows) > 200, "the PRBS drove the cart"
+    cmd = "upright identify bal.csv cart.csv --params robot.toml --out robot_id.toml"
+    r = subprocess.run(UPRIGHT + robot.argv(cmd), cwd=robot.tmp, capture_output=True, text=True, timeout=300,
+                       env=robot.env)
+    if late:
+        # the right behaviour is asserted above (no fault during an excitation); until issue 23's
+        # fix a `deadline` cuts a run short and the identification has too little to go on
+        pytest.xfail(f"issue 23: the board latched `deadline` during {' and '.join(late)} (a tool's state "
+                     "request made a tick late)")
+    if r.returncode != 0 and "bad parameter" in r.stderr:
+        pytest.xfail("upright identify estimated a robot that does not validate from the virtual robot's short "
+                     "logs (two of eight runs here: I -0.083 and -0.004 kg m^2; b within 1 % all the same) -- the "
+                     f"identification's spread, see the next test; reported with issue 22: {r.stderr.strip()[-200:]}")
+    assert r.returncode == 0, f"{cmd}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
+    IDENT["got"] = got = _truth(load_params(robot.tmp / "robot_id.toml"))
+    IDENT["out"] = r.stdout
+    truth = _truth(plant)
+    # what every run here recovered: the friction and the back-EMF (the coast-down separates them)
+    # within the identify bench's 10 % (host/bench/identify.py), the pot offset to a few counts;
+    # the rest of the bench's goal: the next test
+    for k in ("b", "ke"):
+        assert abs(got[k] / truth[k] - 1) < 0.10, (k, got[k], truth[k], r.stdout)
+    assert abs(got["pot_offset"] - truth["pot_offset"]) <= 2
+
+
+@pytest.mark.xfail(strict=False, reason="measured over eight runs here (b, ke within 9 % in all): kt -28 % .. +6 %, "
+                                        "the delay 8-14 ms for 10 ms, I -71 % .. +3 % (once negative), mL -9 % .. "
+                                        "+280 %: the "
+                                        "emulator gives the identification 2-5 s of board time where the bench uses "
+                                        "30 s and 15 s, the cart barely moves under the README's 1 N (back-EMF "
+                                        "damping 44 N s/m), and upright identify models the delay in whole samples "
+                                        "while the board adds its read-to-drive latency (~0.5-1 ms) -- reported "
+                                        "with issue 22")
+def test_7_identify_recovers_the_plant_within_the_benchs_goal(plant) -> None:
+    got = IDENT.get("got")
+    if got is None:
+        pytest.skip("no identification (the test before failed)")
+    truth = _truth(plant)
+    for k in ("I", "mL", "kt"):
+        assert abs(got[k] / truth[k] - 1) < 0.10, (k, got[k], truth[k], IDENT["out"])
+    assert abs(got["delay"] - truth["delay"]) * plant.rate <= 1 + 1e-9, (got["delay"], IDENT["out"])
+
+
+def test_7_dashboard_step_moves_the_cart(robot: Robot) -> None:
+    from test_dashboard_emulated import _Page, _req, _wait
+
+    robot.hands.do("hold", phi=0.0, until="driving")
+    p = subprocess.Popen(UPRIGHT + robot.argv("upright dashboard --port /dev/ttyUSB0"), cwd=robot.tmp,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=robot.env,
+                         start_new_session=True)
+    page = None
+    try:
+        url = p.stdout.readline().strip()  # type: ignore[union-attr]
+        assert url.startswith("http://127.0.0.1:"), p.stderr.read() if p.poll() is not None else url  # type: ignore[union-attr]
+        page = _Page(url)
+        _req(url + "api/ping", b"{}", page.id)
+        assert _req(url + "api/clear", b"{}", page.id)[0] == 200  # Clear (a fault an earlier step latched)
+        code, body = _req(url + "api/arm", b"{}", page.id)
+        assert code == 200, body
+        _wait(url, lambda s: (s.get("heartbeat") or {}).get("state_name") == "balancing", 120, "balancing")
+        x0 = robot.hands.do("state")["x"]
+        code, body = _req(url + "api/reference", json.dumps({"x": 0.1}).encode(), page.id)
+        assert code == 200, body
+        st = robot.hands.do("wait", seconds=2.5)  # the step settles in about 2 s of board time
+        assert st["driving"] and abs(st["phi"]) < 0.1, st
+        assert abs(st["x"] - x0 - 0.1) < 0.03, (x0, st)  # the cart moved by the step
+        code, body = _req(url + "api/disarm", b"{}", page.id)
+        assert code == 200, body
+    finally:
+        if page is not None:
+            page.close()
+        os.killpg(p.pid, signal.SIGINT)
+        try:
+            p.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def test_8_hil_on_the_board_agrees_with_the_virtual_board(robot: Robot) -> None:
+    cmd = "upright hil --port /dev/ttyUSB0"
+    r = subprocess.run(UPRIGHT + robot.argv(cmd), cwd=robot.tmp, capture_output=True, text=True, timeout=600,
+                       env=robot.env)
+    if r.returncode != 0 and "no answer to" in r.stderr:
+        # the README's way back by hand (step 8), then the known limitation
+        robot.run("upright board --port /dev/ttyUSB0 mode robot")
+        assert json.loads(robot.board("status", "--json").stdout)["state"] == "disarmed"
+        pytest.xfail("hil --port gives its HilSession a fixed 2 s (wall) answer time (host/cli/hil.py has no "
+                     "--timeout): the emulated board under load, re-importing for MODE hil, can take longer -- "
+                     f"reported with issue 22: {r.stderr.strip().splitlines()[-1]}")
+    assert r.returncode == 0, f"{cmd}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
+    v = subprocess.run(UPRIGHT + ["hil", "--virtual", "--scenario", str(robot.tmp / "short_tilt.toml"), "--no-plots",
+                                  "--out", "hil_virtual", "--json", "hil_virtual.json"], cwd=robot.tmp,
+                       capture_output=True, text=True, timeout=600, env=robot.env)
+    assert v.returncode == 0, v.stderr
+    [hp] = json.loads((robot.tmp / "hil_port.json").read_text())
+    [hv] = json.loads((robot.tmp / "hil_virtual.json").read_text())
+    # the same firmware in the same lockstep loop, on the emulated Pico and on the unix port
+    assert hp["passed"] and hv["passed"], (r.stdout, v.stdout)
+    assert hp["phi_max"] == pytest.approx(hv["phi_max"], abs=2e-3), (hp, hv)
+    assert hp["accel_max"] == pytest.approx(hv["accel_max"], rel=0.05), (hp, hv)
+    robot.run("upright board --port /dev/ttyUSB0 mode robot")
+    st = json.loads(robot.board("status", "--json").stdout)
+    assert st["state"] == "disarmed", st
+
+
+def test_every_command_of_the_section_ran() -> None:
+    assert RAN == set(COMMANDS), sorted(set(COMMANDS) - RAN)
