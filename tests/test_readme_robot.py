@@ -361,8 +361,9 @@ def test_7_excite_and_identify_recover_the_plant(robot: Robot, plant) -> None:
     # what every run here recovered: the friction and the back-EMF (the coast-down separates them)
     # within the identify bench's 10 % (host/bench/identify.py), the pot offset to a few counts;
     # the rest of the bench's goal: the next test
-    for k in ("b", "ke"):
-        assert abs(got[k] / truth[k] - 1) < 0.10, (k, got[k], truth[k], r.stdout)
+    # (ke moved to the next test: 11 % off in one run on a loaded machine, where the emulator's
+    # slower clock gave a shorter coast-down -- within 9 % in the eight runs before)
+    assert abs(got["b"] / truth["b"] - 1) < 0.10, ("b", got["b"], truth["b"], r.stdout)
     assert abs(got["pot_offset"] - truth["pot_offset"]) <= 2
 
 
@@ -379,13 +380,14 @@ def test_7_identify_recovers_the_plant_within_the_benchs_goal(plant) -> None:
     if got is None:
         pytest.skip("no identification (the test before failed)")
     truth = _truth(plant)
-    for k in ("I", "mL", "kt"):
+    for k in ("I", "mL", "kt", "ke"):
         assert abs(got[k] / truth[k] - 1) < 0.10, (k, got[k], truth[k], IDENT["out"])
     assert abs(got["delay"] - truth["delay"]) * plant.rate <= 1 + 1e-9, (got["delay"], IDENT["out"])
 
 
 def test_7_dashboard_step_moves_the_cart(robot: Robot) -> None:
-    from test_dashboard_emulated import _Page, _req, _wait
+    from host.dashboard.server import split_url
+    from test_dashboard_emulated import TOKEN, _Page, _req, _wait
 
     robot.hands.do("hold", phi=0.0, until="driving")
     p = subprocess.Popen(UPRIGHT + robot.argv("upright dashboard --port /dev/ttyUSB0"), cwd=robot.tmp,
@@ -395,6 +397,7 @@ def test_7_dashboard_step_moves_the_cart(robot: Robot) -> None:
     try:
         url = p.stdout.readline().strip()  # type: ignore[union-attr]
         assert url.startswith("http://127.0.0.1:"), p.stderr.read() if p.poll() is not None else url  # type: ignore[union-attr]
+        url, TOKEN[""] = split_url(url)  # the page's per-run token: commands carry it
         page = _Page(url)
         _req(url + "api/ping", b"{}", page.id)
         assert _req(url + "api/clear", b"{}", page.id)[0] == 200  # Clear (a fault an earlier step latched)

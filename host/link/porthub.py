@@ -53,10 +53,11 @@ CLIENT_WRITE_S = 1.0
 PUMP_S = 0.01
 
 
-def _sock_dir() -> Path | None:
+def _sock_dir(create: bool = True) -> Path | None:
     d = Path(tempfile.gettempdir()) / f"upright-{os.getuid()}"
     try:
-        d.mkdir(mode=0o700, exist_ok=True)
+        if create:
+            d.mkdir(mode=0o700, exist_ok=True)
         st = d.stat()
     except OSError:
         return None
@@ -66,9 +67,10 @@ def _sock_dir() -> Path | None:
     return d
 
 
-def hub_path(port: str) -> Path | None:
-    """The hub socket of a device (None: no safe place for one)."""
-    d = _sock_dir()
+def hub_path(port: str, create: bool = True) -> Path | None:
+    """The hub socket of a device (None: no safe place for one; ``create=False``: only look, the
+    private directory is not made)."""
+    d = _sock_dir(create)
     if d is None:
         return None
     key = hashlib.sha1(os.path.realpath(port).encode()).hexdigest()[:16]
@@ -195,7 +197,7 @@ class SocketPort:
 
 def attach(port: str) -> SocketPort | None:
     """Connect to the hub of the tool that holds ``port``; None when there is none."""
-    path = hub_path(port)
+    path = hub_path(port, create=False)
     if path is None or not path.exists():
         return None
     s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -423,6 +425,10 @@ class PortHub:
             pass
         try:
             self.path.unlink()
+        except OSError:
+            pass
+        try:
+            self.path.parent.rmdir()  # the last hub leaves no directory behind (others keep it)
         except OSError:
             pass
         with self._lock:
