@@ -52,7 +52,9 @@ def hil(bundle: Path):
 def test_boots_to_a_running_loop_with_heartbeats_on_uart0(hil: EmulatedHil) -> None:
     assert hil.board is not None and hil.board.uart_baud == 1_000_000
     hil._iters.clear()
-    msgs = hil._idle(250_000.0)  # 250 ms of board time: two heartbeats at 100 ms
+    # 320 ms of board time: heartbeats at 100 ms; the loop may first pause between ticks for the
+    # heap samples the set-up's stats requests asked for (motor off: issue 23, ~18 ms each)
+    msgs = hil._idle(320_000.0)
     beats = [m for m, _ in msgs if m.NAME == "heartbeat"]
     assert len(beats) >= 2, msgs
     assert beats[-1].uptime_ms > beats[0].uptime_ms
