@@ -239,12 +239,13 @@ def render_status(st: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _field(name: str) -> Any:
-    # the widest message field of this name in the table (heartbeat, version, stats...)
+def _field(name: str, message: str | None = None) -> Any:
+    # the field of this name in ``message``, or the widest of that name in the table
     from host.link import messages as M
 
     best = None
-    for cls in M.MESSAGES.values():
+    classes = [M.BY_NAME[message]] if message in M.BY_NAME else M.MESSAGES.values()
+    for cls in classes:
         for f in cls.FIELDS:
             if f.name == name and not f.is_raw and (best is None or f.size > best.size):
                 best = f
@@ -272,13 +273,14 @@ def uptime_text(st: dict[str, Any]) -> str:
     best: tuple[int, float, float] | None = None  # (bits, seconds, wrap s)
     full = st.get("board_status", {}).get("uptime_ms")
     if isinstance(full, int):
-        # the board's own figure in full (msgtable STATUS, an int below 2**30 ms: 12.4 days)
-        best = (30, full / 1000.0, float(1 << 30) / 1000.0)
-    for src in (st.get("heartbeat", {}), st.get("identity", {})):
+        # the board's own figure in full (msgtable STATUS, an int below 2**30 ms: 12.4 days): it
+        # wins over any heartbeat field (whose name, uptime_ms, the 32-bit SESSION field shares)
+        return f"uptime {_duration_text(full / 1000.0)}"
+    for msg, src in (("heartbeat", st.get("heartbeat", {})), ("version", st.get("identity", {}))):
         for k, v in src.items():
             if not k.startswith("uptime") or not isinstance(v, (int, float)):
                 continue
-            f = _field(k)
+            f = _field(k, msg)
             if f is None:
                 continue
             unit = {"ms": 1e-3, "s": 1.0, "us": 1e-6}.get(f.unit, 1e-3)
