@@ -180,7 +180,7 @@ def test_recorder_says_whether_anything_moved(tmp_path) -> None:
 def test_uptime_says_where_it_wraps() -> None:
     from host.cli.board import _field, uptime_text
 
-    f = _field("uptime_ms")
+    f = _field("uptime_ms", "heartbeat")  # the heartbeat's own field (SESSION's is 32 bits)
     text = uptime_text({"heartbeat": {"uptime_ms": 1900}, "identity": {}})
     if f.size == 2:  # the heartbeat's 16-bit field: 65 s after boot must not read as a reboot
         assert text == "uptime 1.9 s (mod 65.5 s: the board sends its low 16 bits)", text
