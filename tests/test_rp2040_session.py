@@ -64,6 +64,9 @@ def boots(tmp_path_factory: pytest.TempPathFactory):
         # a MODE switch to HIL and back: the loop restarts, the board does not reset
         up0 = _status(h, T.S_UPTIME_MS)
         h.stall_ms = 1e9  # in HIL mode the lockstep main waits for sensor frames: no paced loop
+        # the switch imports the HIL main: with the flash-cache model (predicted real timing) its
+        # answer takes longer than the 40 ms a command gets
+        h.reply_ms = 250.0
         h.request(M.Mode(mode=T.MODE_HIL))
         h._idle(20_000.0)
         h.request(M.Mode(mode=T.MODE_ROBOT))

@@ -189,7 +189,8 @@ def sweep(hil: EmulatedHil, *, settle_ticks: int = SETTLE_TICKS, steps: Sequence
     assert host is not None
     host.send(arm)
     hil._run((start - b.cycles) / CYCLES_PER_US, None)
-    motor = hil._motor
+    assert hil.pins is not None
+    motor = hil.pins.motor  # the H-bridge pins' state (host.hil.emulated.PinDrive)
     keep = max(1, int(round(hil.keepalive_ms * 1e3 / period_us)))
     tick = [0]
     heard: list[M.Message] = []
