@@ -84,6 +84,7 @@ SHORT_TILT = ('name = "short_tilt"\nduration = 1.0\nseed = 1\n[initial]\nphi = 0
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_readme_commands import ROBOT_COMMANDS as COMMANDS  # noqa: E402 - the section's commands, in order
+from test_readme_commands import BOARD_COMMANDS  # noqa: E402 - the table's board commands (proto dump)
 
 RAN: set[str] = set()
 IDENT: dict[str, object] = {}
@@ -192,6 +193,17 @@ def test_the_section_shows_every_step() -> None:
     for word in ("status", "calibrate", "params set", "params save", "gains upload", " arm", " log ", "excite",
                  "identify", "dashboard", "upright hil --port", "mode robot"):
         assert any(word in c for c in COMMANDS), (word, COMMANDS)
+
+
+def test_proto_dump_shows_the_boards_frames(robot: Robot) -> None:
+    # the command table's `upright proto dump` (default port /dev/ttyUSB0): the robot's port given
+    # positionally, as the command takes it; stopped after 20 messages
+    assert BOARD_COMMANDS == ["upright proto dump"], BOARD_COMMANDS
+    argv = shlex.split(BOARD_COMMANDS[0])[1:] + [robot.port, "--count", "20", "--duration", "120"]
+    r = subprocess.run(UPRIGHT + argv, cwd=robot.tmp, capture_output=True, text=True, timeout=180, env=robot.env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "Traceback" not in r.stderr
+    assert "heartbeat(" in r.stdout and "state=0" in r.stdout, r.stdout[-2000:]
 
 
 def test_2_status_shows_disarmed(robot: Robot) -> None:
