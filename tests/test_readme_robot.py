@@ -300,15 +300,6 @@ def test_7_log_has_every_frame(robot: Robot) -> None:
     assert gaps <= {1, 2}, sorted(gaps)
 
 
-def _deadline(rows: list[dict]) -> bool:
-    # issue 23 (being fixed in the firmware): asking a balancing board for its state (the tools'
-    # stats requests) can make a tick late and latch `deadline`
-    from firmware import msgtable as T
-
-    bit = next(b for b, name, *_ in T.FAULTS if name == "deadline")
-    return any(int(float(r["faults"])) & bit for r in rows)
-
-
 def _truth(plant) -> dict:
     from host.studies.identify import truth_of
 
@@ -329,39 +320,29 @@ def test_7_excite_and_identify_recover_the_plant(robot: Robot, plant) -> None:
     EXTRA[cart] = ["--seconds", f"{max(15.0, min(60.0, CART_BOARD_S / speed)):.0f}",
                                  "--coast", f"{max(30.0, min(90.0, COAST_BOARD_S / speed)):.0f}"]
     robot.run(bal)
-    late: list[str] = []  # runs in which the board latched `deadline` (issue 23)
     rows = list(csv.DictReader(open(robot.tmp / "bal.csv")))
-    if _deadline(rows):
-        late.append("excite")
-    else:
-        assert not any(int(float(r["faults"])) for r in rows), "no fault during the excitation"
-        rows = [r for r in rows if r["excite"] == "1"]
-        phis = [abs(float(r["phi"])) for r in rows]
-        assert len(rows) > 500 and max(phis) > 0.005, "the excitation moved the pendulum"
-        # balancing all through (the recorder labels a row with the last heartbeat it has: the first
-        # rows of the run may still carry the one from before the arm)
-        states = [int(float(r["state"])) for r in rows]
-        first = states.index(2, 3) if 2 in states[3:] else len(states)
-        assert first < len(states) / 10 and set(states[first:]) == {2}, "balancing all through the excitation"
+    # no fault during the excitation -- `deadline` included: a tool asking the balancing board for
+    # its state never makes a tick late (issue 23)
+    assert not any(int(float(r["faults"])) for r in rows), "no fault during the excitation"
+    rows = [r for r in rows if r["excite"] == "1"]
+    phis = [abs(float(r["phi"])) for r in rows]
+    assert len(rows) > 500 and max(phis) > 0.005, "the excitation moved the pendulum"
+    # balancing all through (the recorder labels a row with the last heartbeat it has: the first
+    # rows of the run may still carry the one from before the arm)
+    states = [int(float(r["state"])) for r in rows]
+    first = states.index(2, 3) if 2 in states[3:] else len(states)
+    assert first < len(states) / 10 and set(states[first:]) == {2}, "balancing all through the excitation"
     robot.hands.do("pendulum", on=False)  # "take the pendulum off"
     try:
         robot.run(cart)
     finally:
         robot.hands.do("pendulum", on=True)
     rows = list(csv.DictReader(open(robot.tmp / "cart.csv")))
-    if _deadline(rows):
-        late.append("excite --cart-only")
-    else:
-        assert not any(int(float(r["faults"])) for r in rows), "no fault during the cart-only excitation"
-        assert sum(r["excite"] == "2" and int(r["duty"]) != 0 for r in rows) > 200, "the PRBS drove the cart"
+    assert not any(int(float(r["faults"])) for r in rows), "no fault during the cart-only excitation"
+    assert sum(r["excite"] == "2" and int(r["duty"]) != 0 for r in rows) > 200, "the PRBS drove the cart"
     cmd = "upright identify bal.csv cart.csv --params robot.toml --out robot_id.toml"
     r = subprocess.run(UPRIGHT + robot.argv(cmd), cwd=robot.tmp, capture_output=True, text=True, timeout=300,
                        env=robot.env)
-    if late:
-        # the right behaviour is asserted above (no fault during an excitation); until issue 23's
-        # fix a `deadline` cuts a run short and the identification has too little to go on
-        pytest.xfail(f"issue 23: the board latched `deadline` during {' and '.join(late)} (a tool's state "
-                     "request made a tick late)")
     if r.returncode != 0 and "bad parameter" in r.stderr:
         pytest.xfail("upright identify estimated a robot that does not validate from the virtual robot's short "
                      "logs (two of eight runs here: I -0.083 and -0.004 kg m^2; b within 1 % all the same) -- the "
