@@ -358,7 +358,7 @@ def test_server_serves_the_page_and_guards_its_commands(served: _Served) -> None
 @pytest.mark.parametrize("who", ["no token", "wrong token", "no page", "foreign origin", "foreign host"])
 def test_commands_only_from_the_page_it_served(served: _Served, path: str, who: str) -> None:
     # any other local process (it knows the routes and a page id, not the token) is refused: 403, one line
-    h = {"no token": {TOKEN_HEADER: None}, "wrong token": {TOKEN_HEADER: served.token[:-1] + "A"},
+    h = {"no token": {TOKEN_HEADER: None}, "wrong token": {TOKEN_HEADER: served.token[:-1] + ("B" if served.token.endswith("A") else "A")},
          "no page": {PAGE_HEADER: None}, "foreign origin": {"Origin": "http://127.0.0.1:1"},
          "foreign host": {"Host": "evil.example"}}[who]
     body = b'{"x": 0.1}' if path == "api/reference" else b"{}"

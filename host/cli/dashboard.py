@@ -238,15 +238,18 @@ def _disarm(hub: Any, plant: Any) -> None:
         print(f"upright dashboard: disarm failed: {' '.join(str(exc).split())} "
               "(the board's link watchdog cuts the motor without a host heartbeat)", file=sys.stderr, flush=True)
         return
-    n0 = hub.n
+    from host.dashboard.hub import COLUMNS
+
+    i_state = COLUMNS.index("state")
     t_end = time.monotonic() + _CONFIRM_S
     state = None
     while time.monotonic() < t_end:
         hb = hub.heartbeat or {}
         state = hb.get("state")
         fw = plant.fw_state if plant is not None else None
-        # a telemetry row after the heartbeat, so a recording ends with the disarmed state too
-        if state is not None and state not in armed and (fw is None or fw not in armed) and hub.n > n0:
+        # the last telemetry row shows the disarmed state too, so a recording ends with it
+        last = hub.rows[-1][i_state] if hub.rows else None
+        if state is not None and state not in armed and (fw is None or fw not in armed) and last not in armed:
             break
         time.sleep(0.02)
     from host.link import messages as M
