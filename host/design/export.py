@@ -491,6 +491,14 @@ def render(fd: FixedDesign, source: str = "host/design/export.py") -> str:
         "#",
         f"# Discrete controller: design={c.design}, estimator={est}, Ts={c.Ts:g} s, delay={c.delay_steps} ticks, u_max={c.u_max:.6g} N,",
         f"# K={np.array2string(c.K[0], precision=5, separator=', ')}, kr={c.kr:.6g}, ki={fd.ki:g} N/(m s), deadband={fd.deadband}.",
+    ]
+    ob = getattr(c, "observer", None)
+    if ob is not None:
+        sp = np.log(np.asarray(ob.poles, dtype=complex)) / c.Ts
+        lines.append("# Reduced-order observer of xdot, phidot: continuous poles "
+                     + ", ".join(f"{v.real:.4g}" + (f"{v.imag:+.4g}j" if abs(v.imag) > 1e-9 else "") for v in sp)
+                     + f" rad/s, Lr={np.array2string(ob.Lr.ravel(), precision=5, separator=', ')}.")
+    lines += [
         "# Formats (LSB in SI units): " + ", ".join(f"{k}={v:.6g}" for k, v in fd.lsb.items()),
         "# " + ", ".join(f"{k}={v}" for k, v in fd.fmt.items()) + " (x = enc << QX, phi = adc << QP, others 2**-E).",
         "#",
