@@ -171,7 +171,12 @@ def filter_gain(ctrl: DiscreteController) -> tuple[np.ndarray, int]:
     if isinstance(ctrl, ReducedOrderController):
         ob = ctrl.observer
         return ob.Sy + ob.Sw @ ob.Lr, EST_REDUCED
-    return np.asarray(ctrl.M, dtype=float), EST_FULL
+    M = np.asarray(ctrl.M, dtype=float)
+    if ctrl.design == "reduced":  # ReducedOrderController.firmware_form()
+        if not np.array_equal(M[[0, 2], :], np.eye(2)):
+            raise ValueError("a reduced-order controller's filter rows of x and phi must be the identity")
+        return M, EST_REDUCED
+    return M, EST_FULL
 
 
 @dataclass(frozen=True)
