@@ -171,7 +171,9 @@ class ReducedOrderController(DiscreteController):
     """:class:`DiscreteController` whose estimator is a reduced-order observer.
 
     Controller state ``[z (2), b_0 .. b_{d-1}]``; the ``M`` attribute holds ``Lr`` and
-    :attr:`observer` the discrete :class:`ReducedObserver`.
+    :attr:`observer` the discrete :class:`ReducedObserver`.  The scenario and batch simulators
+    (:func:`sim.plantsim.run_scenario_float`, :mod:`sim.batch`) read the full estimator's
+    structure (``M`` (4, 2), the tilt estimate at ``z[2]``): give them :meth:`firmware_form`.
     """
 
     observer: ReducedObserver
