@@ -13,8 +13,6 @@ unknown estimator is refused.  Wall time about 15 s.
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +27,6 @@ from host.design.export import EST_FULL, EST_REDUCED, SMALL_MAX, VERSION, export
 from host.design.reduced import REDUCED_POLES_DEFAULT, reduced_for
 from sim.params import load_params
 
-ROOT = Path(__file__).resolve().parents[1]
 P = load_params()
 FULL = controller_ss(P)
 RED = reduced_for(P, FULL)
@@ -200,19 +197,23 @@ def test_unknown_estimator_is_refused() -> None:
     assert c.validate(t, len(t), VERSION) == T.R_BAD_SHAPE
 
 
-def test_cli_export_reduced(tmp_path: Path) -> None:
+def test_cli_export_reduced(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from host.cli.main import main
+
     out = tmp_path / "g.py"
-    r = subprocess.run([sys.executable, "-m", "host.cli.main", "export", "--estimator", "reduced", "--out", str(out)],
-                       cwd=ROOT, capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0, r.stderr
+    assert main(["export", "--estimator", "reduced", "--out", str(out)]) == 0
     text = out.read_text()
     assert "estimator=reduced-order observer" in text and "continuous poles -5, -4 rad/s" in text
     ns: dict = {}
     exec(compile(text, str(out), "exec"), ns)
     assert list(ns["FLAT"]) == FD.flat()
+    capsys.readouterr()
     for argv, word in ((["--reduced-poles=-5,-6"], "--estimator reduced"),
                        (["--estimator", "reduced", "--reduced-poles=1,-6"], "--reduced-poles"),
                        (["--estimator", "reduced", "--observer", "2"], "--observer")):
-        r = subprocess.run([sys.executable, "-m", "host.cli.main", "export", *argv], cwd=ROOT, capture_output=True,
-                           text=True, timeout=120)
-        assert r.returncode == 2 and word in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        try:
+            rc = main(["export", *argv])
+        except SystemExit as exc:  # argparse's own refusals
+            rc = exc.code
+        err = capsys.readouterr().err
+        assert rc == 2 and word in err and len(err.strip().splitlines()) == 1, err
