@@ -22,6 +22,12 @@
 # so nothing else changes.  Tracking -> catch when |p_phi| > CATCH[0] (phi LSB; 0: off);
 # catch -> tracking only once |p_phi| < CATCH[1], |p_phidot| < CATCH[8] (hysteresis) AND the rows, evaluated
 # on the same (p, b, r), differ by at most CATCH[2] (u LSB): the hand-back is bumpless.
+#
+# Estimator per table (issue 27 item 3; host/design/export.py filter_gain): EST 0 is the full
+# (Kalman) filter above; EST 1 the reduced-order observer in the same predictor-corrector
+# form: x and phi are the measurements (xf0 = y_x, xf2 = y_phi: the filter rows of x and phi,
+# the identity in the table, are skipped), xdot and phidot are corrected by Lr (M rows 1, 3),
+# and p keeps the prediction of the measured states, which carries the Gopinath z = p_w - Lr p_y.
 
 try:
     from micropython import const
@@ -124,6 +130,7 @@ class Controller:
         self.bump = 0  # force difference of the two rows at the latest hand-back (u LSB)
         self.skv = 0
         self.hkv = 0
+        self.est = 0  # estimator: 0 full, 1 reduced-order (x, phi from the sensors)
         self.integ = 0
         self.u = 0
         self.u_raw = 0
@@ -195,6 +202,7 @@ class Controller:
         self._use(False)
         self.skv = t[o["SKV"]]
         self.hkv = (1 << (self.skv - 1)) if self.skv > 0 else 0
+        self.est = t[o["EST"]]
         self.reset(0, 0)
 
     def _start(self, s):
@@ -222,6 +230,8 @@ class Controller:
         if n != self.length or t[o["HDR"] + 2] != n:
             return R_BAD_LENGTH
         if t[o["HDR"]] != version or t[o["HDR"] + 1] != self.d:
+            return R_BAD_SHAPE
+        if t[o["EST"]] != 0 and t[o["EST"]] != 1:
             return R_BAD_SHAPE
         lim = o["LIM"]
         for i in range(4):
@@ -440,12 +450,16 @@ class Controller:
         rf = self.rf
         ex = yx - p[0]
         ep = yp - p[2]
-        # filter: xf = p + M e
+        est = self.est
+        # filter: xf = p + M e (est 1, the reduced-order observer: x and phi are the measurements)
         l = lim[0]
-        a = m[0] * ex + m[1] * ep + rf[0]
-        q = a >> sm[0]
-        rf[0] = a - (q << sm[0])
-        x0 = p[0] + q
+        if est:
+            x0 = yx
+        else:
+            a = m[0] * ex + m[1] * ep + rf[0]
+            q = a >> sm[0]
+            rf[0] = a - (q << sm[0])
+            x0 = p[0] + q
         if x0 > l:
             x0 = l
         elif x0 < -l:
@@ -460,10 +474,13 @@ class Controller:
         elif x1 < -l:
             x1 = -l
         l = lim[2]
-        a = m[4] * ex + m[5] * ep + rf[2]
-        q = a >> sm[2]
-        rf[2] = a - (q << sm[2])
-        x2 = p[2] + q
+        if est:
+            x2 = yp
+        else:
+            a = m[4] * ex + m[5] * ep + rf[2]
+            q = a >> sm[2]
+            rf[2] = a - (q << sm[2])
+            x2 = p[2] + q
         if x2 > l:
             x2 = l
         elif x2 < -l:

@@ -41,12 +41,16 @@ def step_native(c, yx, yp, r):
     rf = c.rf
     ex = yx - p[0]
     ep = yp - p[2]
-    # filter: xf = p + M e
+    est = c.est
+    # filter: xf = p + M e (est 1, the reduced-order observer: x and phi are the measurements)
     l = lim[0]
-    a = m[0] * ex + m[1] * ep + rf[0]
-    q = a >> sm[0]
-    rf[0] = a - (q << sm[0])
-    x0 = p[0] + q
+    if est:
+        x0 = yx
+    else:
+        a = m[0] * ex + m[1] * ep + rf[0]
+        q = a >> sm[0]
+        rf[0] = a - (q << sm[0])
+        x0 = p[0] + q
     if x0 > l:
         x0 = l
     elif x0 < -l:
@@ -61,10 +65,13 @@ def step_native(c, yx, yp, r):
     elif x1 < -l:
         x1 = -l
     l = lim[2]
-    a = m[4] * ex + m[5] * ep + rf[2]
-    q = a >> sm[2]
-    rf[2] = a - (q << sm[2])
-    x2 = p[2] + q
+    if est:
+        x2 = yp
+    else:
+        a = m[4] * ex + m[5] * ep + rf[2]
+        q = a >> sm[2]
+        rf[2] = a - (q << sm[2])
+        x2 = p[2] + q
     if x2 > l:
         x2 = l
     elif x2 < -l:
@@ -197,12 +204,16 @@ def step_viper(c, yx: int, yp: int, r: int) -> int:
     rf = ptr32(c.rf)
     ex = yx - (((p[0] + sb) & msk) - sb)
     ep = yp - (((p[2] + sb) & msk) - sb)
-    # filter: xf = p + M e
+    est = int(c.est)
+    # filter: xf = p + M e (est 1, the reduced-order observer: x and phi are the measurements)
     l = (((lim[0] + sb) & msk) - sb)
-    a = (((m[0] + sb) & msk) - sb) * ex + (((m[1] + sb) & msk) - sb) * ep + (((rf[0] + sb) & msk) - sb)
-    q = a >> (((sm[0] + sb) & msk) - sb)
-    rf[0] = a - (q << (((sm[0] + sb) & msk) - sb))
-    x0 = (((p[0] + sb) & msk) - sb) + q
+    if est:
+        x0 = yx
+    else:
+        a = (((m[0] + sb) & msk) - sb) * ex + (((m[1] + sb) & msk) - sb) * ep + (((rf[0] + sb) & msk) - sb)
+        q = a >> (((sm[0] + sb) & msk) - sb)
+        rf[0] = a - (q << (((sm[0] + sb) & msk) - sb))
+        x0 = (((p[0] + sb) & msk) - sb) + q
     if x0 > l:
         x0 = l
     elif x0 < -l:
@@ -217,10 +228,13 @@ def step_viper(c, yx: int, yp: int, r: int) -> int:
     elif x1 < -l:
         x1 = -l
     l = (((lim[2] + sb) & msk) - sb)
-    a = (((m[4] + sb) & msk) - sb) * ex + (((m[5] + sb) & msk) - sb) * ep + (((rf[2] + sb) & msk) - sb)
-    q = a >> (((sm[2] + sb) & msk) - sb)
-    rf[2] = a - (q << (((sm[2] + sb) & msk) - sb))
-    x2 = (((p[2] + sb) & msk) - sb) + q
+    if est:
+        x2 = yp
+    else:
+        a = (((m[4] + sb) & msk) - sb) * ex + (((m[5] + sb) & msk) - sb) * ep + (((rf[2] + sb) & msk) - sb)
+        q = a >> (((sm[2] + sb) & msk) - sb)
+        rf[2] = a - (q << (((sm[2] + sb) & msk) - sb))
+        x2 = (((p[2] + sb) & msk) - sb) + q
     if x2 > l:
         x2 = l
     elif x2 < -l:

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
 from host.cli import args as A
 from host.design.discrete import A_CMD_DEFAULT, OBSERVER_DEFAULT, controller_ss
-from host.design.export import V_LIMIT, W_LIMIT, export, render
+from host.design.export import ESTIMATORS, V_LIMIT, W_LIMIT, export, render
+from host.design.reduced import REDUCED_POLES_DEFAULT, reduced_for
 from sim.params import load_params
 
 
@@ -37,6 +39,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--observer", type=A.positive, default=None,
                         help=f"estimator speed factor (> 1 trusts the sensors more; default {OBSERVER_DEFAULT:g}, "
                              "the shipped design's)")
+    parser.add_argument("--estimator", choices=tuple(ESTIMATORS), default="full",
+                        help="full: the Kalman filter of the four states (default, the shipped table); reduced: the "
+                             "reduced-order observer of xdot and phidot, x and phi straight from the sensors "
+                             "(docs/design.md)")
+    parser.add_argument("--reduced-poles", type=_poles, default=None, metavar="P1,P2",
+                        help="continuous poles of the reduced-order observer, rad/s (default "
+                             + ",".join(f"{v:g}" for v in REDUCED_POLES_DEFAULT) + "; with --estimator reduced)")
+
+
+def _poles(text: str) -> tuple[complex, complex]:
+    # "P1,P2": two stable poles (a real pair or a conjugate pair such as -5+2j,-5-2j)
+    try:
+        vals = tuple(complex(w.strip().replace(" ", "")) for w in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected two poles P1,P2, got {text!r}") from None
+    if len(vals) != 2 or not all(math.isfinite(v.real) and math.isfinite(v.imag) and v.real < 0 for v in vals):
+        raise argparse.ArgumentTypeError(f"expected two stable poles (negative real part) P1,P2, got {text!r}")
+    if vals[0].imag != 0 and vals[0] != vals[1].conjugate():
+        raise argparse.ArgumentTypeError(f"complex poles come in conjugate pairs, got {text!r}")
+    return vals[0], vals[1]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,7 +76,14 @@ def run(args: argparse.Namespace) -> int:
     kw: dict[str, object] = {} if args.noise is None else {"sigma_meas": tuple(args.noise)}
     if args.observer is not None:
         kw["observer"] = args.observer
+    if args.estimator != "reduced" and args.reduced_poles is not None:
+        raise A.UsageError("--reduced-poles: the poles of the reduced-order observer need --estimator reduced")
+    if args.estimator == "reduced" and (args.noise is not None or args.observer is not None):
+        raise A.UsageError("--noise/--observer design the Kalman filter: they do not apply to --estimator reduced "
+                           "(its poles: --reduced-poles)")
     c = controller_ss(p, rate=args.rate, design=args.design, Q=args.Q, R=args.R, u_max=args.u_max, **kw)
+    if args.estimator == "reduced":
+        c = reduced_for(p, c, args.reduced_poles)
     fd = export(p, c, ki=args.ki, deadband=args.deadband, v_limit=args.v_limit, w_limit=args.w_limit)
     text = render(fd)
     if args.out:

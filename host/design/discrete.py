@@ -77,6 +77,7 @@ from sim.plant import dynamics, linear_model, rk4_step
 __all__ = [
     "DiscreteController",
     "controller_ss",
+    "assemble",
     "discretise",
     "delay_steps",
     "force_limit",
@@ -390,6 +391,20 @@ def controller_ss(
     if not umax > 0:
         raise ValueError(f"u_max must be > 0, got {umax}")
 
+    return assemble(Ad, Bd, C, Ts, d, Kd, M, kr, umax, design)
+
+
+def assemble(Ad: np.ndarray, Bd: np.ndarray, C: np.ndarray, Ts: float, d: int, Kd: np.ndarray, M: np.ndarray,
+             kr: float, umax: float, design: str) -> DiscreteController:
+    """The firmware's controller structure (module docstring) from its pieces.
+
+    Filter gain ``M`` (4, 2) on the delayed measurement, predictor over ``d`` stored forces,
+    state feedback ``Kd`` (1, 4), precompensator ``kr``, clamp ``umax``.  Used by
+    :func:`controller_ss` (``M`` the Kalman gain) and by the reduced-order observer's firmware
+    form (:meth:`host.design.reduced.ReducedOrderController.firmware_form`).
+    """
+    Kd = np.asarray(Kd, dtype=float).reshape(1, 4)
+    M = np.asarray(M, dtype=float).reshape(4, 2)
     Phi = np.linalg.matrix_power(Ad, d)
     Kf = Kd @ Phi  # (1, 4)
     kb = np.array([(Kd @ np.linalg.matrix_power(Ad, d - 1 - i) @ Bd)[0, 0] for i in range(d)])

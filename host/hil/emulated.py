@@ -250,6 +250,7 @@ class EmulatedHil:
         self.host: _HostSide | None = None
         self.boot_wall_s = 0.0
         self._table_key: Any = (None, None)
+        self._custom: tuple[bytes, str] | None = None  # use_gains()
         self.gains = "firmware default"
         self.pins: PinDrive | None = None
         self._iters: list[tuple[int, int]] = []
@@ -377,11 +378,21 @@ class EmulatedHil:
         raise HilError(f"the board did not answer {msg.NAME} within {self.reply_ms:g} ms of board time "
                        f"({retries + 1} attempts)\n{self._tail()}")
 
+    def use_gains(self, blob: bytes | None, label: str = "custom table") -> None:
+        """Run the following scenarios with this gain table (as :meth:`host.hil.session.HilSession.use_gains`).
+
+        ``blob`` is an exported table (``host.design.export.export(...).blob()``), uploaded by the
+        next run; ``None`` gives the design's tables (with the scenario's noise adjustments) back.
+        """
+        self._custom = None if blob is None else (bytes(blob), str(label))
+
     def _ensure_gains(self, scenario: Scenario, params: RobotParams) -> None:
-        key = (encoder_jump_limit(scenario, params), design_noise(scenario, params))
+        custom = self._custom
+        key: Any = ("custom", custom) if custom is not None else (encoder_jump_limit(scenario, params),
+                                                                    design_noise(scenario, params))
         if key == self._table_key:
             return
-        blob, label = gain_table(*key)
+        blob, label = custom if custom is not None else gain_table(*key)
         token = self.request(M.BY_NAME["request"](msg_id=T.SESSION)).token  # the upload's session
         self.request(M.BY_NAME["gains_begin"](nbytes=len(blob), crc=M.crc16(blob), token=token))
         n = T.CHUNK_BYTES
