@@ -6,7 +6,9 @@ expected.  Long ones get short settings added (:data:`SHORTEN`, the reason next 
 the ones that cannot run here are in :data:`SKIP`, each with its reason -- a README command
 in neither list is run as it stands.  The section "On a real robot" runs in
 tests/test_readme_robot.py instead, against one virtual robot (:data:`ROBOT_COMMANDS`: its
-commands, the port substituted; none is skipped for want of a board).
+commands, the port substituted; none is skipped for want of a board), but for its commands for
+a board whose link is on its USB (:data:`USB_LINK`: ``mode repl``), run here against
+``upright emulate rp2040 --pty --link usb`` (the emulated Pico's USB CDC port on a pty).
 """
 
 from __future__ import annotations
