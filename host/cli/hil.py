@@ -16,6 +16,11 @@ runs the scenarios and sends ``mode robot`` at the end::
 
     upright hil --port /dev/ttyUSB0 --scenario tilt_0p3
 
+It waits up to ``--answer-timeout`` (10 s) for the board's first answer, then measures the
+board's clock against the wall's and waits 2 s per answer scaled by it (an emulated Pico, the
+virtual robot of ``upright emulate rp2040 --pty``, runs at 0.05-0.4x real time); ``--timeout``
+fixes the answer time instead.
+
 Writes ``<out>/<scenario>.csv``, ``.png`` and ``.gif`` per scenario and prints a summary
 table with PASS/FAIL per constraint; the exit status is 1 if a check came out differently
 from the scenario's ``[expect]`` or the HIL run left the float pure simulation by more
