@@ -295,7 +295,9 @@ class PlantSim:
         mLg = mL * g
         fu = self._a_duty * self._duty_eff(duty)
         ce = self._c_emf
-        v0 = fu / ce  # the motor's no-load speed (m/s of cart travel): its force is ce * (v0 - xdot)
+        # the motor's no-load speed (m/s of cart travel): its force is ce * (v0 - xdot); with the
+        # bridge off (ce 0: step(driven=0)) no current, no force, and the play does not move
+        v0 = fu / ce if ce > 0.0 else math.nan
         hp = self._half_play
         fric, fc, fs = self._fric, self._fc, self._fs
         dist = self._dist if self._has_dist else None
@@ -349,7 +351,7 @@ class PlantSim:
             if fric and not stuck and xd * self._dir <= 0.0:
                 xd = 0.0  # the sliding cart stopped during the sub-step: static friction holds it
                 self._stuck = True
-            if hp > 0.0:
+            if hp > 0.0 and ce > 0.0:
                 d = self._delta + h * v0 - (x - x_old)
                 self._delta = hp if d > hp else (-hp if d < -hp else d)
             if self.ground_stop and abs(ph) >= _HALF_PI:
@@ -412,7 +414,7 @@ class PlantSim:
         """Cart position reference at the current tick (m)."""
         return self.scenario.reference.at(self.t)
 
-    def step(self, duty: int, *, u_cmd: float = math.nan, u_sat: float = math.nan) -> None:
+    def step(self, duty: int, *, u_cmd: float = math.nan, u_sat: float = math.nan, driven: float = 1.0) -> None:
         """Apply ``duty`` for one control period and advance to the next tick.
 
         Parameters
@@ -422,7 +424,19 @@ class PlantSim:
             the bridge (the log keeps what was commanded).
         u_cmd, u_sat : float, optional
             The controller's force command before/after saturation, logged if known.
+        driven : float
+            Fraction of the tick the H-bridge was enabled (its EN pin high; default 1).  Enabled,
+            it applies the duty and brakes through the back-EMF current at duty 0 (slow decay);
+            disabled (EN low) its outputs are off: no current, the motor coasts.
         """
+        if driven != 1.0:
+            ce = self._c_emf
+            self._c_emf = ce * min(1.0, max(0.0, float(driven)))
+            try:
+                PlantSim.step(self, duty if driven > 0.0 else 0, u_cmd=u_cmd, u_sat=u_sat)
+            finally:
+                self._c_emf = ce
+            return
         d = min(max(int(duty), -motor.DUTY_MAX), motor.DUTY_MAX)
         t = self.t
         x = self._x

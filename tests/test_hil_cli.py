@@ -60,3 +60,37 @@ def test_demo_runs_and_writes_an_index(tmp_path: Path, monkeypatch, capsys) -> N
     assert "demo_short" in out and "index.html" in out
     page = (tmp_path / "demo" / "index.html").read_text()
     assert "demo_short.gif" in page and "demo_short.png" in page
+
+
+def test_hil_port_that_never_answers_is_one_line_naming_the_wait(tmp_path: Path) -> None:
+    # a real pty with nothing behind it (the test holds the other end): the first answer is
+    # waited for --answer-timeout seconds, then one line naming the port and the flag
+    import os
+    import pty
+
+    master, slave = pty.openpty()
+    try:
+        name = os.ttyname(slave)
+        r = _cli("hil", "--port", name, "--answer-timeout", "0.5", "--scenario", "tilt_0p1", "--out", str(tmp_path),
+                 "--quiet")
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert r.returncode == 1, r.stderr
+    err = r.stderr.strip()
+    assert "Traceback" not in err and len(err.splitlines()) == 1, err
+    assert f"no answer from {name} within 0.5 s (--answer-timeout)" in err, err
+
+
+@pytest.mark.parametrize("flag", ["--timeout", "--answer-timeout"])
+def test_hil_answer_times_refuse_nonsense(flag: str, tmp_path: Path) -> None:
+    r = _cli("hil", "--virtual", flag, "0", "--out", str(tmp_path))
+    assert r.returncode == 2 and flag in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_the_answer_time_follows_the_boards_speed() -> None:
+    from host.hil.answer_time import BASE_S, MAX_S, answer_time
+
+    assert answer_time(1.0) == BASE_S and answer_time(3.0) == BASE_S  # a board at full speed: 2 s
+    assert answer_time(0.1) == pytest.approx(10 * BASE_S)  # the emulated Pico at 0.1x: 20 s
+    assert answer_time(0.0) == MAX_S and answer_time(1e-6) == MAX_S  # a clock that stands still: bounded

@@ -6,7 +6,9 @@ expected.  Long ones get short settings added (:data:`SHORTEN`, the reason next 
 the ones that cannot run here are in :data:`SKIP`, each with its reason -- a README command
 in neither list is run as it stands.  The section "On a real robot" runs in
 tests/test_readme_robot.py instead, against one virtual robot (:data:`ROBOT_COMMANDS`: its
-commands, the port substituted; none is skipped for want of a board).
+commands, the port substituted; none is skipped for want of a board), but for its commands for
+a board whose link is on its USB (:data:`USB_LINK`: ``mode repl``), run here against
+``upright emulate rp2040 --pty --link usb`` (the emulated Pico's USB CDC port on a pty).
 """
 
 from __future__ import annotations
@@ -32,9 +34,13 @@ SKIP: dict[str, str] = {
                                     "test_emulate_can_serves_board_status_over_udp_multicast runs upright board on it",
     "upright generate": "rewrites the repository's tracked generated files; the `--check` form is run, "
                         "and tests/test_generated.py renders every file",
-    "upright board --port /dev/ttyACM0 mode repl": "needs a board on its USB serial; tests/test_rp2040_modes.py::"
-                                                   "test_usb_link_heartbeat_mode_hil_and_back_to_the_repl",
 }
+
+# README commands for a board whose link is on its USB (the section's "The link on the Pico's USB"):
+# run by test_readme_usb_link_commands against `upright emulate rp2040 --pty --link usb`, the
+# board's USB CDC port on a pty in place of SHOWN_USB
+USB_LINK = ["upright board --port /dev/ttyACM0 mode repl"]
+SHOWN_USB = "/dev/ttyACM0"
 
 # command prefix -> arguments added to keep the test short (the reason in the comment)
 SHORTEN: dict[str, list[str]] = {
@@ -102,7 +108,7 @@ def robot_commands(text: str | None = None) -> list[str]:
     text = README.read_text() if text is None else text
     start = text.index(ROBOT_SECTION)
     end = text.find("\n## ", start + len(ROBOT_SECTION))
-    return [c for c in readme_commands(text[start:end if end >= 0 else None]) if c not in SKIP]
+    return [c for c in readme_commands(text[start:end if end >= 0 else None]) if c not in SKIP and c not in USB_LINK]
 
 
 ROBOT_COMMANDS = robot_commands()
@@ -117,12 +123,14 @@ def test_the_readme_shows_commands() -> None:
               "upright report seed", "upright report seed --json", "upright design --out outdir"):
         assert c in COMMANDS, COMMANDS
     assert set(SKIP) <= set(COMMANDS), "a skip for a command the README no longer shows"
+    assert set(USB_LINK) <= set(COMMANDS), "a USB-link command the README no longer shows"
     # the robot section's commands are run elsewhere, all of them (tests/test_readme_robot.py)
     assert "upright board --port /dev/ttyUSB0 calibrate --out robot.toml" in ROBOT_COMMANDS
     assert "upright hil --port /dev/ttyUSB0" in ROBOT_COMMANDS and len(ROBOT_COMMANDS) >= 14, ROBOT_COMMANDS
 
 
-@pytest.mark.parametrize("cmd", [c for c in COMMANDS if c not in ROBOT_COMMANDS and c not in BOARD_COMMANDS])
+@pytest.mark.parametrize("cmd", [c for c in COMMANDS if c not in ROBOT_COMMANDS and c not in BOARD_COMMANDS
+                                 and c not in USB_LINK])
 def test_readme_command_works_as_shown(cmd: str, tmp_path: Path) -> None:
     if cmd in SKIP:
         pytest.skip(SKIP[cmd])
@@ -207,3 +215,63 @@ def test_readme_decode_example_is_its_encode_example() -> None:
                        text=True, timeout=120, cwd=ROOT)
     assert r.returncode == 0, r.stderr
     assert r.stdout.split()[0] == dec.split()[-1], (enc, r.stdout, dec)
+
+
+@pytest.mark.slow
+@pytest.mark.rp2040
+def test_readme_usb_link_commands(tmp_path: Path) -> None:
+    """The README's USB-link commands (``mode repl``) on the emulated Pico with its host link on USB.
+
+    ``upright emulate rp2040 --pty --link usb`` serves the board's USB CDC port (the Pico's
+    micro-USB, /dev/ttyACM0 on a real one) on a pty; the command runs with that pty for
+    :data:`SHOWN_USB`, and the README's promise is checked: the port is handed back to
+    MicroPython's REPL (Ctrl-C gives its prompt, it runs a line), ready for ``make flash``.
+    About 60-90 s of wall time (the boot, the board's 2 s REPL window at 0.1-0.2x real time).
+    """
+    import os
+    import shutil
+    import signal
+    import time
+
+    import serial
+
+    from host.boards.rp2040.board import FIRMWARE
+
+    if shutil.which("node") is None or not (ROOT / "node_modules" / "rp2040js").is_dir() or not FIRMWARE.is_file():
+        pytest.skip("the emulated RP2040 is not set up (make setup, make rp2040)")
+    env = dict(os.environ, TMPDIR=str(tmp_path))
+    p = subprocess.Popen([sys.executable, "-m", "host.cli.main", "emulate", "rp2040", "--pty", "--link", "usb"],
+                         cwd=tmp_path, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True, env=env, start_new_session=True)
+    try:
+        usb = p.stdout.readline().strip()  # type: ignore[union-attr]
+        uart = p.stdout.readline().strip()  # type: ignore[union-attr]
+        assert usb.startswith("/dev/pts/") and uart.startswith("/dev/pts/") and usb != uart, (
+            p.stderr.read() if p.poll() is not None else (usb, uart))  # type: ignore[union-attr]
+        for cmd in USB_LINK:
+            assert cmd in COMMANDS, f"README.md no longer shows: {cmd}"
+            argv = shlex.split(cmd.replace(SHOWN_USB, usb))[1:]
+            # the emulated board's clock runs 3-10x slower than the wall's (as tests/test_readme_robot.py)
+            argv[3:3] = ["--timeout", "3", "--answer-timeout", "60"]
+            r = subprocess.run([sys.executable, "-m", "host.cli.main", *argv], cwd=tmp_path, capture_output=True,
+                               text=True, timeout=300, env=env)
+            assert r.returncode == 0 and "Traceback" not in r.stderr, f"{cmd}\n{r.stdout}\n{r.stderr}"
+        # the port is MicroPython's REPL again: Ctrl-C gives its prompt, and it runs a line
+        with serial.Serial(usb, 115200, timeout=0.5) as s:
+            def until(marker: bytes, wall: float = 60.0) -> bytes:
+                got, t0 = b"", time.monotonic()
+                while marker not in got and time.monotonic() - t0 < wall:
+                    got += s.read(256)
+                return got
+
+            s.write(b"\r\x03\x03")
+            assert b">>> " in until(b">>> "), "no REPL prompt after mode repl"
+            s.write(b"print(6 * 7)\r")
+            assert b"\r\n42\r\n" in until(b"\r\n42\r\n"), "the REPL did not run the line"
+        os.killpg(p.pid, signal.SIGTERM)
+        assert p.wait(timeout=60) == 0, p.stderr.read()  # type: ignore[union-attr]
+        assert list(tmp_path.iterdir()) == [], "temporary files left behind"
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()

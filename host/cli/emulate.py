@@ -5,12 +5,19 @@ Starts the firmware bundle on the emulated RP2040 (rp2040js, MicroPython's rp2 p
 as after ``make flash``), closes the simulated robot around its pins (``--plant FILE``, default
 ``sim/robot.toml``: :mod:`host.hil.virtual_robot` -- the plant of ``hil --emulate``, stepped
 with the board's own emulated clock), bridges its host link (UART0, 1 Mbaud) to a new
-pseudo-terminal and prints the port's path on stdout (one line).  Every tool that takes
-``--port`` then works against it as against a robot on ``/dev/ttyUSB0``::
+pseudo-terminal and its USB CDC port (the Pico's micro-USB: MicroPython's REPL) to a second one,
+and prints the two paths on stdout, the host link's first.  Every tool that takes ``--port``
+then works against it as against a robot on ``/dev/ttyUSB0``::
 
     $ upright emulate rp2040 --pty
     /dev/pts/7
+    /dev/pts/8
     $ upright board --port /dev/pts/7 calibrate --out robot.toml   # in another terminal
+
+With ``--link usb`` the board runs its host link on the USB CDC port instead (``LINK = "usb"``
+in ``firmware/board.py``; the bundle is unchanged, its ``main.py`` calls
+``main.main(link="usb")``): the first path is then the USB one, as ``/dev/ttyACM0``, and
+``upright board --port /dev/pts/7 mode repl`` hands it back to the REPL.
 
 The pendulum starts upright at rest, held by the robot's stand-by person until the board
 balances (then let go), and caught again when the motor goes off (a disarm, a fault).  What else a
@@ -70,6 +77,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--can-interface", type=can_interface, default="udp_multicast", metavar="NAME",
                         help="python-can interface of --can: udp_multicast (default; other processes on this "
                              "machine), socketcan (a vcan/can interface), ... -- not virtual (one process only)")
+    parser.add_argument("--link", choices=("uart", "usb"), default=None,
+                        help="--pty: the board's host link, UART0 (default: firmware/board.py LINK) or its USB CDC "
+                             "port (LINK = \"usb\": the link on the Pico's micro-USB, /dev/ttyACM0 on a real one)")
     parser.add_argument("--plant", metavar="TOML", default=None,
                         help="the simulated robot on the board's pins: a robot TOML or a name from sim/plants/ "
                              "(default sim/robot.toml, the design the firmware ships for)")
@@ -178,28 +188,47 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--bundle: {bundle} holds no main.py (make firmware writes one)")
     robot = _robot(args)
     with _Stop() as stop:
-        status = _serve_can(args, bundle, robot, stop) if args.can is not None else _serve_pty(bundle, robot, stop)
+        if args.can is not None and args.link is not None:
+            raise UsageError("--link: with --can the board's host link is its CAN bus (MCP2515 on SPI1)")
+        status = (_serve_can(args, bundle, robot, stop) if args.can is not None
+                  else _serve_pty(bundle, robot, stop, args.link or _board_link()))
     if stop.signum == signal.SIGINT:
         raise KeyboardInterrupt  # Ctrl-C: "interrupted", exit status 130 as every command (SIGTERM: 0)
     return status
 
 
-def _serve_pty(bundle: Path | None, robot: Any, stop: _Stop) -> int:
-    """``--pty``: the board's UART0 on a new pty, the robot on its pins, until a stop signal."""
+def _board_link() -> str:
+    # firmware/board.py LINK, as the board reads it ("uart0" is "uart"; "can" has its own flag)
+    from firmware import board as fb
+
+    link = str(getattr(fb, "LINK", "uart"))
+    return "usb" if link == "usb" else "uart"
+
+
+def _serve_pty(bundle: Path | None, robot: Any, stop: _Stop, link: str = "uart") -> int:
+    """``--pty``: the board's UART0 and USB CDC port each on a new pty, the robot on its pins,
+    until a stop signal; stdout: the host link's pty, then the other one."""
     from host.boards.rp2040.board import BoardError
     from host.boards.rp2040.bridge import PtyBridge
 
-    print("upright emulate: booting the emulated RP2040 (main.py)...", file=sys.stderr, flush=True)
+    where = "the host link on USB: main.main(link='usb')" if link == "usb" else "main.py"
+    print(f"upright emulate: booting the emulated RP2040 ({where})...", file=sys.stderr, flush=True)
     try:
-        bridge = PtyBridge(bundle, adc=robot.plant.read()[0])
+        bridge = PtyBridge(bundle, adc=robot.plant.read()[0], link=link)
     except BoardError as exc:
         return 0 if stop.stopped() else _board_failed(exc)
     try:
         if stop():
             return 0
-        print(bridge.port, flush=True)
-        print(f"upright emulate: host link (UART0, {bridge.board.uart_baud} baud) on {bridge.port}; "
-              f"{_how_to_stop()}", file=sys.stderr, flush=True)
+        other = bridge.uart_port if link == "usb" else bridge.usb_port
+        print(f"{bridge.port}\n{other}", flush=True)
+        if link == "usb":
+            ports = (f"host link (USB CDC, the Pico's micro-USB) on {bridge.port}, `upright board --port "
+                     f"{bridge.port} mode repl` hands it to MicroPython's REPL; UART0 (unused) on {other}")
+        else:
+            ports = (f"host link (UART0, {bridge.board.uart_baud} baud) on {bridge.port}; the USB CDC port "
+                     f"(MicroPython's REPL, as /dev/ttyACM0: mpremote connect {other}) on {other}")
+        print(f"upright emulate: {ports}; {_how_to_stop()}", file=sys.stderr, flush=True)
         return _serve(bridge, robot, bridge.port, stop)
     finally:
         bridge.close()

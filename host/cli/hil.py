@@ -16,6 +16,11 @@ runs the scenarios and sends ``mode robot`` at the end::
 
     upright hil --port /dev/ttyUSB0 --scenario tilt_0p3
 
+It waits up to ``--answer-timeout`` (10 s) for the board's first answer, then measures the
+board's clock against the wall's and waits 2 s per answer scaled by it (an emulated Pico, the
+virtual robot of ``upright emulate rp2040 --pty``, runs at 0.05-0.4x real time); ``--timeout``
+fixes the answer time instead.
+
 Writes ``<out>/<scenario>.csv``, ``.png`` and ``.gif`` per scenario and prints a summary
 table with PASS/FAIL per constraint; the exit status is 1 if a check came out differently
 from the scenario's ``[expect]`` or the HIL run left the float pure simulation by more
@@ -65,6 +70,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--node", type=A.int_range(0, 63), default=1, help="CAN node id of the board (default 1)")
     parser.add_argument("--baudrate", "--baud", dest="baudrate", type=A.positive_int, default=A.board_baud(),
                         help=f"serial line rate for --port (default {A.board_baud()}: firmware/board.py UART_BAUD)")
+    parser.add_argument("--timeout", type=A.in_range(0.1, 600), default=None, metavar="S",
+                        help="--port: seconds (wall) to wait for any one answer of the board (default: 2 s scaled by "
+                             "the board's clock, measured against the wall's at the start: an emulated board, "
+                             "slower than real time, gets longer)")
+    parser.add_argument("--answer-timeout", type=A.in_range(0.1, 600), default=10.0, metavar="S",
+                        help="--port: seconds (wall) for the board to answer at all (default 10)")
     parser.add_argument("--no-gif", action="store_true", help="skip the animated GIFs (faster)")
     parser.add_argument("--no-plots", action="store_true", help="skip PNG and GIF")
     parser.add_argument("--no-compare", action="store_true", help="skip the float pure-simulation comparison")
@@ -340,7 +351,7 @@ def run(args: argparse.Namespace) -> int:
             scenarios, port=args.port, link=args.link, mode=args.mode, out=out,
             compare=not args.no_compare, gif=not (args.no_gif or args.no_plots), plot=not args.no_plots,
             progress=prog, node=args.node, baudrate=args.baudrate, can_interface=args.can_interface,
-            on_result=done.append, plant=plant,
+            on_result=done.append, plant=plant, **_port_kw(args),
         )
     except (PortError, HilError) as exc:
         if not interrupted():
@@ -357,6 +368,19 @@ def run(args: argparse.Namespace) -> int:
 
         write_records(runs, json_path)
     return report(runs, tolerance=args.tolerance, out=out)
+
+
+def _port_kw(args: argparse.Namespace) -> dict[str, Any]:
+    # --port: the answer times (the virtual board keeps the session's 2 s unless --timeout)
+    kw: dict[str, Any] = {}
+    if args.port is not None:
+        kw["timeout"] = args.timeout
+        kw["answer_timeout"] = args.answer_timeout
+        if not args.quiet:
+            kw["notice"] = lambda line: print(f"  {line}", file=sys.stderr, flush=True)
+    elif args.timeout is not None:
+        kw["timeout"] = args.timeout
+    return kw
 
 
 def _partial(done: Sequence[Any], out: Path, planned: Sequence[Any], tolerance: float) -> None:

@@ -15,7 +15,8 @@ each plant tick k (the control period ``Ts`` of :class:`sim.plantsim.PlantSim`)
     them); the board runs ``Ts`` of emulated time; the motor command is read back from the PWM
     slice (compare / top), the DIR and the EN pins with their change history, and the duty
     actually applied, averaged over the tick (the motor force is linear in the duty), is what
-    ``PlantSim.step`` integrates (EN low = no drive).
+    ``PlantSim.step`` integrates, with the part of the tick EN was high (EN low: the bridge's
+    outputs off, no drive and no back-EMF braking -- the motor coasts, as on the virtual robot).
 
 The plant's ticks are aligned to the firmware's: its loop iterations are found from the
 outside (the loop probe of the harness: ``App.run`` busy-waits on the TIMER between
@@ -90,7 +91,9 @@ def duty_over(state: dict[str, Any], r: StepResult, c0: int, c1: int, *, pwm_pin
     ``en``) and is updated to their values at ``c1`` from the interval's PWM register writes and
     DIR/EN edges (``r.pwm_events``, ``r.edges``).  The magnitude is ``compare / (top + 1)`` of the
     PWM period (``HalPico.set_motor`` writes ``duty_u16(duty << 1)``), negative with DIR high,
-    0 with the slice disabled or EN low.
+    0 with the slice disabled or EN low.  ``state["en_frac"]`` is set to the fraction of the
+    interval EN was high: the H-bridge drives (a duty, or slow-decay braking at duty 0) only then;
+    with EN low its outputs are off and the motor coasts (``PlantSim.step(driven=...)``).
     """
     ev: list[tuple[int, int, Any]] = []
     for cyc, cmp_, top, en, _div in r.pwm_events:
@@ -107,10 +110,13 @@ def duty_over(state: dict[str, Any], r: StepResult, c0: int, c1: int, *, pwm_pin
         return -mag if state["dir"] else mag
 
     acc = 0.0
+    on = 0  # cycles with EN high
     t = c0
     for cyc, kind, val in ev:
         cyc = min(max(cyc, c0), c1)
         acc += level() * (cyc - t)
+        if state["en"]:
+            on += cyc - t
         t = cyc
         if kind == 0:
             state["compare"], state["top"], state["enabled"] = val[0], val[1], bool(val[2])
@@ -119,6 +125,9 @@ def duty_over(state: dict[str, Any], r: StepResult, c0: int, c1: int, *, pwm_pin
         elif val[0] == state["en_pin"]:
             state["en"] = val[1] or 0
     acc += level() * (c1 - t)
+    if state["en"]:
+        on += c1 - t
+    state["en_frac"] = on / max(1, c1 - c0) if c1 > c0 else float(bool(state["en"]))
     # the values in force at the end (the harness's own view, in case an event was missed)
     state["compare"], state["top"], state["enabled"] = r.pwm_compare, r.pwm_top, r.pwm_enabled
     state["dir"], state["en"] = r.dir or 0, r.en or 0
@@ -168,8 +177,15 @@ class PinDrive:
             self.board.set_encoder(self.enc_total, within_us=max(self.enc_within_us, abs(d) * EDGE_US))
 
     def duty(self, r: StepResult, c0: int, c1: int) -> float:
-        """The average duty the H-bridge applied over cycles ``[c0, c1)`` of run ``r``."""
+        """The average duty the H-bridge applied over cycles ``[c0, c1)`` of run ``r``
+        (:attr:`en_fraction`: the part of it the bridge was enabled)."""
         return duty_over(self.motor, r, c0, c1)
+
+    @property
+    def en_fraction(self) -> float:
+        """The fraction of the last :meth:`duty` interval EN was high: what ``PlantSim.step`` takes
+        as ``driven`` (EN low: the bridge's outputs off, the motor coasts -- no back-EMF braking)."""
+        return float(self.motor.get("en_frac", 1.0 if self.motor["en"] else 0.0))
 
     @property
     def driving(self) -> bool:
@@ -509,7 +525,7 @@ class EmulatedHil:
             r, _ = self._run(period_us, sink, k)
             duty = pins.duty(r, c0, r.cycles)
             fw_state[k], fw_faults[k] = self._state, self._faults
-            sim.step(int(round(duty)))
+            sim.step(int(round(duty)), driven=pins.en_fraction)  # EN low: the motor coasts
             if progress is not None and k % 250 == 0:
                 progress(k, n)
         wall = time.perf_counter() - t_wall

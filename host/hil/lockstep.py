@@ -47,6 +47,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from firmware.supervisor import BALANCING
 from host.hil.accounting import Sink
 from host.hil.errors import HilError, TickError
 from host.link import messages as M
@@ -62,6 +63,7 @@ also the mask of the 30-bit tick field)."""
 _SENSOR = M.BY_NAME["hil_sensor"]
 _ACTUATOR = M.BY_NAME["hil_actuator"]
 _SET_REF = M.BY_NAME["set_reference"]
+_BALANCING = BALANCING  # the only state with the driver enabled (App._drive)
 
 
 class Lockstep:
@@ -181,7 +183,9 @@ class Lockstep:
             if rec:
                 self.fw_state[k], self.fw_faults[k], self.duty_fw[k] = st, fl, duty
                 self.answered[k] = m is not None
-            sim.step(actuator(k, duty) if actuator is not None else duty)
+            # the board enables its driver only while balancing (App._drive): EN low otherwise,
+            # the bridge's outputs off and the motor coasting, as on the emulated board's pins
+            sim.step(actuator(k, duty) if actuator is not None else duty, driven=1.0 if st == _BALANCING else 0.0)
             self.t_plant += clock() - c2
             self.t_link += c2 - cs
             if after_tick is not None:

@@ -36,6 +36,7 @@ from typing import Any, Callable, Mapping, Sequence
 from firmware import msgtable as T
 from host.boards.vport import PTMX, PortError, VirtualBoard, open_can, slave_of
 from host.hil.accounting import Sink
+from host.hil.answer_time import BASE_S, answer_time, board_speed, describe, first_answer
 from host.hil.errors import HilError, TickError
 from host.hil.gains import design_noise, encoder_jump_limit, gain_table
 from host.hil.lockstep import PRIME_TICK, Lockstep
@@ -153,8 +154,16 @@ class HilSession:
         python-can interface for a real CAN channel (``socketcan``, ``slcan``, ...).
     baudrate : int
         Serial line rate for a real port.
-    timeout : float
-        Seconds to wait for any one answer of the firmware.
+    timeout : float or None
+        Seconds (wall) to wait for any one answer of the firmware; ``None`` for a real port:
+        2 s scaled by the board's clock measured against the wall's when the session opens
+        (:mod:`host.hil.answer_time`: an emulated board under load gets longer), 2 s for the
+        virtual board.
+    answer_timeout : float
+        Real port: seconds (wall) for the board to answer at all when the session opens.
+    notice : callable, optional
+        ``notice(line)``: what the session measured on opening (the board's speed, the answer
+        time), for a progress display.
     fault_tx, fault_rx : callable, optional
         Fault-injection hooks on the host's byte stream (see :class:`FaultyPort`).
     heapsize : str, optional
@@ -178,7 +187,8 @@ class HilSession:
     """
 
     def __init__(self, port: str | None = None, *, link: str = "serial", mode: str = "lockstep", node: int = 1,
-                 can_interface: str = "serial", baudrate: int = BOARD_BAUD, timeout: float = 2.0,
+                 can_interface: str = "serial", baudrate: int = BOARD_BAUD, timeout: float | None = 2.0,
+                 answer_timeout: float = 10.0, notice: Callable[[str], None] | None = None,
                  fault_tx: Callable[[bytes], bytes] | None = None, fault_rx: Callable[[bytes], bytes] | None = None,
                  heapsize: str | None = None, rt_priority: int | None = 20, heap_lock: bool = False,
                  probe: bool = False) -> None:
@@ -188,8 +198,10 @@ class HilSession:
             raise ValueError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
         if not 0 <= int(node) < 2**T.NODE_BITS:
             raise ValueError(f"node must be in 0..{2**T.NODE_BITS - 1}, got {node!r}")
-        if not timeout > 0:
+        if timeout is not None and not timeout > 0:
             raise ValueError(f"timeout must be > 0, got {timeout!r}")
+        if not answer_timeout > 0:
+            raise ValueError(f"answer_timeout must be > 0, got {answer_timeout!r}")
         if probe and port is not None:
             raise ValueError("probe runs on the virtual board only (port=None)")
         self.port = port
@@ -198,7 +210,11 @@ class HilSession:
         self.node = int(node)
         self.can_interface = can_interface
         self.baudrate = int(baudrate)
-        self.timeout = float(timeout)
+        # None: measured at open() (a real port), else 2 s
+        self.timeout = BASE_S if timeout is None and port is None else timeout  # type: ignore[assignment]
+        self.answer_timeout = float(answer_timeout)
+        self.speed: float | None = None  # the board's clock / the wall's, when measured
+        self._notice = notice
         self.heapsize = heapsize
         self.rt_priority = rt_priority
         self.heap_lock = bool(heap_lock)
@@ -258,12 +274,29 @@ class HilSession:
                 self.board.start()
             if any(self._fault):
                 install_fault(self.link, *self._fault)
+            if not self.virtual:
+                self._answer_time()
             if not self.virtual and self.link_kind == "serial" and self.mode == "lockstep":
                 self._enter_hil()
         except BaseException:
             self.close()
             raise
         return self
+
+    def _answer_time(self) -> None:
+        # a real port: wait for the board's first answer; without a fixed timeout, scale the
+        # answer time by the board's clock (an emulated Pico runs at 0.05-0.4x real time)
+        try:
+            first = first_answer(self._link(), str(self.port), self.answer_timeout)
+            if self.timeout is None:
+                self.speed = board_speed(self._link(), first, timeout=self.answer_timeout)
+                self.timeout = answer_time(self.speed)
+                if self._notice is not None:
+                    self._notice(describe(self.speed, self.timeout))
+        except CommandRefused as exc:
+            raise HilError(f"the board on {self.port} refused a heartbeat request ({exc})") from exc
+        except LinkError as exc:
+            raise HilError(f"no answer from {self.port}: {exc}") from exc
 
     def _enter_hil(self) -> None:
         # a board flashed with `make flash` runs the robot at boot: MODE hil hands its link to

@@ -127,18 +127,20 @@ class RobotPlant(PlantSim):
         x[0] += v_inf * T + (x[1] - v_inf) * (1.0 - e) / k
         x[1] = v_inf + (x[1] - v_inf) * e
 
-    def step(self, duty: int, *, u_cmd: float = math.nan, u_sat: float = math.nan, driven: bool = True) -> None:
+    def step(self, duty: int, *, u_cmd: float = math.nan, u_sat: float = math.nan, driven: float = 1.0) -> None:
         """Apply ``duty`` for one plant tick (hands and pendulum as they are) and take the next reading.
 
-        ``driven`` false: the H-bridge is disabled (EN low), its outputs float -- no current, so
+        ``driven``: the fraction of the tick the H-bridge was enabled (EN high), as
+        :meth:`PlantSim.step` takes it.  Disabled (EN low), its outputs float -- no current, so
         no force and no back-EMF braking (the coast-down of ``excite --cart-only``); at duty 0
         with the bridge enabled the motor is shorted and brakes (:func:`sim.motor.force_from_duty`).
         """
-        d = min(max(int(duty), -motor.DUTY_MAX), motor.DUTY_MAX) if driven else 0
+        frac = min(1.0, max(0.0, float(driven)))
+        d = min(max(int(duty), -motor.DUTY_MAX), motor.DUTY_MAX) if frac > 0.0 else 0
         self.duty = d
         ce = self._c_emf
-        if not driven:
-            self._c_emf = 0.0
+        if frac != 1.0:
+            self._c_emf = ce * frac
         try:
             self._step(d)
         finally:
@@ -234,7 +236,7 @@ class VirtualRobot:
         duty = self.pins.duty(r, c0, r.cycles)
         p = self.plant
         driving = self.pins.driving
-        p.step(int(round(duty)), driven=driving)
+        p.step(int(round(duty)), driven=self.pins.en_fraction)  # EN low: the motor coasts
         hand = p.hand
         if hand is not None:
             if hand.until_driving and driving:

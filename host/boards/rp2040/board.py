@@ -51,6 +51,8 @@ HARNESS = Path(__file__).with_name("harness.mjs")
 BOOTROM_SHA256 = "90b31e108faedfa6bbcfcc33ba05dac61e645108cfbbdc385f8dafc71fde44ae"
 CYCLES_PER_US = 125
 XIP_CACHE_ENV = "UPRIGHT_XIP_CACHE"
+#: the filesystem's main.py of a board whose host link is its USB CDC port (EmulatedBoard(link="usb"))
+USB_MAIN = b"# upright firmware entry, the host link on USB (host/boards/rp2040/board.py)\nfrom firmware import main\nmain.main(link='usb')\n"
 _TRACEBACK = re.compile(r"Traceback \(most recent call last\)")
 
 
@@ -295,6 +297,15 @@ class EmulatedBoard:
     main_us : int
         With ``main=True``: emulated time allowed for the firmware to open its UART link (it
         imports for about 0.2 s of board time first).
+    link : {"uart", "usb"}
+        With ``main=True``: the host link the firmware runs (``main.main(link=...)``, written as
+        the filesystem's ``main.py`` for ``"usb"``: the bundle itself is unchanged).  ``"uart"``
+        (the bundle's ``firmware/board.py`` ``LINK``): ready once UART0 is configured;
+        ``"usb"``: the link on the USB CDC port, ready at its first frame on USB, after the
+        REPL window (``USB_REPL_MS``, added to ``main_us``).
+    adc : int, optional
+        ADC0 (the angle pot) from power-on, before the firmware's first read; :meth:`set_adc` on
+        channel 0 changes it, also for the power-on after a :meth:`reset` (default: 0 at power-on).
     wall_timeout : float
         Wall-clock seconds any one harness request may take per emulated millisecond
         (plus 10 s); past that the board is taken as stuck.
@@ -333,8 +344,19 @@ class EmulatedBoard:
         harness_args: Sequence[str] = (),
         xip_cache: bool | None = None,
         xip_miss_cycles: float | None = None,
+        link: str = "uart",
+        adc: int | None = None,
     ) -> None:
+        self._adc0 = None if adc is None else int(adc)
+        if link not in ("uart", "usb"):
+            raise ValueError(f"link must be 'uart' or 'usb', got {link!r}")
         self.main = main
+        self.link = link
+        if main and link == "usb":
+            from firmware import board as fb
+
+            files = {"main.py": USB_MAIN, **dict(files or {})}
+            main_us += 1000 * int(getattr(fb, "USB_REPL_MS", 0))
         self.xip_cache = xip_cache_default() if xip_cache is None else bool(xip_cache)
         xip = ["--xip-cache", "on" if self.xip_cache else "off"]
         if xip_miss_cycles is not None:
@@ -392,12 +414,17 @@ class EmulatedBoard:
         threading.Thread(target=self._reader, daemon=True).start()
         self._answer(10.0)  # the ready line
         self.power_lost = False
-        self._boot(self._boot_us)
+        # the inputs at power-on, before the firmware's first read (a USB-link board runs its
+        # loop during _boot): the supply, and the angle the caller holds (set_adc, adc=)
         self._after_boot()
+        if self._adc0 is not None:
+            self.set_adc(self._adc0)
+        self._boot(self._boot_us)
 
     def _after_boot(self) -> None:
         # the motor supply divider's input (firmware/board.py VSUP_*): the nominal supply, so that
-        # a board that measures its supply is not in undervoltage unless a test says so
+        # a board that measures its supply is not in undervoltage unless a test says so (set at
+        # power-on, before the boot: the name is kept for subclasses)
         from firmware import board as fb
 
         vsup = getattr(fb, "VSUP_NOMINAL_MV", 0)
@@ -517,6 +544,8 @@ class EmulatedBoard:
         are off and follows an enabled pull-up/pull-down to the rail.
         """
         self._request({"cmd": "adc", "ch": int(channel), "value": int(value) & 0xFFF, "open": bool(open)})
+        if channel == 0 and not open and self._adc0 is not None:
+            self._adc0 = int(value) & 0xFFF  # held through a reset's power-on too
 
     def set_encoder(self, count: int, within_us: float | None = None) -> None:
         """Quadrature position to reach during the next :meth:`run` (x4 counts, A=GP2, B=GP3).
@@ -552,6 +581,13 @@ class EmulatedBoard:
         """Send bytes to UART0 RX (GP1), one character time apart at the configured baud."""
         if data:
             self._request({"cmd": "uart", "data": bytes(data).hex()})
+
+    def drop_usb_output(self) -> bytes:
+        """Take (and forget) the USB output :meth:`exec` has not read: what a bridge that copies
+        it elsewhere calls after each :meth:`run`, so a long-running board keeps no backlog."""
+        out = bytes(self._usb_buf)
+        self._usb_buf.clear()
+        return out
 
     def usb_write(self, data: bytes) -> None:
         """Send bytes from the USB host to the board's CDC port (its REPL)."""
@@ -654,6 +690,16 @@ class EmulatedBoard:
             # main.py imports the firmware (about 0.2 s of board time) and opens the UART link; an
             # exception on the way prints a traceback (BoardError from run()).  Wait for either.
             t = 0
+            if self.link == "usb":
+                # the link on the USB CDC port: its first frame (a COBS delimiter after bytes)
+                while b"\x00" not in self._usb_buf[1:]:
+                    self.run(10_000)
+                    t += 10_000
+                    if t >= self.main_us and b"\x00" not in self._usb_buf[1:]:
+                        raise self._fail(f"firmware sent no frame on its USB link within {self.main_us / 1000:.0f} "
+                                         "ms of board time")
+                self._usb_buf.clear()
+                return
             while not self.uart_baud:
                 self.run(10_000)
                 t += 10_000
