@@ -225,6 +225,10 @@ def test_3_calibrate_finds_the_robots_sensors(robot: Robot, plant) -> None:
     assert robot.params("pot_offset", "adc_sign", "enc_sign", "motor_sign") == {
         "pot_offset": plant.pot_offset, "adc_sign": 1, "enc_sign": 1, "motor_sign": 1}
     assert "motor_sign +1 is right" in r.stdout
+    # and nothing latched on the way: the user's next step arms (the wheels coasting into the
+    # save's flash write once latched enc_jump: calibrate now waits for them to stop)
+    st = json.loads(robot.board("status", "--json").stdout)
+    assert st["state"] == "disarmed" and st["faults"] == 0, st
 
 
 def test_4_params_saved_survive_a_reset(robot: Robot, plant) -> None:

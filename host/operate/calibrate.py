@@ -231,6 +231,8 @@ def run_calibration(board: Board, ask: Ask, say: Callable[[str], None], *, robot
             on_board["motor_sign"] = res["motor_sign"]
     res["board_params"] = on_board
     res["saved"] = None
+    if motor_check:
+        _wait_wheels_still(board, say)
     if save:
         try:
             res["saved"] = board.save()
@@ -255,6 +257,25 @@ def run_calibration(board: Board, ask: Ask, say: Callable[[str], None], *, robot
     say(f"  wrote {out}: [sensors] pot_offset {values['pot_offset']}, pot_range {values['pot_range']}, "
         f"enc_cpr {values['enc_cpr']}")
     return res
+
+
+def _wait_wheels_still(board: Board, say: Callable[[str], None], timeout: float = 30.0) -> None:
+    """Wait (up to ``timeout`` wall seconds) until the lifted wheels stop after the motor step.
+
+    A save pauses the board's loop for a flash write (some 20 ms): wheels still coasting then turn
+    more counts between two reads than the cart can move in one tick, and the board latches
+    ``enc_jump``.  Still means the encoder unchanged over three reads in a row.
+    """
+    t_end = time.monotonic() + timeout
+    last, same = None, 0
+    while time.monotonic() < t_end:
+        e = int(board.raw_sensors()["enc"]) & 0xFFFF
+        same = same + 1 if e == last else 0
+        if same >= 3:
+            return
+        last = e
+        time.sleep(0.05)
+    say(f"  the wheels still turn after {timeout:g} s: saving anyway (stop them by hand if `enc_jump` latches)")
 
 
 def _motor_sign(board: Board, ask: Ask, say: Callable[[str], None], res: dict[str, Any], test_duty: int,
