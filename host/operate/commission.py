@@ -218,7 +218,7 @@ class Commission:
     def _upload(self, p: RobotParams, cand: Any, label: str) -> None:
         from host.design.margin import candidates, fixed_design
 
-        c = cand if cand is not None else candidates(ki=(0.0,))[0]
+        c = cand if cand is not None else candidates(ki=(0.0,), a_cmd=(4.73,))[0]
         fd = fixed_design(p, c)
         self.robot.upload(fd.blob(), p)
         self.say(f"  uploaded: {label} (crc {fd.crc():#06x})")
@@ -264,7 +264,8 @@ class Commission:
         d = e["delay"]
         box = confidence_box({"estimates": {}, "ci": {"delay": [max(0.0, d - 1 / p.rate), d + 1 / p.rate]}}, p1,
                              floor=0.1, realism={})
-        md = design_with_margin(p1, box, candidates(ki=(0.0,)) if self.fast else None)
+        md = design_with_margin(p1, box, candidates(ki=(0.0,), names=("shipped", "x2")) if self.fast
+                                else candidates(ki=(0.0,)))
         self.state["data"]["design1"] = md.candidate.as_dict(p1) | {"worst_ratio": md.worst_ratio}
         self._upload(p1, md.candidate, f"stage-1 design {md.candidate.name}")
 
@@ -323,7 +324,7 @@ class Commission:
         pid = self._params("robot_id")
         res = self.state["data"]["identify"]
         box = confidence_box(res, pid, realism={})
-        md = design_with_margin(pid, box, candidates(ki=(0.0, 1.0)) if self.fast else None)
+        md = design_with_margin(pid, box, candidates(ki=(0.0, 1.0), names=("shipped", "x2")) if self.fast else None)
         self.state["data"]["design2"] = md.candidate.as_dict(pid) | {
             "worst_ratio": md.worst_ratio, "margin": md.margin, "force_lsb": md.force_lsb, "meets": md.meets,
             "precise": md.precise,
