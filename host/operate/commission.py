@@ -176,7 +176,12 @@ class Commission:
                 continue
             t0 = time.monotonic()
             self.say(f"[{st}]")
-            getattr(self, f"_{st}")()
+            try:
+                getattr(self, f"_{st}")()
+            except CommissionError:
+                raise
+            except ValueError as exc:  # an unusable log (LogError), a design that cannot be made
+                raise CommissionError(f"{st}: {exc}") from exc
             self.timing[st] = time.monotonic() - t0
             self.state["done"].append(st)
             self.state["data"].setdefault("timing", {})[st] = self.timing[st]
@@ -289,6 +294,9 @@ class Commission:
             if peak > 0.5 * PHI_BOUND or amp >= amp_max:
                 break
             amp = min(amp * 1.6, amp_max)
+        if all(t["peak_phi"] == 0.0 for t in tries):
+            raise CommissionError(f"balance: the pendulum did not move at up to {amp:.2f} N of excitation (the "
+                                  "largest the stage-1 table allows): the cart sticks -- check the drive")
         run = self.robot.excite(1, amp, seconds=BAL_S, div=BAL_DIV, phi_stop=PHI_BOUND)
         if run.fell:
             raise CommissionError(f"balance: the pendulum fell at {amp:.2f} N")

@@ -71,7 +71,11 @@ class _Plant(RobotPlant):
     def step(self, duty: int, *, u_cmd: float = math.nan, u_sat: float = math.nan, driven: bool = True) -> None:
         if self.tick < self.n_ticks:
             self.truth[self.tick] = self._x
-        super().step(duty, driven=self.driven and driven)
+        # the bridge disabled (no back-EMF braking) only for the cart alone: RobotPlant's
+        # pendulum-on path divides by the back-EMF constant it zeroes when a realism key is set
+        # (sim/plantsim.py _integrate_real; reported) -- there a disabled bridge is duty 0
+        off = not (self.driven and driven)
+        super().step(0 if off else duty, driven=not (off and not self.pendulum_on))
 
 
 class LockstepRobot:
