@@ -66,6 +66,7 @@ class _Plant(RobotPlant):
         self.pendulum_on = bool(pendulum)
         self.n_ticks = int(n_ticks)
         self.driven = True
+        self.off_from = self.n_ticks  # the tick from which the host has disarmed (the bridge off)
         self.truth = np.zeros((self.n_ticks, 4))
 
     def step(self, duty: int, *, u_cmd: float = math.nan, u_sat: float = math.nan, driven: bool = True) -> None:
@@ -74,7 +75,7 @@ class _Plant(RobotPlant):
         # the bridge disabled (no back-EMF braking) only for the cart alone: RobotPlant's
         # pendulum-on path divides by the back-EMF constant it zeroes when a realism key is set
         # (sim/plantsim.py _integrate_real; reported) -- there a disabled bridge is duty 0
-        off = not (self.driven and driven)
+        off = not (self.driven and driven) or self.tick >= self.off_from
         super().step(0 if off else duty, driven=not (off and not self.pendulum_on))
 
 
@@ -152,6 +153,8 @@ class LockstepRobot:
         n1 = n0 + int(round(seconds * rate))
         n = n1 + (int(round(coast_s * rate)) if mode == 2 else 0)
         sim = _Plant(self.plant, n, pendulum=(mode != 2), seed=self.seed)
+        if mode == 2:
+            sim.off_from = n1  # the DISARM goes out before tick n1's frame: that tick's answer is disarmed
         s = self.session
         link = s.link
         sink = Sink(link)
