@@ -8,7 +8,8 @@ points), the first ``n`` of the nominal point, every ``stride``-th vertex and th
 
 1. verified with the **shipped** gain table (the report's 20 cm step and 0.2 N push, the true
    traces against the report's constraints), then
-2. commissioned end to end (:class:`host.operate.commission.Commission`, ``fast``), and verified
+2. commissioned end to end (:class:`host.operate.commission.Commission`, ``fast``; the robot file
+   it starts from is ``sim/robot.toml`` with that robot's masses, as weighed), and verified
    again with the commissioned table (the commissioning's own telemetry verdict and the truth).
 
 Rows: per robot the verdicts before/after, whether the pendulum was lost during commissioning
@@ -66,7 +67,8 @@ def true_verdict(log: dict[str, np.ndarray], scenario: Any, params: Any) -> dict
 
 def bench(n: int | None = None) -> dict[str, Any]:
     """Commission ``n`` robots (module docstring)."""
-    from host.operate.commission import Commission, CommissionError
+    from host.operate.commission import Commission, CommissionError, weighed
+    from host.studies.identify import robot_toml
     from host.operate.commission_lockstep import LockstepRobot
     from sim.params import load_params
     from sim.scenario import load_scenario
@@ -85,7 +87,10 @@ def bench(n: int | None = None) -> dict[str, Any]:
             row["shipped_fell"] = any(v["fell"] for v in before)
             lost = False
             with tempfile.TemporaryDirectory() as td:
-                c = Commission(r, td, say=lambda s: None, fast=True)
+                start = os.path.join(td, "weighed.toml")  # the robot file with the masses weighed
+                with open(start, "w") as fh:
+                    fh.write(robot_toml(weighed(design, plant)))
+                c = Commission(r, td, params_in=start, say=lambda s: None, fast=True)
                 t1 = time.monotonic()
                 try:
                     data = c.run()

@@ -42,7 +42,8 @@ import numpy as np
 from host.operate.board import BoardError
 from sim.params import RobotParams, load_params
 
-__all__ = ["STAGES", "CommissionError", "Commission", "telemetry_metrics", "PHI_BOUND", "STATE_FILE"]
+__all__ = ["STAGES", "CommissionError", "Commission", "telemetry_metrics", "PHI_BOUND", "STATE_FILE", "weighed",
+           "identify_cart"]
 
 STAGES = ("identity", "sensors", "calibrate", "cart", "design1", "balance", "identify", "design2", "verify", "save")
 STATE_FILE = "commission.json"
@@ -97,6 +98,13 @@ def _write_csv(cols: dict[str, np.ndarray], path: Path) -> Path:
         for i in range(len(cols[keys[0]])):
             w.writerow([f"{float(cols[k][i]):.6g}" for k in keys])
     return path
+
+
+def weighed(design: RobotParams, plant: RobotParams) -> RobotParams:
+    """``design`` with the masses of ``plant`` (what a person weighs before commissioning)."""
+    keys = ("cart.M", "pendulum.m", "pendulum.m_cam", "pendulum.m_shaft")
+    ch = {k: plant.values[k] for k in keys if k in plant.values and not math.isnan(float(plant.values[k]))}
+    return design.replace(**ch)
 
 
 def identify_cart(log: Any, params: RobotParams, max_delay: float = 0.03) -> dict[str, Any]:
