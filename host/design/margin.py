@@ -290,7 +290,7 @@ def _force_lsb(params: RobotParams, cand: MarginCandidate) -> float:
 
 
 def design_with_margin(params: RobotParams, box: UncertaintySet, cands: Sequence[MarginCandidate] | None = None, *,
-                       margin: float = MARGIN, engine: str | None = None) -> MarginDesign:
+                       margin: float = MARGIN, engine: str | None = None, top: int = 3) -> MarginDesign:
     """Score ``cands`` (default :func:`candidates`) over ``box`` and keep the best (module docstring).
 
     Every candidate is first scored without the push (batch scenarios only, the push at the
@@ -321,7 +321,7 @@ def design_with_margin(params: RobotParams, box: UncertaintySet, cands: Sequence
         raise ValueError("no candidate design stabilises the identified robot")
     scored.sort(key=lambda s: s[0])
     best: MarginDesign | None = None
-    for _, c, _, lsb in scored[:3]:
+    for _, c, _, lsb in scored[:max(1, int(top))]:
         ev = evaluate(params, c, box, push=True, engine=engine)
         worst = scoped_score(ev)[0]
         md = MarginDesign(c, ev, worst, 1.0 - worst, lsb, tried)

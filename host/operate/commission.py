@@ -179,6 +179,8 @@ class Commission:
     # ---- the run
     def run(self, stages: tuple[str, ...] = STAGES) -> dict[str, Any]:
         """Run every stage not yet done (in order); returns the state's data."""
+        if self.state["done"]:
+            self._restore_table()
         for st in stages:
             if st in self.state["done"]:
                 continue
@@ -226,15 +228,26 @@ class Commission:
             p = p.replace(**{"sensors.pot_offset": int(round(self.state["data"]["sensors"]["adc_mean"]))})
         (self.out / "robot_cal.toml").write_text(robot_toml(p, "upright commission: calibrated robot"))
         self.state["data"]["robot_cal"] = "robot_cal.toml"
-        self._upload(p, None, "calibrated robot, shipped weights")
+        self._upload("robot_cal", None, "calibrated robot, shipped weights")
 
-    def _upload(self, p: RobotParams, cand: Any, label: str) -> None:
+    def _upload(self, key: str, cand: Any, label: str) -> None:
+        # design the table of `cand` for the robot file `key` of the state, upload it, keep it in
+        # DIR/table.bin (a resumed run uploads it again: the board may have been reset)
         from host.design.margin import candidates, fixed_design
 
+        p = self._params(key)
         c = cand if cand is not None else candidates(ki=(0.0,), a_cmd=(4.73,))[0]
         fd = fixed_design(p, c)
+        (self.out / "table.bin").write_bytes(fd.blob())
+        self.state["data"]["table"] = {"params": key, "label": label, "crc": fd.crc()}
         self.robot.upload(fd.blob(), p)
         self.say(f"  uploaded: {label} (crc {fd.crc():#06x})")
+
+    def _restore_table(self) -> None:
+        t = self.state["data"].get("table")
+        if t and (self.out / "table.bin").exists():
+            self.robot.upload((self.out / "table.bin").read_bytes(), self._params(t["params"]))
+            self.say(f"  resumed: uploaded the table in force ({t['label']})")
 
     def _cart(self) -> None:
         from host.studies.identify_log import read_log
@@ -276,11 +289,11 @@ class Commission:
         # the pendulum not yet known: the realistic set's inertia and mass ranges around it
         d = e["delay"]
         box = confidence_box({"estimates": {}, "ci": {"delay": [max(0.0, d - 1 / p.rate), d + 1 / p.rate]}}, p1,
-                             floor=0.1, realism={})
+                             floor=0.1, realism={}, push_points=2 if self.fast else 4)
         md = design_with_margin(p1, box, candidates(ki=(0.0,), names=("shipped", "x2")) if self.fast
-                                else candidates(ki=(0.0,)))
+                                else candidates(ki=(0.0,)), top=2 if self.fast else 3)
         self.state["data"]["design1"] = md.candidate.as_dict(p1) | {"worst_ratio": md.worst_ratio}
-        self._upload(p1, md.candidate, f"stage-1 design {md.candidate.name}")
+        self._upload("robot_stage1", md.candidate, f"stage-1 design {md.candidate.name}")
 
     def _balance(self) -> None:
         from host.studies.identify_log import read_log
@@ -339,14 +352,18 @@ class Commission:
 
         pid = self._params("robot_id")
         res = self.state["data"]["identify"]
-        box = confidence_box(res, pid, realism={})
-        md = design_with_margin(pid, box, candidates(ki=(0.0, 1.0), names=("shipped", "x2")) if self.fast else None)
+        # in-model box: the identification does not measure the plant realism (Coulomb friction,
+        # backlash, deadband), and at the realistic set's ranges no linear design settles the
+        # step in the 2 % band (the bench's note); the robot's own verification judges it
+        box = confidence_box(res, pid, realism={}, push_points=2 if self.fast else 4)
+        md = design_with_margin(pid, box, candidates(ki=(0.0, 1.0), names=("shipped", "x2")) if self.fast else None,
+                                top=2 if self.fast else 3)
         self.state["data"]["design2"] = md.candidate.as_dict(pid) | {
             "worst_ratio": md.worst_ratio, "margin": md.margin, "force_lsb": md.force_lsb, "meets": md.meets,
             "precise": md.precise,
             "rows": md.rows(pid), "tried": md.tried, "box": {k: list(v) for k, v in box.factors.items()} | {
                 "delay": list(box.delay)}}
-        self._upload(pid, md.candidate, f"final design {md.candidate.name} (margin {100 * md.margin:.0f} %)")
+        self._upload("robot_id", md.candidate, f"final design {md.candidate.name} (margin {100 * md.margin:.0f} %)")
         self.say(f"  worst ratio over the box {md.worst_ratio:.3f} (margin {100 * md.margin:.0f} %), "
                  f"force row {md.force_lsb:.1f} LSB")
 
