@@ -29,6 +29,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", metavar="DEV", help="the board's serial port (a real robot or the virtual robot's pty)")
     parser.add_argument("--baudrate", type=A.positive_int, default=A.board_baud(),
                         help=f"serial line rate (default {A.board_baud()})")
+    parser.add_argument("--timeout", type=A.in_range(0.05, 60), default=1.0,
+                        help="--port: seconds per request attempt (default 1; 3 retries)")
     parser.add_argument("--virtual", action="store_true",
                         help="no board: the firmware on the unix port in lockstep HIL with --plant's robot")
     parser.add_argument("--plant", default=None, metavar="TOML",
@@ -75,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         from host.operate.commission_port import PortRobot
 
-        robot = PortRobot(args.port, baudrate=args.baudrate, hands=args.robot, say=say)
+        robot = PortRobot(args.port, baudrate=args.baudrate, hands=args.robot, timeout=args.timeout, say=say)
     try:
         with robot:
             c = Commission(robot, out, params_in=args.params, say=say, fast=args.fast)
