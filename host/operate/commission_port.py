@@ -79,6 +79,7 @@ class PortRobot:
         self.hands: Any = None
         self.fw_params: RobotParams | None = None
         self.workdir = Path(".")
+        self.speed = 1.0
 
     def open(self) -> "PortRobot":
         """Open the board (identity checked) and find the hands."""
@@ -86,7 +87,22 @@ class PortRobot:
 
         self.board = Board.open(self.port, baudrate=self.baudrate, timeout=self.timeout, answer_timeout=10.0)
         self.hands = robot_hands(self.hands_choice, self.port)
+        self.speed = self._speed()
+        if self.speed < 0.9:
+            self.say(f"  the board runs at {self.speed:.2f}x real time (emulated): the runs last longer")
         return self
+
+    def _speed(self, wall: float = 2.0) -> float:
+        # board seconds per wall second, from its uptime (an emulated board runs 0.1-0.4x):
+        # the tools' --seconds are wall seconds, the identification needs board ticks
+        b = self._b()
+        u0, t0 = b.status_values().get("uptime_ms"), time.monotonic()
+        if u0 is None:
+            return 1.0
+        while time.monotonic() - t0 < wall:
+            b.poll(0.05)
+        u1, t1 = b.status_values().get("uptime_ms"), time.monotonic()
+        return min(1.0, max(0.02, (u1 - u0) / 1000.0 / (t1 - t0))) if u1 is not None else 1.0
 
     def close(self) -> None:
         """Disarm if armed here, close the link and the hands."""
@@ -171,7 +187,8 @@ class PortRobot:
 
         stopped = False
         try:
-            run_excite(b, path, seconds=seconds, amplitude_n=amp_n, div=div, cart_only=(mode == 2), coast_s=coast_s,
+            run_excite(b, path, seconds=seconds / self.speed, amplitude_n=amp_n, div=div, cart_only=(mode == 2),
+                       coast_s=coast_s / self.speed,
                        progress=progress if mode == 1 else None)
         except BoardError as exc:
             if not isinstance(exc.__cause__, _Stop):
