@@ -201,7 +201,13 @@ class PortRobot:
         n = len(cols["x"])
         cols["t"] = np.arange(n) / float(self.fw_params.rate if self.fw_params else 500.0)
         exc_on = cols.get("excite", np.zeros(n)) > 0
-        fell = mode == 1 and bool(np.any((cols["faults"][exc_on] != 0) | (np.abs(cols["phi"][exc_on]) >= 0.3)))
+        fell = mode == 1 and bool(np.any(np.abs(cols["phi"][exc_on]) >= 0.3))
+        flags = int(np.bitwise_or.reduce(np.nan_to_num(cols["faults"][exc_on]).astype(np.int64))) if exc_on.any() else 0
+        if flags and not fell:
+            from host.operate.board import fault_names
+
+            raise BoardError(f"{self.port}: the board latched {', '.join(fault_names(flags))} during the "
+                             f"{'cart-only' if mode == 2 else 'balancing'} excitation at {amp_n:.2f} N (log {path})")
         return ExciteRun(cols, np.full((n, 4), math.nan), n - 1 if stopped else None, fell)
 
     def run_scenario(self, scenario: Any) -> dict[str, np.ndarray]:
