@@ -156,6 +156,8 @@ class Commission:
         self.fast = bool(fast)
         self.state: dict[str, Any] = {"done": [], "data": {}}
         self.timing: dict[str, float] = {}
+        if hasattr(robot, "workdir"):
+            robot.workdir = self.out  # a board's raw recordings go next to the state (also on --resume)
 
     # ---- state
     @property
