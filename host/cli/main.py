@@ -32,6 +32,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "board": ("host.cli.board", "operate a board: status, arm/disarm, parameters, gains, log, calibrate, excite"),
     "identify": ("host.cli.identify", "estimate the robot's parameters (inertia, mL, friction, motor, delay, pot "
                                       "offset) from excite logs; write a robot TOML"),
+    "commission": ("host.cli.commission", "first power-up to a verified robot: checks, calibration, cart-only and "
+                                          "balancing runs, identification, design with margin, verification, report"),
     "sweep": ("host.cli.sweep", "batch Monte Carlo: robustness, weight tuning, largest recoverable tilt"),
     "soak": ("host.cli.soak", "long lockstep HIL run: firmware heap, timing drift, telemetry accounted for, metrics stable"),
     "dashboard": ("host.cli.dashboard", "a live web page for a board: plots, state, arm/disarm, reference, gains, recording"),

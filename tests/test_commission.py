@@ -1,0 +1,189 @@
+"""``upright commission`` (issue 24 items 3-5): the margin design, the stages on lockstep HIL, the CLI.
+
+The end-to-end runs use the firmware under the MicroPython unix port in lockstep HIL with a
+simulated robot (:class:`host.operate.commission_lockstep.LockstepRobot`): the emulated RP2040
+runs at ~0.1-0.2x real time, too slow for a whole commissioning in ``make test``.  Corners:
+the robot where the shipped table cannot hold the pendulum still (inertia x0.5, masses x1.2,
+kt x0.9, 20 ms), the soft pendulum (inertia x0.7) and the realistic cart (Coulomb friction,
+stiction, backlash, deadband, minimum duty, pot nonlinearity).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import numpy as np
+import pytest
+
+from host.design import margin as Mg
+from host.design.discrete import controller_ss
+from sim.params import load_params
+
+
+def test_integral_controller_without_gain_is_the_inner_controller() -> None:
+    p = load_params()
+    inner = controller_ss(p)
+    ic = Mg.IntegralController(inner, 0.0)
+    rng = np.random.default_rng(1)
+    z, zi = np.zeros(inner.n), np.zeros(ic.n)
+    for _ in range(50):
+        v = rng.normal(0.0, [0.05, 0.02, 0.1])
+        u, us, z = inner.tick(z, v)
+        ui, usi, zi = ic.tick(zi, v)
+        assert ui == pytest.approx(u, abs=1e-12) and usi == pytest.approx(us, abs=1e-12)
+    assert np.allclose(zi[:-1], z)
+
+
+def test_integral_state_is_the_firmwares_sum_of_reference_minus_estimate() -> None:
+    p = load_params()
+    inner = controller_ss(p)
+    ki = 1.5
+    ic = Mg.IntegralController(inner, ki)
+    k = math.copysign(ki, inner.kr)  # the export's sign rule: the integral pushes as the reference gain
+    z = np.zeros(ic.n)
+    e = 0.0
+    rng = np.random.default_rng(2)
+    for _ in range(40):
+        v = np.array([rng.normal(0, 0.01), rng.normal(0, 0.01), 0.2])
+        u = ic.output(z, v)
+        assert u == pytest.approx(inner.output(z[:-1], v) + k * e, abs=1e-12)
+        e += inner.Ts * (v[2] - inner.estimate(z[:-1], v)[0])
+        z = ic.step(z, v, ic.saturate(u))
+        assert z[-1] == pytest.approx(e, abs=1e-12)
+    # the exported table carries the same gain, with the reference gain's sign
+    fd = Mg.fixed_design(p, Mg.MarginCandidate("t", (1.994, 0.0, 0.4917, 0.00182), 0.01, 0.25, 4.73, ki=ki))
+    assert fd.ki == ki and fd.tables["KI"][0] != 0 and math.copysign(1, fd.tables["KI"][0]) == math.copysign(1, inner.kr)
+
+
+def test_confidence_box_widens_the_intervals_and_keeps_the_estimate() -> None:
+    p = load_params()
+    res = {"estimates": {"I": p.I * 1.1, "mL": p.m * p.L, "kt": p.kt, "b": p.b},
+           "ci": {"I": [p.I * 1.05, p.I * 1.15], "kt": [p.kt * 0.999, p.kt * 1.001], "delay": [0.008, 0.012]}}
+    box = Mg.confidence_box(res, p, widen=2.0, floor=0.03, realism={})
+    lo, hi = box.factors["inertia"]
+    assert lo == pytest.approx(1.1 * (1 - 2 * 0.05 / 1.1)) and hi == pytest.approx(1.1 * (1 + 2 * 0.05 / 1.1))
+    assert box.factors["motor_constant"] == pytest.approx((0.97, 1.03))  # the floor, not the noise interval
+    assert box.delay == pytest.approx((0.008, 0.012)) and box.realism == {}
+
+
+def _cli(capsys, *args: str) -> tuple[int, str]:
+    from host.cli.main import main
+
+    rc = main(["commission", *args])
+    return rc, capsys.readouterr().err
+
+
+def test_cli_refuses_bad_options(tmp_path, capsys) -> None:
+    rc, err = _cli(capsys, "--out", str(tmp_path))
+    assert rc == 2 and "--port" in err
+    rc, err = _cli(capsys, "--port", "/dev/null", "--plant", "soft_pendulum", "--out", str(tmp_path))
+    assert rc == 2 and "--plant goes with --virtual" in err
+    (tmp_path / "commission.json").write_text(json.dumps({"done": [], "data": {}}))
+    rc, err = _cli(capsys, "--virtual", "--out", str(tmp_path))
+    assert rc == 2 and "--resume" in err
+    rc, err = _cli(capsys, "--virtual", "--resume", "--out", str(tmp_path / "nothing"))
+    assert rc == 2 and "no commission.json" in err
+
+
+def _hard_corner():
+    from host.design.robust import plant_toml
+    from host.design.uncertainty import Point
+
+    p = load_params()
+    pt = Point({"inertia": 0.5, "cart_mass": 1.2, "pendulum_mass": 1.2, "motor_constant": 0.9}, 10, True)
+    return p, pt, plant_toml(pt, p)
+
+
+def _commission(plant, out, params_in=None):
+    from host.operate.commission import Commission
+    from host.operate.commission_lockstep import LockstepRobot
+
+    lines: list[str] = []
+    with LockstepRobot(plant) as r:
+        c = Commission(r, out, params_in=params_in, say=lines.append, fast=True)
+        try:
+            data = c.run()
+            err = None
+        except Exception as exc:  # noqa: BLE001 - returned for the test to judge
+            data, err = c.state["data"], exc
+        after = None
+        if err is None:
+            from host.bench.commission import true_verdict
+            from sim.scenario import load_scenario
+
+            after = [true_verdict(r.run_scenario(load_scenario(n)), load_scenario(n), plant)
+                     for n in ("ref_step_20cm", "push_0p2N_5s")]
+    return data, err, after, lines
+
+
+@pytest.mark.slow
+def test_commission_the_robot_the_shipped_table_cannot_hold(tmp_path) -> None:
+    from host.bench.commission import true_verdict
+    from host.operate.commission import weighed
+    from host.operate.commission_lockstep import LockstepRobot
+    from host.studies.identify import robot_toml
+    from sim.scenario import load_scenario
+
+    design, _, text = _hard_corner()
+    (tmp_path / "plant.toml").write_text(text)
+    plant = load_params(tmp_path / "plant.toml")
+    sc = load_scenario("ref_step_20cm")
+    with LockstepRobot(plant) as r:
+        r.fw_params = design  # the shipped table
+        shipped = true_verdict(r.run_scenario(sc), sc, plant)
+    assert not shipped["pass"], shipped
+    (tmp_path / "weighed.toml").write_text(robot_toml(weighed(design, plant)))
+    data, err, after, lines = _commission(plant, tmp_path / "c", tmp_path / "weighed.toml")
+    assert err is None, (err, lines)
+    e = data["identify"]["estimates"]
+    assert e["I"] == pytest.approx(plant.I, rel=0.1) and e["kt"] == pytest.approx(plant.kt, rel=0.05)
+    assert e["delay"] == pytest.approx(plant.delay, abs=1.5 / plant.rate)
+    assert all(v["pass"] for v in data["verify"].values()), data["verify"]  # from telemetry
+    assert all(v["pass"] for v in after), after  # and in truth
+    assert data["balance"]["tries"][0]["amplitude_n"] < data["balance"]["amplitude_n"]  # it grew
+    html = (tmp_path / "c" / "report.html").read_text()
+    assert html.count("data:image/png;base64") >= 3 and "margin" in html
+    assert load_params(tmp_path / "c" / "robot.toml").I == pytest.approx(e["I"])
+
+
+@pytest.mark.slow
+def test_commission_the_soft_pendulum_and_resume(tmp_path) -> None:
+    from host.operate.commission import STAGES, Commission
+    from host.operate.commission_lockstep import LockstepRobot
+
+    plant = load_params("sim/plants/soft_pendulum.toml")
+    out = tmp_path / "c"
+    with LockstepRobot(plant) as r:  # stop after the first design, as if the session ended
+        Commission(r, out, say=lambda s: None, fast=True).run(STAGES[:5])
+    st = json.loads((out / "commission.json").read_text())
+    assert st["done"] == list(STAGES[:5])
+    cart_mtime = (out / "cart.csv").stat().st_mtime_ns
+    with LockstepRobot(plant) as r:
+        c = Commission(r, out, say=lambda s: None, fast=True)
+        c.load()
+        data = c.run()  # a fresh firmware: the table in force is uploaded again first
+    assert (out / "cart.csv").stat().st_mtime_ns == cart_mtime  # not redone
+    assert json.loads((out / "commission.json").read_text())["done"] == list(STAGES)
+    e = data["identify"]["estimates"]
+    assert e["I"] == pytest.approx(plant.I, rel=0.05) and e["mL"] == pytest.approx(plant.m * plant.L, rel=0.05)
+    assert all(v["pass"] for v in data["verify"].values()), data["verify"]
+
+
+@pytest.mark.slow
+def test_commission_a_realistic_cart_refuses_or_verifies(tmp_path) -> None:
+    # the realistic cart (dry friction, backlash, deadband): the identification of
+    # host.studies.identify (viscous model) is biased there; the commissioning must either
+    # verify the robot or stop at a named stage in one line, its state resumable, never lose the pendulum
+    from host.operate.commission import STAGES, CommissionError
+
+    plant = load_params("sim/plants/realistic_cart.toml")
+    data, err, after, lines = _commission(plant, tmp_path / "c")
+    st = json.loads((tmp_path / "c" / "commission.json").read_text())
+    assert not any(t["fell"] for t in data.get("balance", {}).get("tries", []))
+    if err is None:
+        assert all(v["pass"] for v in after), after
+    else:
+        assert isinstance(err, CommissionError), err
+        stage = str(err).split(":")[0]
+        assert stage in STAGES and stage not in st["done"] and "\n" not in str(err)
+        assert st["done"] == list(STAGES[:STAGES.index(stage)])
