@@ -11,11 +11,21 @@
 # half a loop period.  write(buf) takes a whole buffer, so one memoryview per frame length
 # is made here, once.
 #
-# Bounded work per tick: poll() decodes and dispatches at most FRAMES_PER_TICK frames and _RX_TICK
-# bytes, starts no new frame once the tick has run app.link_budget_us (2/5 of the period)
-# since its step started or once its replies reach _SENT frames (the UART's transmit
-# interrupts cost the loop too: a stats request answers with three frames); every
-# command's own work is bounded (commands.py, App).
+# Bounded work per tick, in the time a real Pico takes (the emulated board's XIP flash-cache model:
+# command code runs rarely, so from a cold cache -- a frame costs 300-1530 us on a predicted real
+# Pico, where the same code takes 60-400 us on ideal cycles; docs/firmware.md, "Board timing"):
+# poll() sends the periodic frames first (the pacer: on a telem_div 1 tick the telemetry pair,
+# ~210 us), then decodes and dispatches frames.  A frame is started only when the worst frame
+# (_FRAME_US, a stats request's three replies: 1530 us measured cold) still ends within
+# app.link_budget_us (11/8 of the period) of the step's start -- counted from its scheduled start:
+# a tick that ran past its period hands its excess on, and the next tick starts no frame until it
+# has caught up.  So no frame makes a gap between two step starts longer than 1.5 periods (a late
+# tick, App._period) on a predicted real board; at most FRAMES_PER_TICK frames and _RX_TICK bytes
+# per tick, and none once this tick's replies reach _SENT frames (the UART's transmit interrupts
+# cost the loop too).  A backlog held back _FORCE ticks in a row gets one frame whatever the time (a
+# loop rate at which no frame ever fits -- above ~700 Hz on a predicted real Pico -- still answers,
+# one late tick per _FORCE ticks of traffic).  Every command's own work is bounded (commands.py,
+# App).
 # What is left waits -- bytes already read in self.rx, the rest in the UART's receive
 # buffer (HalPico.uart() makes it large) -- for the next tick.  Frames handled after
 # waiting are counted (n_deferred) and the longest wait is kept in ticks (wait_max): the
@@ -40,6 +50,10 @@ _RX = const(64)
 _RX_TICK = const(96)  # bytes decoded per tick at most
 FRAMES_PER_TICK = const(4)  # frames dispatched per tick at most (tests read it)
 _SENT = const(3)  # ... and none after the replies of this tick reach this many frames
+# the longest frame's work, us on a predicted real Pico (request(stats): 1530 us cold, measured
+# with the XIP model; set_reference/param_set/gains_chunk/excite ~1000-1080, a heartbeat 320)
+_FRAME_US = const(1600)
+_FORCE = const(8)  # ticks a backlog waits at most before one frame goes whatever the time
 _U16 = const(65535)
 _CMAX = const(0x3FFFFFFF)  # frame counter wrap (framing.SerialTx.n_sent)
 
@@ -85,6 +99,10 @@ class SerialLink:
         self.n_deferred = 0
         self.wait = 0  # ticks the current backlog has waited
         self.wait_max = 0
+        self._over = 0  # us the last tick with link work ran past its period (the next catches up)
+        self._held = 0  # ticks in a row a backlog got no frame (the budget held it)
+        self._pend = -1  # a decoded frame the budget held (its id; dec.buf keeps it), or -1
+        self._pseq = 0
         self._ticks = app._ticks if hasattr(app, "_ticks") else None
         self._diff = getattr(app, "_tdiff", None)
         # the time budget needs the app's clock and its step start (App: timing.last_us)
@@ -145,12 +163,15 @@ class SerialLink:
         self.disp.send_heartbeat(seq)
 
     def poll(self):
-        # idle (nothing received, nothing waiting): one any() and the pacer
-        if self._ri < self._rn or self._any():
+        # the periodic frames first (their time counts in the frames' budget), then what came in;
+        # idle (nothing received, nothing waiting): the pacer and one any()
+        self._tick()
+        if self._pend >= 0 or self._ri < self._rn or self._any():
             self._receive()
             if self.mode >= 0:
                 raise self._switch
-        self._tick()
+        else:
+            self._over = 0
 
     def _on_mode(self, m):
         # MODE (commands.py: motor off, m valid): robot is this mode already
@@ -165,8 +186,14 @@ class SerialLink:
         scan = self._scan
         app = self.app
         ticks = self._ticks
-        budget = self._budget and app.link_budget_us
-        t0 = app.timing.last_us if budget else 0
+        diff = self._diff
+        budget = self._budget
+        if budget:
+            t0 = app.timing.last_us
+            # a frame starts only if the worst one ends within link_budget_us of the step's
+            # scheduled start (the previous tick's excess counted); a long wait forces one
+            lim = app.link_budget_us - _FRAME_US - self._over
+            force = self._held >= _FORCE
         waited = self.wait > 0
         st = self.tx
         s0 = st.n_sent
@@ -174,37 +201,54 @@ class SerialLink:
         k = 0
         i = self._ri
         n = self._rn
+        mid = self._pend
+        seq = self._pseq
         while True:
-            if i >= n:
-                if left <= 0:
+            if mid < 0:
+                if budget and diff(ticks(), t0) > lim and not (force and k == 0):
                     break
-                m = self._any()
-                if not m:
-                    break
-                if m > _RX:
-                    m = _RX
-                if m > left:
-                    m = left
-                n = self._readinto(rx, m)
-                i = 0
-                if not n:
-                    n = 0
-                    break
-                left -= n
-            mid = scan(rx, i, n)
-            i = dec.next
-            if mid >= 0:
-                self.disp.handle(mid, dec.seq, dec.buf, 2)
-                k += 1
-                if waited and self.n_deferred < _U16:
-                    self.n_deferred += 1
-                if k >= FRAMES_PER_TICK or ((st.n_sent - s0) & _CMAX) >= _SENT:
-                    break
-                if budget and self._diff(ticks(), t0) > budget:
-                    break
+                if i >= n:
+                    if left <= 0:
+                        break
+                    m = self._any()
+                    if not m:
+                        break
+                    if m > _RX:
+                        m = _RX
+                    if m > left:
+                        m = left
+                    n = self._readinto(rx, m)
+                    i = 0
+                    if not n:
+                        n = 0
+                        break
+                    left -= n
+                mid = scan(rx, i, n)
+                i = dec.next
+                if mid < 0:
+                    continue
+                seq = dec.seq
+            # a decoded frame: dispatched if the worst frame still fits, else held (dec.buf keeps
+            # it: nothing is scanned before it goes) for the next tick
+            if budget and diff(ticks(), t0) > lim and not (force and k == 0):
+                break
+            self.disp.handle(mid, seq, dec.buf, 2)
+            mid = -1
+            k += 1
+            if waited and self.n_deferred < _U16:
+                self.n_deferred += 1
+            if k >= FRAMES_PER_TICK or ((st.n_sent - s0) & _CMAX) >= _SENT:
+                break
+        self._pend = mid
+        self._pseq = seq
         self._ri = i
         self._rn = n
-        if i < n or self._any():
+        if budget:
+            # what this tick ran past its period (from its scheduled start): the next one catches up
+            o = diff(ticks(), t0) + self._over - app.period_us
+            self._over = o if o > 0 else 0
+        if mid >= 0 or i < n or self._any():
+            self._held = 0 if k else self._held + 1
             # a backlog: it waits for the next tick
             w = self.wait + 1
             self.wait = w
@@ -212,3 +256,4 @@ class SerialLink:
                 self.wait_max = w if w < _U16 else _U16
         else:
             self.wait = 0
+            self._held = 0

@@ -7,8 +7,9 @@ at the line's full rate (:mod:`host.bench.link_sweep`).  Asserted with the firmw
 and figures: no gap between two step starts over 1.5 periods (a late tick, ``App._period``),
 ``stats_loop.overruns`` and the status value ``late_ticks`` unchanged by the sweep, balancing
 without a fault after every message; the bursts made frames wait (``link_deferred``) no longer
-than a burst's length in ticks.  ``make bench`` (section ``link``) prints the worst gap per
-message.  One board for the module: about 45-60 s of wall time.
+than four bursts' length in ticks.  Timed with the XIP flash-cache model (the predicted real
+Pico).  ``make bench`` (section ``link``) prints the worst gap per message.  One board for the
+module: about 45-70 s of wall time.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import shutil
 import pytest
 
 from host.bench.link_sweep import BURST, sweep
-from host.boards.rp2040.board import FIRMWARE, ROOT, build_bundle
+from host.boards.rp2040.board import FIRMWARE, ROOT, EmulatedBoard, build_bundle
 from host.hil.emulated import EmulatedHil
 
 pytestmark = [
@@ -32,23 +33,12 @@ pytestmark = [
 
 @pytest.fixture(scope="module")
 def result(tmp_path_factory: pytest.TempPathFactory):
-    # ideal cycles (UPRIGHT_XIP_CACHE=0), the timing this sweep was built and measured on.  With the
-    # flash-cache model (issue 26: the predicted real Pico) a burst of 12 stats requests made one
-    # gap of 3162 us (> 1.5 periods) and 8 overruns in the first merged run: the per-tick budget
-    # does not yet hold on a predicted real board -- left open with issue 23 (closing note)
-    import os
-
+    # timed with the XIP flash-cache model on (the predicted real Pico, issue 26): command code
+    # runs from a cold cache, 300-1530 us a frame (ideal cycles: 60-400 us).  Before the link
+    # budgeted in that time, a burst of 12 stats requests made a gap of 3162 us and 8 overruns
     bundle = build_bundle(tmp_path_factory.mktemp("bundle"))
-    old = os.environ.get("UPRIGHT_XIP_CACHE")
-    os.environ["UPRIGHT_XIP_CACHE"] = "0"
-    try:
-        with EmulatedHil(bundle) as hil:
-            yield sweep(hil)
-    finally:
-        if old is None:
-            os.environ.pop("UPRIGHT_XIP_CACHE", None)
-        else:
-            os.environ["UPRIGHT_XIP_CACHE"] = old
+    with EmulatedBoard(bundle, main=True, xip_cache=True) as board, EmulatedHil(bundle, board=board) as hil:
+        yield sweep(hil)
 
 
 def test_every_message_singly_and_in_bursts_leaves_the_loop_on_time(result) -> None:
@@ -76,4 +66,8 @@ def test_the_firmware_saw_no_late_tick_and_no_overrun(result) -> None:
 def test_bursts_wait_in_the_receive_buffer_and_are_counted(result) -> None:
     b, a = result["before"], result["after"]
     assert a["link_deferred"] > b["link_deferred"], (b, a)
-    assert 2 <= a["link_wait_max"] <= 2 * BURST + 4, a
+    # a frame goes in a tick that still has the worst frame's time; a tick that ran past its
+    # period lets the next one catch up without link work: a heavy frame (a stats request) every
+    # other tick at worst, so the 2 * BURST frames of the "everything" burst wait up to 4 * BURST
+    # ticks (measured 42)
+    assert 2 <= a["link_wait_max"] <= 4 * BURST + 4, a
