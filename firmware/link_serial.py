@@ -15,11 +15,12 @@
 # command code runs rarely, so from a cold cache -- a frame costs 300-1530 us on a predicted real
 # Pico, where the same code takes 60-400 us on ideal cycles; docs/firmware.md, "Board timing"):
 # poll() sends the periodic frames first (the pacer: on a telem_div 1 tick the telemetry pair,
-# ~210 us), then decodes and dispatches frames.  A frame is started only when the worst frame
-# (_FRAME_US, a stats request's three replies: 1530 us measured cold) still ends within
-# app.link_budget_us (11/8 of the period) of the step's start -- counted from its scheduled start:
-# a tick that ran past its period hands its excess on, and the next tick starts no frame until it
-# has caught up.  So no frame makes a gap between two step starts longer than 1.5 periods (a late
+# ~210 us), then decodes and dispatches frames.  A frame is read only when a heartbeat could still
+# follow, and dispatched only when the decoding (_SCAN_US) and its kind's cost (_HB_US, _FRAME_US,
+# _HEAVY_US: measured, below) still end within app.link_budget_us (11/8 of the period) of the step's start, counted from its
+# scheduled start (a decoded frame that does not fit is held for the next tick):
+# a tick that ran past its period hands its excess on, and the next tick's budget is that much
+# shorter (it catches up).  So no frame makes a gap between two step starts longer than 1.5 periods (a late
 # tick, App._period) on a predicted real board; at most FRAMES_PER_TICK frames and _RX_TICK bytes
 # per tick, and none once this tick's replies reach _SENT frames (the UART's transmit interrupts
 # cost the loop too).  A backlog held back _FORCE ticks in a row gets one frame whatever the time (a
@@ -50,9 +51,14 @@ _RX = const(64)
 _RX_TICK = const(96)  # bytes decoded per tick at most
 FRAMES_PER_TICK = const(4)  # frames dispatched per tick at most (tests read it)
 _SENT = const(3)  # ... and none after the replies of this tick reach this many frames
-# the longest frame's work, us on a predicted real Pico (request(stats): 1530 us cold, measured
-# with the XIP model; set_reference/param_set/gains_chunk/excite ~1000-1080, a heartbeat 320)
-_FRAME_US = const(1600)
+# a frame's work on a predicted real Pico (us, XIP model, cold cache, measured with the telemetry
+# pair every tick): a host heartbeat 320; a stats request (three replies) 1530, a timing request
+# 1283; every other frame at most ~1090 (arm 1090, excite 1080, param_set 1067, gains_chunk 1059,
+# set_reference 979).  Reading and decoding a frame first: up to ~470
+_HB_US = const(400)
+_FRAME_US = const(1200)
+_HEAVY_US = const(1600)
+_SCAN_US = const(500)
 _FORCE = const(8)  # ticks a backlog waits at most before one frame goes whatever the time
 _U16 = const(65535)
 _CMAX = const(0x3FFFFFFF)  # frame counter wrap (framing.SerialTx.n_sent)
@@ -190,9 +196,9 @@ class SerialLink:
         budget = self._budget
         if budget:
             t0 = app.timing.last_us
-            # a frame starts only if the worst one ends within link_budget_us of the step's
-            # scheduled start (the previous tick's excess counted); a long wait forces one
-            lim = app.link_budget_us - _FRAME_US - self._over
+            # a frame starts only if it ends within link_budget_us of the step's scheduled start
+            # (the previous tick's excess counted), at its kind's cost; a long hold forces one
+            lim = app.link_budget_us - self._over
             force = self._held >= _FORCE
         waited = self.wait > 0
         st = self.tx
@@ -203,9 +209,18 @@ class SerialLink:
         n = self._rn
         mid = self._pend
         seq = self._pseq
+        # the clock is read once per frame before reading and decoding it, and again before its
+        # dispatch when bytes had to be read for it (the UART's receive path and the decoding,
+        # cold, are the unknown part); else the decoding counts as _SCAN_US
+        now = -1
+        got = False
         while True:
+            if budget and now < 0:
+                now = diff(ticks(), t0)
+                if now < 0:
+                    now = 0
             if mid < 0:
-                if budget and diff(ticks(), t0) > lim and not (force and k == 0):
+                if budget and now > lim - _SCAN_US - _HB_US and not (force and k == 0):
                     break
                 if i >= n:
                     if left <= 0:
@@ -219,6 +234,7 @@ class SerialLink:
                         m = left
                     n = self._readinto(rx, m)
                     i = 0
+                    got = True
                     if not n:
                         n = 0
                         break
@@ -228,12 +244,26 @@ class SerialLink:
                 if mid < 0:
                     continue
                 seq = dec.seq
-            # a decoded frame: dispatched if the worst frame still fits, else held (dec.buf keeps
-            # it: nothing is scanned before it goes) for the next tick
-            if budget and diff(ticks(), t0) > lim and not (force and k == 0):
-                break
+            # a decoded frame: dispatched if it still fits at its kind's cost, else held (dec.buf
+            # keeps it: nothing is scanned before it goes) for the next tick
+            if budget:
+                c = _FRAME_US
+                if mid == T.HOST_HEARTBEAT:
+                    c = _HB_US
+                elif mid == T.REQUEST:
+                    w = dec.buf[2]
+                    if w == T.STATS_DECODE or w == T.STATS_FRAMES or w == T.STATS_LOOP or w == T.TIMING:
+                        c = _HEAVY_US
+                if got:
+                    now = diff(ticks(), t0)
+                    got = False
+                else:
+                    c += _SCAN_US
+                if now > lim - c and not (force and k == 0):
+                    break
             self.disp.handle(mid, seq, dec.buf, 2)
             mid = -1
+            now = -1
             k += 1
             if waited and self.n_deferred < _U16:
                 self.n_deferred += 1
@@ -244,8 +274,10 @@ class SerialLink:
         self._ri = i
         self._rn = n
         if budget:
-            # what this tick ran past its period (from its scheduled start): the next one catches up
-            o = diff(ticks(), t0) + self._over - app.period_us
+            # what this tick ran past its period from its scheduled start: the next one catches up
+            if now < 0:
+                now = diff(ticks(), t0)
+            o = now + self._over - app.period_us
             self._over = o if o > 0 else 0
         if mid >= 0 or i < n or self._any():
             self._held = 0 if k else self._held + 1

@@ -4,8 +4,9 @@ The bundle's ``main.py`` (HalPico, the paced loop with the heap locked, UART0 at
 balances the simulated pendulum through its pins (:class:`host.hil.emulated.EmulatedHil`);
 every host-to-board message of the table is sent singly, then in bursts of back-to-back frames
 at the line's full rate (:mod:`host.bench.link_sweep`).  Asserted with the firmware's own rule
-and figures: no gap between two step starts over 1.5 periods (a late tick, ``App._period``),
-``stats_loop.overruns`` and the status value ``late_ticks`` unchanged by the sweep, balancing
+and figures: no loop iteration over 1.5 periods, ``stats_loop.overruns`` and the status value
+``late_ticks`` (the firmware's own clock: a gap over 1.5 periods between step starts, a late
+tick, ``App._period``) unchanged by the sweep, balancing
 without a fault after every message; the bursts made frames wait (``link_deferred``) no longer
 than four bursts' length in ticks.  Timed with the XIP flash-cache model (the predicted real
 Pico).  ``make bench`` (section ``link``) prints the worst gap per message.  One board for the
@@ -51,8 +52,14 @@ def test_every_message_singly_and_in_bursts_leaves_the_loop_on_time(result) -> N
         if c.DIRECTION == "to_board" and c.NAME != "disarm":
             assert any(lab.split("#")[0].split("(")[0] in (c.NAME, f"burst {c.NAME}") for lab in labels) or \
                 c.NAME == "arm" and "arm (repeat)" in labels, c.NAME
-    late = [(f.label, round(f.gap_us)) for f in result["steps"] if not f.gap_us < 1.5 * p]
-    assert not late, f"late ticks (gap > {1.5 * p:.0f} us): {late}"
+    # an iteration over 1.5 periods is a late tick for sure.  The probe's gap between iteration
+    # starts is not asserted: it finds iterations between busy-wait clusters (>= 3 TIMER reads),
+    # and a tick that runs past its period (the link's budget allows 11/8 of one) is followed by
+    # the next without a wait, so the probe may join two steps into one gap (seen: a gap of
+    # 3022 us after a 2558 us iteration while the firmware's own step-start clock saw no gap
+    # over 3000 us).  The firmware's clock is the judge: next test
+    late = [(f.label, round(f.iter_us)) for f in result["steps"] if not f.iter_us < 1.5 * p]
+    assert not late, f"iterations over 1.5 periods ({1.5 * p:.0f} us): {late}"
     bad = [(f.label, f.state, f.faults) for f in result["steps"] if f.state != 2 or f.faults]
     assert not bad, f"not balancing or a fault after: {bad}"
 
