@@ -464,6 +464,35 @@ def lay_out(cache: Path, work: Path) -> Path:
     return mpy
 
 
+LD_FILE: str = "ports/rp2/memmap_mp_rp2040.ld"
+"""The rp2 port's linker script (relative to the MicroPython tree)."""
+
+LD_PATCH: tuple[tuple[str, str], ...] = (
+    ("*gc.c.obj *vm.c.obj *parse.c.obj", "*gc.c.o *vm.c.o *parse.c.o"),
+)
+"""The one source edit of the board image: the linker script keeps ``py/vm.c``, ``py/gc.c`` and
+``py/parse.c`` in SRAM with patterns pico-sdk 1.x object names matched (``*vm.c.obj``); pico-sdk 2.x
+names them ``*.c.o``, so unpatched MicroPython 1.25 runs its VM, GC and parser from flash through
+the XIP cache (upstream fixed the patterns in 2026, MicroPython PR #19370)."""
+
+
+def patch_linker_script(mpy: Path) -> None:
+    """Apply :data:`LD_PATCH` to the MicroPython tree ``mpy`` (the hot code back in SRAM).
+
+    Raises
+    ------
+    BuildError
+        The linker script does not hold a pattern exactly once (another source).
+    """
+    ld = mpy / LD_FILE
+    text = ld.read_text()
+    for old, new in LD_PATCH:
+        if text.count(old) != 1:
+            raise BuildError(f"{ld}: pattern {old!r} not found once; the SRAM patch does not apply to this source")
+        text = text.replace(old, new)
+    ld.write_text(text)
+
+
 def build_env(work: Path) -> dict[str, str]:
     """The environment for a reproducible build.
 
@@ -529,6 +558,7 @@ def inputs_record() -> dict[str, object]:
         "board": BOARD,
         "cmake_args": ["-Dpicotool_FOUND=0", "-DMICROPY_FROZEN_MANIFEST=<manifest>"],
         "source_date_epoch": SOURCE_DATE_EPOCH,
+        "ld_patch": [LD_FILE, *LD_PATCH],
         "expected_firmware_sha256": EXPECTED_FIRMWARE_SHA256,
     }
 
@@ -602,6 +632,7 @@ def build(out: Path = DEFAULT_OUT, cache: Path | None = None, jobs: int | None =
     for stale in ("firmware.bin", "firmware.elf", "firmware.sha256", "inputs.json"):
         (out / stale).unlink(missing_ok=True)
     mpy = lay_out(cache, work)
+    patch_linker_script(mpy)
     built = compile_firmware(mpy, work, jobs or os.cpu_count() or 1)
     t2 = time.monotonic()
     bin_path, elf_path = built / "firmware.bin", built / "firmware.elf"
