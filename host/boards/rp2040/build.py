@@ -71,10 +71,11 @@ KEYRING: Path = Path("/usr/share/keyrings/debian-archive-keyring.gpg")
 SOURCE_DATE_EPOCH: int = 1746366018
 """Timestamp for the build (the date of micropython 1.25.0+ds-1's changelog entry)."""
 
-EXPECTED_FIRMWARE_SHA256: str = "68f0d5fefcfc3b0ac3c3ac2fbebd8617cb063ed4dd888b3cb8b2947c41a8f0e8"
-"""sha256 of the reproducible ``firmware.bin`` (331,804 bytes) built with :data:`MANIFEST`."""
+EXPECTED_FIRMWARE_SHA256: str = "3ec80c9d9a79893b0b003f096d193d93f28d9997f47fb1c0e1824c78b75a9db2"
+"""sha256 of the reproducible ``firmware.bin`` (333,396 bytes) built with :data:`MANIFEST` and
+:data:`LD_PATCH` (331,804 bytes, ``68f0d5fe...``, without the patch)."""
 
-EXPECTED_FIRMWARE_SIZE: int = 331_804
+EXPECTED_FIRMWARE_SIZE: int = 333_396
 """Size in bytes of the expected ``firmware.bin``."""
 
 MICROPYTHON_DIR: str = "micropython-1.25.0"
