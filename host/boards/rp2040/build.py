@@ -559,7 +559,7 @@ def inputs_record() -> dict[str, object]:
         "board": BOARD,
         "cmake_args": ["-Dpicotool_FOUND=0", "-DMICROPY_FROZEN_MANIFEST=<manifest>"],
         "source_date_epoch": SOURCE_DATE_EPOCH,
-        "ld_patch": [LD_FILE, *LD_PATCH],
+        "ld_patch": [LD_FILE, *(list(p) for p in LD_PATCH)],
         "expected_firmware_sha256": EXPECTED_FIRMWARE_SHA256,
     }
 
