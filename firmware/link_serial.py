@@ -59,7 +59,8 @@ _HB_US = const(400)
 _FRAME_US = const(1200)
 _HEAVY_US = const(1600)
 _SCAN_US = const(500)
-_FORCE = const(8)  # ticks a backlog waits at most before one frame goes whatever the time
+_FORCE = const(8)
+_USER_MARGIN = const(100)  # us a user hook leaves before the next step is due  # ticks a backlog waits at most before one frame goes whatever the time
 _U16 = const(65535)
 _CMAX = const(0x3FFFFFFF)  # frame counter wrap (framing.SerialTx.n_sent)
 
@@ -107,6 +108,11 @@ class SerialLink:
         self.wait_max = 0
         self._over = 0  # us the last tick with link work ran past its period (the next catches up)
         self._held = 0  # ticks in a row a backlog got no frame (the budget held it)
+        # the user hook (set_user): called in a tick's spare time, within its budget
+        self._user = None
+        self._ubudget = 0
+        self.user_runs = 0
+        self.user_over = 0
         self._pend = -1  # a decoded frame the budget held (its id; dec.buf keeps it), or -1
         self._pseq = 0
         self._ticks = app._ticks if hasattr(app, "_ticks") else None
@@ -178,6 +184,39 @@ class SerialLink:
                 raise self._switch
         else:
             self._over = 0
+        u = self._user
+        if u is not None and self._budget:
+            self._run_user(u)
+
+    def set_user(self, fn, budget_us):
+        # a user hook (docs/firmware.md, "User code in the spare time"): fn() -- no arguments,
+        # allocation-free (the heap is locked in the loop), a bound method made once -- is called
+        # at most once a tick, after the link's work, only when budget_us still ends
+        # _USER_MARGIN us before the next step is due.  Each call is timed: one that takes longer
+        # than budget_us switches the hook off (user_over counts it; set_user again to resume).
+        # None: no hook.
+        self._user = fn
+        self._ubudget = budget_us if budget_us > 0 else 0
+        return self._budget
+
+    def _run_user(self, u):
+        app = self.app
+        diff = self._diff
+        t0 = app.timing.last_us
+        now = diff(self._ticks(), t0) + self._over
+        if now + self._ubudget > app.period_us - _USER_MARGIN:
+            return
+        u()
+        if self.user_runs < _U16:
+            self.user_runs += 1
+        e = diff(self._ticks(), t0) + self._over
+        if e - now > self._ubudget:
+            # over its budget: off; the link's next budget knows how far this tick ran over
+            self._user = None
+            if self.user_over < _U16:
+                self.user_over += 1
+            if e > app.period_us:
+                self._over = e - app.period_us
 
     def _on_mode(self, m):
         # MODE (commands.py: motor off, m valid): robot is this mode already
