@@ -295,10 +295,11 @@ class App:
         self.timing.period_us = self.period_us
         if hasattr(self.hal, "set_period"):
             self.hal.set_period(self.period_us)  # HalPico: the driver-enable dead-man's timeout
-        # the link's per-tick budget (link_serial): no new frame once the tick has run this
-        # long since its step started (2/5 of the period: the longest command, ~650 us on
-        # the emulated Pico, and the telemetry still fit in the period after it)
-        self.link_budget_us = (self.period_us * 2) // 5
+        # the link's per-tick budget (link_serial): its frames end within this many us of the
+        # step's scheduled start (11/8 of the period: short of a late tick, 1.5 periods, by
+        # 1/8 of a period for a burst's receive interrupts and a frame over its planned cost;
+        # 5/4 held frames back 225 ticks in a burst on the predicted Pico)
+        self.link_budget_us = self.period_us + (self.period_us >> 1) - (self.period_us >> 3)
         sup.stall_ticks = (self.stall_ms * rate) // 1000
         t = self.table
         # track fault at 1.25 x the reference limit (encoder counts)
@@ -499,12 +500,14 @@ class App:
                     self.service_save(locked)
                     self._wdt_window(self.wdt_ms, locked)
                     self.sample_heap()
+                    self.timing.restart()
                     deadline = ticks()
                     first = True
                 elif self._heap_due and (sup.state == DISARMED or sup.state == FAULT):
                     # heap statistics asked for (fill_stats) with the motor off: sampled
                     # between ticks (a heap walk, ~18 ms on a Pico), pacing restarts
                     self.sample_heap()
+                    self.timing.restart()
                     deadline = ticks()
                     first = True
                 deadline = add(deadline, self.period_us)

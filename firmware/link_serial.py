@@ -11,11 +11,22 @@
 # half a loop period.  write(buf) takes a whole buffer, so one memoryview per frame length
 # is made here, once.
 #
-# Bounded work per tick: poll() decodes and dispatches at most FRAMES_PER_TICK frames and _RX_TICK
-# bytes, starts no new frame once the tick has run app.link_budget_us (2/5 of the period)
-# since its step started or once its replies reach _SENT frames (the UART's transmit
-# interrupts cost the loop too: a stats request answers with three frames); every
-# command's own work is bounded (commands.py, App).
+# Bounded work per tick, in the time a real Pico takes (the emulated board's XIP flash-cache model:
+# command code runs rarely, so from a cold cache -- a frame costs 300-1530 us on a predicted real
+# Pico, where the same code takes 60-400 us on ideal cycles; docs/firmware.md, "Board timing"):
+# poll() sends the periodic frames first (the pacer: on a telem_div 1 tick the telemetry pair,
+# ~210 us), then decodes and dispatches frames.  A frame is read only when a heartbeat could still
+# follow, and dispatched only when the decoding (_SCAN_US) and its kind's cost (_HB_US, _FRAME_US,
+# _HEAVY_US: measured, below) still end within app.link_budget_us (11/8 of the period) of the step's start, counted from its
+# scheduled start (a decoded frame that does not fit is held for the next tick):
+# a tick that ran past its period hands its excess on, and the next tick's budget is that much
+# shorter (it catches up).  So no frame makes a gap between two step starts longer than 1.5 periods (a late
+# tick, App._period) on a predicted real board; at most FRAMES_PER_TICK frames and _RX_TICK bytes
+# per tick, and none once this tick's replies reach _SENT frames (the UART's transmit interrupts
+# cost the loop too).  A backlog held back _FORCE ticks in a row gets one frame whatever the time (a
+# loop rate at which no frame ever fits -- above ~700 Hz on a predicted real Pico -- still answers,
+# one late tick per _FORCE ticks of traffic).  Every command's own work is bounded (commands.py,
+# App).
 # What is left waits -- bytes already read in self.rx, the rest in the UART's receive
 # buffer (HalPico.uart() makes it large) -- for the next tick.  Frames handled after
 # waiting are counted (n_deferred) and the longest wait is kept in ticks (wait_max): the
@@ -40,6 +51,16 @@ _RX = const(64)
 _RX_TICK = const(96)  # bytes decoded per tick at most
 FRAMES_PER_TICK = const(4)  # frames dispatched per tick at most (tests read it)
 _SENT = const(3)  # ... and none after the replies of this tick reach this many frames
+# a frame's work on a predicted real Pico (us, XIP model, cold cache, measured with the telemetry
+# pair every tick): a host heartbeat 320; a stats request (three replies) 1530, a timing request
+# 1283; every other frame at most ~1090 (arm 1090, excite 1080, param_set 1067, gains_chunk 1059,
+# set_reference 979).  Reading and decoding a frame first: up to ~470
+_HB_US = const(400)
+_FRAME_US = const(1200)
+_HEAVY_US = const(1600)
+_SCAN_US = const(500)
+_FORCE = const(8)
+_USER_MARGIN = const(100)  # us a user hook leaves before the next step is due  # ticks a backlog waits at most before one frame goes whatever the time
 _U16 = const(65535)
 _CMAX = const(0x3FFFFFFF)  # frame counter wrap (framing.SerialTx.n_sent)
 
@@ -85,6 +106,15 @@ class SerialLink:
         self.n_deferred = 0
         self.wait = 0  # ticks the current backlog has waited
         self.wait_max = 0
+        self._over = 0  # us the last tick with link work ran past its period (the next catches up)
+        self._held = 0  # ticks in a row a backlog got no frame (the budget held it)
+        # the user hook (set_user): called in a tick's spare time, within its budget
+        self._user = None
+        self._ubudget = 0
+        self.user_runs = 0
+        self.user_over = 0
+        self._pend = -1  # a decoded frame the budget held (its id; dec.buf keeps it), or -1
+        self._pseq = 0
         self._ticks = app._ticks if hasattr(app, "_ticks") else None
         self._diff = getattr(app, "_tdiff", None)
         # the time budget needs the app's clock and its step start (App: timing.last_us)
@@ -145,12 +175,48 @@ class SerialLink:
         self.disp.send_heartbeat(seq)
 
     def poll(self):
-        # idle (nothing received, nothing waiting): one any() and the pacer
-        if self._ri < self._rn or self._any():
+        # the periodic frames first (their time counts in the frames' budget), then what came in;
+        # idle (nothing received, nothing waiting): the pacer and one any()
+        self._tick()
+        if self._pend >= 0 or self._ri < self._rn or self._any():
             self._receive()
             if self.mode >= 0:
                 raise self._switch
-        self._tick()
+        else:
+            self._over = 0
+        u = self._user
+        if u is not None and self._budget:
+            self._run_user(u)
+
+    def set_user(self, fn, budget_us):
+        # a user hook (docs/firmware.md, "User code in the spare time"): fn() -- no arguments,
+        # allocation-free (the heap is locked in the loop), a bound method made once -- is called
+        # at most once a tick, after the link's work, only when budget_us still ends
+        # _USER_MARGIN us before the next step is due.  Each call is timed: one that takes longer
+        # than budget_us switches the hook off (user_over counts it; set_user again to resume).
+        # None: no hook.
+        self._user = fn
+        self._ubudget = budget_us if budget_us > 0 else 0
+        return self._budget
+
+    def _run_user(self, u):
+        app = self.app
+        diff = self._diff
+        t0 = app.timing.last_us
+        now = diff(self._ticks(), t0) + self._over
+        if now + self._ubudget > app.period_us - _USER_MARGIN:
+            return
+        u()
+        if self.user_runs < _U16:
+            self.user_runs += 1
+        e = diff(self._ticks(), t0) + self._over
+        if e - now > self._ubudget:
+            # over its budget: off; the link's next budget knows how far this tick ran over
+            self._user = None
+            if self.user_over < _U16:
+                self.user_over += 1
+            if e > app.period_us:
+                self._over = e - app.period_us
 
     def _on_mode(self, m):
         # MODE (commands.py: motor off, m valid): robot is this mode already
@@ -165,8 +231,14 @@ class SerialLink:
         scan = self._scan
         app = self.app
         ticks = self._ticks
-        budget = self._budget and app.link_budget_us
-        t0 = app.timing.last_us if budget else 0
+        diff = self._diff
+        budget = self._budget
+        if budget:
+            t0 = app.timing.last_us
+            # a frame starts only if it ends within link_budget_us of the step's scheduled start
+            # (the previous tick's excess counted), at its kind's cost; a long hold forces one
+            lim = app.link_budget_us - self._over
+            force = self._held >= _FORCE
         waited = self.wait > 0
         st = self.tx
         s0 = st.n_sent
@@ -174,37 +246,80 @@ class SerialLink:
         k = 0
         i = self._ri
         n = self._rn
+        mid = self._pend
+        seq = self._pseq
+        # the clock is read once per frame before reading and decoding it, and again before its
+        # dispatch when bytes had to be read for it (the UART's receive path and the decoding,
+        # cold, are the unknown part); else the decoding counts as _SCAN_US
+        now = -1
+        got = False
         while True:
-            if i >= n:
-                if left <= 0:
+            if budget and now < 0:
+                now = diff(ticks(), t0)
+                if now < 0:
+                    now = 0
+            if mid < 0:
+                if budget and now > lim - _SCAN_US - _HB_US and not (force and k == 0):
                     break
-                m = self._any()
-                if not m:
+                if i >= n:
+                    if left <= 0:
+                        break
+                    m = self._any()
+                    if not m:
+                        break
+                    if m > _RX:
+                        m = _RX
+                    if m > left:
+                        m = left
+                    n = self._readinto(rx, m)
+                    i = 0
+                    got = True
+                    if not n:
+                        n = 0
+                        break
+                    left -= n
+                mid = scan(rx, i, n)
+                i = dec.next
+                if mid < 0:
+                    continue
+                seq = dec.seq
+            # a decoded frame: dispatched if it still fits at its kind's cost, else held (dec.buf
+            # keeps it: nothing is scanned before it goes) for the next tick
+            if budget:
+                c = _FRAME_US
+                if mid == T.HOST_HEARTBEAT:
+                    c = _HB_US
+                elif mid == T.REQUEST:
+                    w = dec.buf[2]
+                    if w == T.STATS_DECODE or w == T.STATS_FRAMES or w == T.STATS_LOOP or w == T.TIMING:
+                        c = _HEAVY_US
+                if got:
+                    now = diff(ticks(), t0)
+                    got = False
+                else:
+                    c += _SCAN_US
+                if now > lim - c and not (force and k == 0):
                     break
-                if m > _RX:
-                    m = _RX
-                if m > left:
-                    m = left
-                n = self._readinto(rx, m)
-                i = 0
-                if not n:
-                    n = 0
-                    break
-                left -= n
-            mid = scan(rx, i, n)
-            i = dec.next
-            if mid >= 0:
-                self.disp.handle(mid, dec.seq, dec.buf, 2)
-                k += 1
-                if waited and self.n_deferred < _U16:
-                    self.n_deferred += 1
-                if k >= FRAMES_PER_TICK or ((st.n_sent - s0) & _CMAX) >= _SENT:
-                    break
-                if budget and self._diff(ticks(), t0) > budget:
-                    break
+            self.disp.handle(mid, seq, dec.buf, 2)
+            mid = -1
+            now = -1
+            k += 1
+            if waited and self.n_deferred < _U16:
+                self.n_deferred += 1
+            if k >= FRAMES_PER_TICK or ((st.n_sent - s0) & _CMAX) >= _SENT:
+                break
+        self._pend = mid
+        self._pseq = seq
         self._ri = i
         self._rn = n
-        if i < n or self._any():
+        if budget:
+            # what this tick ran past its period from its scheduled start: the next one catches up
+            if now < 0:
+                now = diff(ticks(), t0)
+            o = now + self._over - app.period_us
+            self._over = o if o > 0 else 0
+        if mid >= 0 or i < n or self._any():
+            self._held = 0 if k else self._held + 1
             # a backlog: it waits for the next tick
             w = self.wait + 1
             self.wait = w
@@ -212,3 +327,4 @@ class SerialLink:
                 self.wait_max = w if w < _U16 else _U16
         else:
             self.wait = 0
+            self._held = 0

@@ -47,6 +47,11 @@ class Timing:
         self.last_us = 0
         self._have_last = False
 
+    def restart(self):
+        # the loop paused between ticks on purpose (a heap sample or a save, motor off: App.run):
+        # the next step's gap is not a period (not timed, not an overrun)
+        self._have_last = False
+
     def begin(self, t):
         # a step starts at tick t
         if self._have_last:

@@ -214,8 +214,8 @@ def test_log_csv_rows(port, tmp_path):
 def test_excite_every_tick_without_a_deadline_miss(port, tmp_path):
     # the firmware's own PRBS (issue 15 item 4) with telemetry every tick (telem_div 1) on the
     # board's real timing: every row recorded, the force +-0.5 N around the balancing force,
-    # no fault (deadline included), at most a few late ticks (commands answered in a tick that
-    # also sends telemetry), telem_div put back
+    # no fault (deadline included), no late tick over the whole module (every command of every
+    # test answered within the link's budget), telem_div put back
     out = tmp_path / "exc.csv"
     p = board(port, "excite", "--seconds", "4", "--amplitude", "0.5", "--out", str(out), "--quiet", timeout=120)
     assert p.returncode == 0, p.stderr
@@ -227,6 +227,10 @@ def test_excite_every_tick_without_a_deadline_miss(port, tmp_path):
     assert max(int(r["step_us"]) for r in rows) < 2000  # inside the 500 Hz period
     st = status(port)
     assert st["state"] == "disarmed" and st["faults"] == 0, st
-    assert st["board_stats"]["loop"]["overruns"] <= 4
+    # none: the link starts a frame only while it still fits the period's budget in the predicted
+    # real-Pico time (firmware/link_serial.py; it was "at most 4" when a command answered in a
+    # telemetry tick could make it late: 5 seen in CI under load), and a heap sample between
+    # ticks (status's stats request while disarmed) is not timed as a period (Timing.restart)
+    assert st["board_stats"]["loop"]["overruns"] == 0, st["board_stats"]["loop"]
     p = board(port, "params", "get", "telem_div", "--json")
     assert json.loads(p.stdout) == {"telem_div": 10}

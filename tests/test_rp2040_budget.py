@@ -7,7 +7,9 @@ PIO pushes continuously; the whole loop iteration within a generous per-tick bou
 Timed with the harness's XIP flash-cache model on (``xip_cache=True``): the cycles a real Pico
 is predicted to take (docs/firmware.md, "Board timing"), not the ideal ones.
 
-One board (REPL, bundle importable) shared by the module; about 30-40 s of wall time.
+A user hook (``SerialLink.set_user``) runs in the spare time within its budget and a slow one is
+switched off after one call.  One board (REPL, bundle importable) shared by the module; about
+35-45 s of wall time.
 """
 
 from __future__ import annotations
@@ -169,3 +171,44 @@ def test_whole_loop_iteration_within_a_generous_budget(board: EmulatedBoard) -> 
     out2 = board.exec("app.run(n=250)\nprint(app.sup.state, app.timing.overruns, app.n_late)", timeout=3.0)
     state2, overruns2, late2 = (int(v) for v in out2.split())
     assert state2 == 2 and overruns2 - overruns <= 1 and late2 == late, (out, out2)
+
+
+HOOKS = """
+from array import array
+cnt = array('i', [0])
+def good():
+    # a user's small job: allocation-free, well inside its budget
+    cnt[0] += 1
+def slow():
+    # a user's job that breaks its 200 us budget: 5 ms of busy waiting
+    t = time.ticks_us()
+    while time.ticks_diff(time.ticks_us(), t) < 5000:
+        pass
+def stats():
+    L = app.link
+    print(L.user_runs, L.user_over, cnt[0], app.timing.overruns, app.n_late, app.sup.state)
+"""
+
+
+def test_user_hook_runs_in_the_spare_time_and_a_slow_one_is_switched_off(board: EmulatedBoard) -> None:
+    # SerialLink.set_user (docs/firmware.md, "User code in the spare time"): a hook within its
+    # budget runs every tick it fits, the loop keeps every deadline; a hook that takes 5 ms on a
+    # 200 us budget runs once, is switched off, and costs at most that one late tick (it cannot be
+    # stopped while it runs: MicroPython has no preemption), the robot keeps balancing
+    board.exec(HOOKS, timeout=3.0)
+    board.exec("mk(10)", timeout=2.0)
+    board.uart_write(_frames(M.BY_NAME["arm"](epoch=0)))
+    board.exec("app.run(n=60)", timeout=3.0)  # armed, balancing, the cold first ticks behind
+    runs0, over0, _, ov0, late0, _ = (int(v) for v in board.exec("stats()", timeout=2.0).split())
+    out = board.exec("app.link.set_user(good, 200)\napp.run(n=200)\nstats()", timeout=4.0)
+    runs, over, cnt, ov, late, state = (int(v) for v in out.splitlines()[-1].split())
+    assert state == 2 and over == 0, out
+    assert runs - runs0 == cnt and cnt >= 150, out  # nearly every tick had the spare time (measured: 200 of 200)
+    # the run's first tick follows the REPL's compile (a cold cache: at most one overrun, as in
+    # test_whole_loop_iteration_within_a_generous_budget); none from the hook
+    assert ov - ov0 <= 1 and late - late0 <= 1, out
+    out = board.exec("app.link.set_user(slow, 200)\napp.run(n=100)\nstats()", timeout=4.0)
+    runs2, over2, _, ov2, late2, state2 = (int(v) for v in out.splitlines()[-1].split())
+    assert over2 == 1 and runs2 == runs + 1, out  # one call, then off
+    assert state2 == 2, out  # one late tick is within the deadline budget: still balancing
+    assert late2 - late <= 2 and ov2 - ov <= 2, out  # the hook's one tick (+ the cold first tick)

@@ -28,13 +28,12 @@ __all__ = ["DEFAULT_OUT", "LD_FILE", "PATCH", "build_ram_vm"]
 DEFAULT_OUT: Path = B.REPO_ROOT / "build" / "rp2040-ramvm"
 """Where the variant goes by default (a sibling of ``build/rp2040``)."""
 
-LD_FILE: str = "ports/rp2/memmap_mp_rp2040.ld"
+LD_FILE: str = B.LD_FILE
 """The linker script the patch changes (relative to the MicroPython tree)."""
 
-PATCH: tuple[tuple[str, str], ...] = (
-    ("*gc.c.obj *vm.c.obj *parse.c.obj", "*gc.c.o *vm.c.o *parse.c.o"),
-)
-"""The one textual change: the object-name patterns as pico-sdk 2.x names the objects."""
+PATCH: tuple[tuple[str, str], ...] = B.LD_PATCH
+"""The one textual change: the object-name patterns as pico-sdk 2.x names the objects (the board
+image, :mod:`host.boards.rp2040.build`, carries the same patch since issue 26 item 3)."""
 
 
 def build_ram_vm(out: Path = DEFAULT_OUT, jobs: int = 2) -> Path:
@@ -73,13 +72,7 @@ def build_ram_vm(out: Path = DEFAULT_OUT, jobs: int = 2) -> Path:
     B.check_toolchain()
     work = out / "work"
     mpy = B.lay_out(cache, work)
-    ld = mpy / LD_FILE
-    text = ld.read_text()
-    for old, new in PATCH:
-        if text.count(old) != 1:
-            raise B.BuildError(f"{ld}: pattern {old!r} not found once; the variant does not apply to this source")
-        text = text.replace(old, new)
-    ld.write_text(text)
+    B.patch_linker_script(mpy)
     built = B.compile_firmware(mpy, work, jobs)
     out.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(built / "firmware.elf", out / "firmware.elf")

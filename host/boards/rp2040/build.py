@@ -71,10 +71,11 @@ KEYRING: Path = Path("/usr/share/keyrings/debian-archive-keyring.gpg")
 SOURCE_DATE_EPOCH: int = 1746366018
 """Timestamp for the build (the date of micropython 1.25.0+ds-1's changelog entry)."""
 
-EXPECTED_FIRMWARE_SHA256: str = "68f0d5fefcfc3b0ac3c3ac2fbebd8617cb063ed4dd888b3cb8b2947c41a8f0e8"
-"""sha256 of the reproducible ``firmware.bin`` (331,804 bytes) built with :data:`MANIFEST`."""
+EXPECTED_FIRMWARE_SHA256: str = "3ec80c9d9a79893b0b003f096d193d93f28d9997f47fb1c0e1824c78b75a9db2"
+"""sha256 of the reproducible ``firmware.bin`` (333,396 bytes) built with :data:`MANIFEST` and
+:data:`LD_PATCH` (331,804 bytes, ``68f0d5fe...``, without the patch)."""
 
-EXPECTED_FIRMWARE_SIZE: int = 331_804
+EXPECTED_FIRMWARE_SIZE: int = 333_396
 """Size in bytes of the expected ``firmware.bin``."""
 
 MICROPYTHON_DIR: str = "micropython-1.25.0"
@@ -464,6 +465,35 @@ def lay_out(cache: Path, work: Path) -> Path:
     return mpy
 
 
+LD_FILE: str = "ports/rp2/memmap_mp_rp2040.ld"
+"""The rp2 port's linker script (relative to the MicroPython tree)."""
+
+LD_PATCH: tuple[tuple[str, str], ...] = (
+    ("*gc.c.obj *vm.c.obj *parse.c.obj", "*gc.c.o *vm.c.o *parse.c.o"),
+)
+"""The one source edit of the board image: the linker script keeps ``py/vm.c``, ``py/gc.c`` and
+``py/parse.c`` in SRAM with patterns pico-sdk 1.x object names matched (``*vm.c.obj``); pico-sdk 2.x
+names them ``*.c.o``, so unpatched MicroPython 1.25 runs its VM, GC and parser from flash through
+the XIP cache (upstream fixed the patterns in 2026, MicroPython PR #19370)."""
+
+
+def patch_linker_script(mpy: Path) -> None:
+    """Apply :data:`LD_PATCH` to the MicroPython tree ``mpy`` (the hot code back in SRAM).
+
+    Raises
+    ------
+    BuildError
+        The linker script does not hold a pattern exactly once (another source).
+    """
+    ld = mpy / LD_FILE
+    text = ld.read_text()
+    for old, new in LD_PATCH:
+        if text.count(old) != 1:
+            raise BuildError(f"{ld}: pattern {old!r} not found once; the SRAM patch does not apply to this source")
+        text = text.replace(old, new)
+    ld.write_text(text)
+
+
 def build_env(work: Path) -> dict[str, str]:
     """The environment for a reproducible build.
 
@@ -529,6 +559,7 @@ def inputs_record() -> dict[str, object]:
         "board": BOARD,
         "cmake_args": ["-Dpicotool_FOUND=0", "-DMICROPY_FROZEN_MANIFEST=<manifest>"],
         "source_date_epoch": SOURCE_DATE_EPOCH,
+        "ld_patch": [LD_FILE, *(list(p) for p in LD_PATCH)],
         "expected_firmware_sha256": EXPECTED_FIRMWARE_SHA256,
     }
 
@@ -602,6 +633,7 @@ def build(out: Path = DEFAULT_OUT, cache: Path | None = None, jobs: int | None =
     for stale in ("firmware.bin", "firmware.elf", "firmware.sha256", "inputs.json"):
         (out / stale).unlink(missing_ok=True)
     mpy = lay_out(cache, work)
+    patch_linker_script(mpy)
     built = compile_firmware(mpy, work, jobs or os.cpu_count() or 1)
     t2 = time.monotonic()
     bin_path, elf_path = built / "firmware.bin", built / "firmware.elf"

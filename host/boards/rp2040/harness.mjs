@@ -765,7 +765,9 @@ function romServe(code) {
 // Miss penalty (--xip-miss CYCLES, default XIP_MISS_DEFAULT): the Pico's boot2 (W25Q080) runs the
 // SSI in quad-I/O continuous read (0xEB with mode bits 0xA0, no command phase) at SCK = clk_sys/2.
 // A line fill is 24 address + 8 mode bits on 4 lines (8 SCK), 4 dummy SCK, 64 data bits on 4 lines
-// (16 SCK) = 28 SCK = 56 clk_sys cycles, plus the SSI/XIP handshake (chip select, the SSI's RX
+// (16 SCK) = 28 SCK = 56 clk_sys cycles -- the same count for the chip the Pico carries, Winbond's
+// W25Q16JV (datasheet "Fast Read Quad I/O (EBh)" with continuous read mode M5-4 = 10: 6 address
+// + 2 mode clocks, 4 dummy clocks, 2 clocks a byte; no instruction phase), plus the SSI/XIP handshake (chip select, the SSI's RX
 // path, the bus stall's own cycle): XIP_MISS_OVERHEAD cycles (a parameter, set from the perf_bench
 // calibration in docs/firmware.md).  --xip-cache off (or {"cmd":"xip","on":false}) switches it off.
 // CTR_ACC counts the M0+'s bus accesses: an instruction fetch is one 32-bit access per word (the
