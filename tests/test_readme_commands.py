@@ -151,7 +151,7 @@ def test_readme_command_works_as_shown(cmd: str, tmp_path: Path) -> None:
                        text=True, timeout=600)
     assert r.returncode == 0, f"{' '.join(argv)}\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}"
     assert "Traceback" not in r.stderr
-    if "--plant soft_pendulum" in cmd:
+    if "--plant soft_pendulum" in cmd and argv[1] == "hil":  # the README states this run's settling time
         _check_soft_pendulum_claim(r.stdout)
     if argv[1] == "demo":
         _check_demo_table_row(r.stdout, "tilt_0p1")
