@@ -501,6 +501,7 @@ class App:
                     self._wdt_window(self.wdt_ms, locked)
                     self.sample_heap()
                     self.timing.restart()
+                    self.sensors.follow(self._read_enc())
                     deadline = ticks()
                     first = True
                 elif self._heap_due and (sup.state == DISARMED or sup.state == FAULT):
@@ -508,6 +509,7 @@ class App:
                     # between ticks (a heap walk, ~18 ms on a Pico), pacing restarts
                     self.sample_heap()
                     self.timing.restart()
+                    self.sensors.follow(self._read_enc())
                     deadline = ticks()
                     first = True
                 deadline = add(deadline, self.period_us)

@@ -54,6 +54,25 @@ class Sensors:
         self.pos = 0
         self.yx = 0
 
+    def follow(self, enc):
+        # between ticks, after a pause of the loop (a save's flash writes, a heap walk: tens of
+        # ms): the encoder's counts since the last reading go into pos without the one-tick
+        # jump check (a coasting cart rolls many ticks' worth in a pause); never in the tick
+        enc &= _ENC_MASK
+        if self.primed:
+            dl = (enc - self.last) & _ENC_MASK
+            if dl >= _ENC_HALF:
+                dl -= _ENC_MOD
+            if self.enc_sign < 0:
+                dl = -dl
+            v = self.pos + dl
+            if v > _POS_MAX:
+                v = _POS_MAX
+            elif v < -_POS_MAX:
+                v = -_POS_MAX
+            self.pos = v
+        self.last = enc
+
     def update(self, adc, enc):
         # one reading of both sensors (any ints: out-of-range values are clamped/masked)
         if adc <= 0:

@@ -71,6 +71,11 @@ for cfg in ((1, 1), (-1, 1), (1, -1), (-1, -1)):
         if r == 3:
             a.zero()
             b.zero()
+        if r == 4:  # a pause of the loop between ticks (a save): the counts followed, no jump check
+            enc = enc + rnd(4001) - 2000
+            a.follow(enc)
+            b.follow(enc)
+            enc = enc + rnd(61) - 30
         a.update(adc, enc)
         b.update(adc, enc)
         chk('sensors', a, b, SA)
