@@ -34,11 +34,10 @@ from host.dashboard.hub import COLUMNS, PAGE_TIMEOUT_S, Hub, SharedLink
 from host.dashboard.server import PAGE_HEADER, TOKEN_HEADER, split_url
 from host.link import messages as M
 from host.link.clients import Link
-from host.operate.board import has_message
 
 ROOT = Path(__file__).resolve().parent.parent
-# the frame that feeds the board's watchdog: the protocol's host heartbeat where it has one
-KEEP = "host_heartbeat" if has_message("host_heartbeat") else "request"
+# the frame that feeds the board's watchdog
+KEEP = "host_heartbeat"
 
 
 # ---------------------------------------------------------------- gain tables
