@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from host.bench.catch import run_tilt
-from host.boards import fwharness as H
+import fwharness as H
 from host.boards.mpyrun import run_unix, run_wasm, wasm_available
 from host.design.catch import CATCH_DEFAULT, physical_bound
 from host.design.export import export

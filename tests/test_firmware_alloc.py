@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import pytest
 
-from host.boards import fwharness as H
+import fwharness as H
 from host.design.export import export
 from host.boards.mpyrun import run_unix, run_wasm, wasm_available
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from firmware.supervisor import BALANCING
-from host.boards import fwharness as H
+import fwharness as H
 from host.design.discrete import force_clamp, simulate_loop
 from host.design.export import export
 from host.boards.mpyrun import wasm_available

@@ -8,7 +8,7 @@ import pytest
 
 from firmware.msgtable import OK, R_ARMED, R_BAD_LENGTH, R_BAD_SHAPE, R_UNSTABLE
 from firmware.supervisor import BALANCING
-from host.boards import fwharness as H
+import fwharness as H
 from host.design.discrete import controller_ss
 from host.design.export import export
 from host.boards.mpyrun import run_unix

@@ -12,7 +12,7 @@ from __future__ import annotations
 import pytest
 
 from firmware.supervisor import ARMED, BALANCING, F_WATCHDOG
-from host.boards import fwharness as H
+import fwharness as H
 from host.boards.mpyrun import run_unix
 
 SCRIPT = H.FAKE_HAL + """

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from host.boards import fwharness as H
+import fwharness as H
 from host.design.discrete import simulate_loop
 from host.design.export import export
 from host.boards.mpyrun import run_unix

@@ -21,7 +21,7 @@ from firmware.supervisor import F_ENC_JUMP as F_JUMP
 from firmware.supervisor import F_STALL, F_TILT, F_TRACK
 from firmware.supervisor import F_WATCHDOG as F_WD
 from firmware.supervisor import FAULT as FLT
-from host.boards import fwharness as H
+import fwharness as H
 from host.design.export import export
 from host.boards.mpyrun import run_unix
 from sim.params import load_params

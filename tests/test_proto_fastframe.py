@@ -19,7 +19,7 @@ import pytest
 
 from firmware import codec, crc16, framing
 from firmware import msgtable as T
-from host.boards import fwharness as H
+import fwharness as H
 from host.boards.mpyrun import run_unix, run_wasm, wasm_available
 
 _RANGES = {"B": (0, 255), "b": (-128, 127), "H": (0, 65535), "h": (-32768, 32767),
