@@ -22,6 +22,22 @@ from host.boards.mpyrun import run_unix, run_wasm
 from host.design.export import FixedDesign, export
 from sim.params import RobotParams
 
+_NS: dict = {}
+exec(compile(FAKE_HAL, "<FAKE_HAL>", "exec"), _NS)
+
+
+class StandInHal(_NS["Hal"]):  # type: ignore[misc,valid-type]
+    """:data:`FAKE_HAL`'s ``Hal`` under CPython: the one stand-in HAL of the tests (the
+    MicroPython scripts paste the same source).  ``values`` set its attributes (``adc``,
+    ``enc``, ``duty``, ``t``, ``inc``: the microseconds each ``ticks_us`` call advances)."""
+
+    def __init__(self, **values: int) -> None:
+        super().__init__()
+        for k, v in values.items():
+            if not hasattr(self, k):
+                raise TypeError(f"StandInHal has no attribute {k!r}")
+            setattr(self, k, v)
+
 
 def _flat_src(fd: FixedDesign) -> str:
     return INTS_SRC + f"LAYOUT = {tuple(layout_of(fd))!r}\nFLAT = tuple(ints({_ints(fd.flat())!r}))\n"

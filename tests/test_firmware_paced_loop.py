@@ -25,6 +25,7 @@ import pytest
 
 from firmware import msgtable as T
 from firmware.supervisor import F_LOOP, F_WATCHDOG
+import fwharness as H
 from host.boards.mpyrun import run_unix, run_wasm, wasm_available
 
 N_TICKS = 2000
@@ -295,23 +296,15 @@ def test_loop_fault_is_a_flag_of_its_own_in_the_low_byte() -> None:
 
 # ---- CPython: the pieces, one behaviour each ----
 
-class _Hal:
+class _Hal(H.StandInHal):
+    # counts its ADC reads (one per control step)
     def __init__(self) -> None:
-        self.adc, self.enc, self.duty, self.t, self.n = 2048, 0, 0, 0, 0
+        super().__init__(inc=500)
+        self.n = 0
 
     def read_angle_raw(self) -> int:
         self.n += 1
         return self.adc
-
-    def read_encoder(self) -> int:
-        return self.enc
-
-    def set_motor(self, duty: int) -> None:
-        self.duty = duty
-
-    def ticks_us(self) -> int:
-        self.t = (self.t + 500) & 0x3FFFFFFF
-        return self.t
 
 
 class _Disp:

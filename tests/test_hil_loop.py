@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from firmware import msgtable as T
+import fwharness as H
 from host.design.catch import CATCH_DEFAULT
 from host.link import messages as M
 from host.hil.errors import TickError
@@ -276,20 +277,7 @@ def _tilt_counts(limit_mrad: int) -> int:
     # the firmware's own threshold (ADC counts) for a tilt limit, computed by its code
     from firmware.app import App
 
-    class _Hal:
-        def read_angle_raw(self) -> int:
-            return 2048
-
-        def read_encoder(self) -> int:
-            return 0
-
-        def set_motor(self, duty: int) -> None:
-            pass
-
-        def ticks_us(self) -> int:
-            return 0
-
-    app = App(_Hal())
+    app = App(H.StandInHal(inc=0))
     assert app.param_set(T.P_TILT_LIMIT, limit_mrad) == T.OK
     return app.sup.tilt_counts
 

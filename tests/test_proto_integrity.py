@@ -23,6 +23,7 @@ from firmware import canframe, codec, commands, framing
 from firmware import msgtable as T
 from firmware.app import App
 from firmware.supervisor import ARMED, BALANCING, DISARMED, FAULT
+import fwharness as H
 from host.link import messages as M
 
 COMMANDS = [c for c in M.MESSAGES.values() if c.DIRECTION == "to_board"]
@@ -168,24 +169,15 @@ def test_the_flip_harness_sees_a_clean_frame():
 
 
 # ---------------------------------------------------------------- replay schedules
-class _Hal:
+class _Hal(H.StandInHal):
     # sensors at rest upright; the ADC rails while `rail` (a fault the board latches)
+    rail = False
+
     def __init__(self) -> None:
-        self.rail = False
-        self.t = 0
+        super().__init__(inc=2000)
 
     def read_angle_raw(self) -> int:
         return 0 if self.rail else 2048
-
-    def read_encoder(self) -> int:
-        return 0
-
-    def set_motor(self, duty: int) -> None:
-        pass
-
-    def ticks_us(self) -> int:
-        self.t = (self.t + 2000) & 0x3FFFFFFF
-        return self.t
 
 
 class _Null:
