@@ -26,6 +26,38 @@ _NS: dict = {}
 exec(compile(FAKE_HAL, "<FAKE_HAL>", "exec"), _NS)
 
 
+# print-and-parse: a MicroPython script records named integer observations with chk() and
+# prints them at the end (CHK_END) as "name value" lines, which parse_ints() reads back
+CHK_SRC = """
+OUT = []
+def chk(name, v):
+    OUT.append(name + ' ' + str(int(v)))
+"""
+CHK_END = """
+for line in OUT:
+    print(line)
+"""
+
+# allocation of fn() in bytes on the WebAssembly port (no heap_lock() there: a gc.mem_alloc()
+# delta with the collector off), printed as "name bytes"
+WASM_ALLOC_RUN = """
+import gc
+def run(name, fn):
+    gc.collect()
+    gc.disable()
+    a = gc.mem_alloc()
+    fn()
+    b = gc.mem_alloc()
+    gc.enable()
+    print(name, b - a)
+"""
+
+
+def parse_ints(out: str) -> dict[str, int]:
+    """The ``name value`` lines of an interpreter's output as a dict (blank lines skipped)."""
+    return {k: int(v) for k, v in (line.split() for line in out.splitlines() if line.strip())}
+
+
 class StandInHal(_NS["Hal"]):  # type: ignore[misc,valid-type]
     """:data:`FAKE_HAL`'s ``Hal`` under CPython: the one stand-in HAL of the tests (the
     MicroPython scripts paste the same source).  ``values`` set its attributes (``adc``,

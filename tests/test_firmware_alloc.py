@@ -138,17 +138,7 @@ def run(name, fn):
     print(name, 'ok' if ok else 'ALLOC')
 """
 
-WASM_RUN = """
-import gc
-def run(name, fn):
-    gc.collect()
-    gc.disable()
-    a = gc.mem_alloc()
-    fn()
-    b = gc.mem_alloc()
-    gc.enable()
-    print(name, b - a)
-"""
+WASM_RUN = H.WASM_ALLOC_RUN
 
 
 def _parse(out: str) -> dict[str, str]:

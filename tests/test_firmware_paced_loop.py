@@ -239,8 +239,7 @@ print('ctl_unlocked', len(x))
 """
 
 
-def _obs(out: str) -> dict[str, int]:
-    return {k: int(v) for k, v in (line.split() for line in out.splitlines() if line.strip())}
+_obs = H.parse_ints
 
 
 def _script(lock: bool, control: str = "") -> str:
