@@ -17,7 +17,7 @@ import pytest
 
 from host.bench.catch import run_tilt
 import fwharness as H
-from host.boards.mpyrun import run_unix, run_wasm, wasm_available
+from host.boards.mpyrun import run_unix, run_wasm
 from host.design.catch import CATCH_DEFAULT, physical_bound
 from host.design.export import export
 from host.hil.runs import run_scenarios
@@ -189,7 +189,6 @@ def test_no_allocation_with_catch_mode_active_unix() -> None:
 
 
 @pytest.mark.wasm
-@pytest.mark.skipif(not wasm_available(), reason="node / MicroPython WebAssembly port not installed")
 def test_no_allocation_with_catch_mode_32bit_wasm_small_ints() -> None:
     # 32-bit small ints: an intermediate of schedule() outside +-2**30 would be a heap big int
     res = _parse(run_wasm(_alloc_code(WASM_RUN), timeout=300))

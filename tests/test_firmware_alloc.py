@@ -18,7 +18,7 @@ import pytest
 
 import fwharness as H
 from host.design.export import export
-from host.boards.mpyrun import run_unix, run_wasm, wasm_available
+from host.boards.mpyrun import run_unix, run_wasm
 
 FD = export()
 FD_KI = export(ki=40.0, deadband=300)
@@ -162,7 +162,6 @@ def test_no_allocation_unix_heap_lock() -> None:
 
 @pytest.mark.slow
 @pytest.mark.wasm
-@pytest.mark.skipif(not wasm_available(), reason="node / MicroPython WebAssembly port not installed")
 def test_no_allocation_32bit_wasm_small_ints() -> None:
     res = _parse(run_wasm(BODY + WASM_RUN + PHASES, timeout=300))
     control = int(res.pop("control"))

@@ -26,7 +26,7 @@ import pytest
 from firmware import msgtable as T
 from firmware.supervisor import F_LOOP, F_WATCHDOG
 import fwharness as H
-from host.boards.mpyrun import run_unix, run_wasm, wasm_available
+from host.boards.mpyrun import run_unix, run_wasm
 
 N_TICKS = 2000
 
@@ -267,7 +267,6 @@ def _check_run(obs: dict[str, int]) -> None:
 
 @pytest.mark.slow
 @pytest.mark.wasm
-@pytest.mark.skipif(not wasm_available(), reason="node / MicroPython WebAssembly port not installed")
 def test_paced_loop_with_link_allocates_nothing_32bit_wasm() -> None:
     obs = _obs(run_wasm(_script(lock=False), timeout=600))
     assert obs["alloc"] == 0, f"{obs['alloc']} bytes over {N_TICKS} ticks"
