@@ -5,6 +5,8 @@
   of wall time (it runs at 0.1-0.2x real time), so ``pytest -m "not slow"`` never waits for one.
 * ``wasm`` (the MicroPython WebAssembly port under node): skipped with the reason when it is
   not installed.
+* ``long`` (minutes; left out of ``make test``) is ``slow`` too, so ``-m "not slow"`` (which
+  replaces the default ``-m 'not long'``) leaves it out as well.
 
 The test helpers live in modules of this folder, imported by name (the folder is on the path):
 ``fwharness`` (the firmware run in an interpreter: the stand-in HAL ``StandInHal``/``FAKE_HAL``,
@@ -46,6 +48,8 @@ def wasm_missing() -> str | None:
 @pytest.hookimpl(tryfirst=True)  # before `-m` deselects: an rp2040 test is slow
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
+        if item.get_closest_marker("long") is not None and item.get_closest_marker("slow") is None:
+            item.add_marker(pytest.mark.slow)
         if item.get_closest_marker("rp2040") is not None:
             if item.get_closest_marker("slow") is None:
                 item.add_marker(pytest.mark.slow)

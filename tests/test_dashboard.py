@@ -110,6 +110,7 @@ class _Board(Link):
         return sum(1 for t, n in self.log if n == name and t >= since)
 
 
+@pytest.mark.slow
 def test_host_heartbeat_only_while_a_live_page_asked_for_the_arm(tmp_path: Path) -> None:
     board = _Board()
     hub = Hub(SharedLink(board), {"mode": "test"}, tmp_path)

@@ -131,6 +131,7 @@ def test_a_copy_with_a_good_crc_but_bad_content_is_not_loaded(tmp_path: Path) ->
     assert st == CORRUPT and app.sup.faults & F_CONFIG
 
 
+@pytest.mark.slow
 def test_save_cut_at_every_byte_leaves_old_or_new(tmp_path: Path) -> None:
     """A save torn after k bytes (what a killed process or a power cut leaves in the slot being
     written, here without the rename's help: the slot itself torn), for every k, with the old copy

@@ -147,6 +147,7 @@ def _run_serial_can(frames: list[bytes]) -> tuple[int, int, int]:
     return n_var, acted, silent
 
 
+@pytest.mark.slow
 def test_every_single_and_double_bit_flip_of_every_command_frame_is_dropped_and_counted():
     serial = _run_serial(_frames("serial", 12))
     can = _run_serial_can(_frames("can", 7))
@@ -262,6 +263,7 @@ def _schedule(board: _Board, rng: random.Random, defeat_epoch: bool = False) -> 
     return unintended
 
 
+@pytest.mark.slow
 def test_10000_lossy_schedules_never_arm_after_a_later_disarm():
     board = _Board()
     rng = random.Random(2013)
