@@ -16,6 +16,7 @@ import random
 import pytest
 
 from firmware.fixmath import ticks_add, ticks_diff, ticks_next
+import fwharness as H
 from host.boards.mpyrun import run_wasm
 
 PERIOD = 1 << 30
@@ -119,16 +120,8 @@ def old():
             d -= P
 
 
-def measure(name, fn):
-    gc.collect()
-    gc.disable()
-    a = gc.mem_alloc()
-    fn()
-    b = gc.mem_alloc()
-    gc.enable()
-    print(name, b - a)
-
-
+""" + H.WASM_ALLOC_RUN + """
+measure = run
 measure('diff', diffs)
 measure('add', adds)
 measure('next', nexts)
