@@ -282,9 +282,9 @@ class Hub:
             # the heartbeat carries the low 8 bits of the active table's CRC-16 (VERSION has all 16):
             # a table known here whose low byte matches stays; another low byte means the board runs
             # a table this dashboard did not upload
-            low = getattr(m, "gains_crc", None)
+            low = m.gains_crc
             known = self.gains.get("crc")
-            if low is not None and (known is None or (known & 0xFF) != low) and self.gains.get("crc_low8") != low:
+            if (known is None or (known & 0xFF) != low) and self.gains.get("crc_low8") != low:
                 up = self.gains.get("uploaded_crc")
                 if up is not None and (up & 0xFF) == low:
                     self.gains = {**self.gains, "crc": up, "crc_low8": low,
