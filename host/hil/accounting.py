@@ -12,8 +12,6 @@ import math
 import time
 from typing import Any
 
-import numpy as np
-
 from firmware import msgtable as T
 from host.hil.errors import HilError
 from host.link import messages as M
@@ -199,6 +197,8 @@ class Sink:
 
     def stats(self) -> dict[str, Any]:
         """The figures of a run: telemetry (and what is lost of it), heartbeats, acks, step time."""
+        import numpy as np  # here, not at import: the board recorder imports this module for SeqAccount
+
         s = np.asarray(self.step_us, dtype=float)
         return {
             "telemetry": self.telemetry,
