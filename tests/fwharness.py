@@ -16,7 +16,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from host.boards.fwharness import (  # noqa: F401 - re-exported for the tests
-    FAKE_HAL, INTS_SRC, Sequence3, _ints, controller_inputs, layout_of, measurements, ref_lsb,
+    FAKE_HAL, INTS_SRC, Sequence3, _ints, app_process, controller_inputs, layout_of, measurements, ref_lsb,
 )
 from host.boards.mpyrun import run_unix, run_wasm
 from host.design.export import FixedDesign, export
@@ -174,16 +174,8 @@ class MicroPythonApp:
     """
 
     def __init__(self, adc0: int, enc0: int, ref_um: int = 0, config: dict | None = None) -> None:
-        import os
-        import subprocess
-
-        from host.boards.mpyrun import ROOT, micropython_exe
-
         cfg = {"watchdog_ms": 0, **(config or {})}
-        code = f"CONFIG = {cfg!r}\nADC0 = {adc0}\nENC0 = {enc0}\nREF_UM = {ref_um}\n" + APP_LOOP
-        env = dict(os.environ, MICROPYPATH=f"{ROOT}:.frozen")
-        self.proc = subprocess.Popen([micropython_exe(), "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True, bufsize=1, env=env, cwd=ROOT)
+        self.proc = app_process(f"CONFIG = {cfg!r}\nADC0 = {adc0}\nENC0 = {enc0}\nREF_UM = {ref_um}\n" + APP_LOOP)
 
     def step(self, adc: int, enc: int, ref_um: int | None = None) -> tuple[int, int, int, int]:
         """One control tick; returns ``(duty, u_lsb, state, faults)``."""

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
@@ -23,7 +23,11 @@ from host.design.discrete import simulate_loop
 from host.design.export import LAYOUT, FixedDesign
 from sim.params import RobotParams
 
-__all__ = ["Sequence3", "measurements", "controller_inputs", "FAKE_HAL", "INTS_SRC", "layout_of", "ref_lsb"]
+if TYPE_CHECKING:
+    import subprocess
+
+__all__ = ["Sequence3", "measurements", "controller_inputs", "FAKE_HAL", "INTS_SRC", "layout_of", "ref_lsb",
+           "app_process"]
 
 # a scripted HAL for MicroPython/CPython runs of the app: the test sets adc/enc and
 # reads duty; ticks advance by `inc` us per call (two calls per step)
@@ -128,3 +132,16 @@ def ints(s):
         a.append(int(w))
     return a
 """
+
+
+def app_process(code: str) -> "subprocess.Popen[str]":
+    """A MicroPython unix-port process running ``code`` (a script stepping the app over its stdin,
+    one line a tick, answering on its stdout), with the project on its path."""
+    import os
+    import subprocess
+
+    from host.boards.mpyrun import ROOT, micropython_exe
+
+    env = dict(os.environ, MICROPYPATH=f"{ROOT}:.frozen")
+    return subprocess.Popen([micropython_exe(), "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, bufsize=1, env=env, cwd=ROOT)
