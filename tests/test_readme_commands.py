@@ -122,7 +122,15 @@ def test_the_readme_shows_commands() -> None:
     assert "upright hil --port /dev/ttyUSB0" in ROBOT_COMMANDS and len(ROBOT_COMMANDS) >= 14, ROBOT_COMMANDS
 
 
-@pytest.mark.parametrize("cmd", [c for c in COMMANDS if c not in ROBOT_COMMANDS and c not in BOARD_COMMANDS])
+def _marks(cmd: str) -> list:
+    # the emulated board and the robust search take tens of seconds (and the board needs its parts)
+    if "--emulate rp2040" in cmd:
+        return [pytest.mark.rp2040]
+    return [pytest.mark.slow] if "--robust" in cmd else []
+
+
+@pytest.mark.parametrize("cmd", [pytest.param(c, marks=_marks(c)) for c in COMMANDS
+                                 if c not in ROBOT_COMMANDS and c not in BOARD_COMMANDS])
 def test_readme_command_works_as_shown(cmd: str, tmp_path: Path) -> None:
     if cmd in SKIP:
         pytest.skip(SKIP[cmd])

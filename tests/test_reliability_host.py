@@ -210,6 +210,7 @@ def test_bad_can_channel_one_line() -> None:
                          "--scenario", "tilt_0p1", "--quiet"), "nocan7")
 
 
+@pytest.mark.slow
 def test_bad_scenario_toml_names_the_key(tmp_path: Path) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text('name = "bad"\nduration = 2.0\n[initial]\nphi = "lots"\n')

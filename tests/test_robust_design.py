@@ -35,6 +35,7 @@ def _upright(*args: str) -> subprocess.CompletedProcess[str]:
                           timeout=600)
 
 
+@pytest.mark.slow
 def test_robust_command_tiny_budget_reproduced_by_direct_simulation(tmp_path: Path) -> None:
     unc = tmp_path / "tiny.toml"
     unc.write_text(TINY)
