@@ -39,6 +39,7 @@ def test_hil_cli_exits_0_when_the_verdicts_match_a_falling_scenario(tmp_path: Pa
     assert "FAIL*" in r.stdout and "0 unexpected outcome(s)" in r.stdout and "not as expected" not in r.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args, needle", [
     (("--port", "/dev/does-not-exist-upright"), "/dev/does-not-exist-upright"),
     (("--port", "/dev/does-not-exist-upright", "--link", "can", "--can-interface", "serial"), "CAN channel"),

@@ -123,12 +123,11 @@ def test_the_readme_shows_commands() -> None:
 
 
 def _marks(cmd: str) -> list:
-    # the emulated board and the robust search take tens of seconds (and the board needs its parts)
-    if "--emulate rp2040" in cmd:
-        return [pytest.mark.rp2040]
-    return [pytest.mark.slow] if "--robust" in cmd else []
+    # the emulated board needs its parts
+    return [pytest.mark.rp2040] if "--emulate rp2040" in cmd else []
 
 
+@pytest.mark.slow  # each an `upright` process: 2-5 s of CPU, the robust search and the emulated board minutes
 @pytest.mark.parametrize("cmd", [pytest.param(c, marks=_marks(c)) for c in COMMANDS
                                  if c not in ROBOT_COMMANDS and c not in BOARD_COMMANDS])
 def test_readme_command_works_as_shown(cmd: str, tmp_path: Path) -> None:
