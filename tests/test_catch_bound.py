@@ -62,6 +62,7 @@ def test_bound_rises_without_the_drive_speed_limit(bound: DriveBound) -> None:
     assert fast.phi_max_no_track == pytest.approx(physical_bound(P), abs=1e-3)
 
 
+@pytest.mark.slow
 def test_firmware_recovers_nothing_above_the_bound(bound: DriveBound) -> None:
     assert run_tilt(0.33).recovered  # the firmware's best (bench: 0.334 rad) ...
     assert 0.33 < bound.phi_max  # ... lies below the bound

@@ -319,6 +319,7 @@ def served(tmp_path_factory: pytest.TempPathFactory):
     assert "Traceback" not in err and "internal error" not in err, err[-3000:]
 
 
+@pytest.mark.slow
 def test_server_serves_the_page_and_guards_its_commands(served: _Served) -> None:
     url = served.url
     page = urllib.request.urlopen(served.page_url, timeout=10).read().decode()

@@ -179,6 +179,7 @@ def _check_soft_pendulum_claim(stdout: str) -> None:
     assert abs(settle - float(claim.group(1))) <= 0.05, (settle, claim.group(1))
 
 
+@pytest.mark.slow
 def test_readme_scenario_format_loads_and_runs(tmp_path: Path) -> None:
     """The scenario TOML the README documents is a valid scenario, and it runs."""
     from sim.scenario import load_scenario

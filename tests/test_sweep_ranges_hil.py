@@ -48,6 +48,7 @@ def test_sweep_ranges_file_sets_the_draw(tmp_path: Path) -> None:
     assert set(np.round(np.array(t["delay"]) * p.rate).astype(int)) <= {0, 1, 2}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("text, key", [
     ("inertai = 0.3\n", "inertai"),
     ("mass = 1.5\n", "mass"),
@@ -90,6 +91,7 @@ def test_hil_monte_carlo_on_dask_one_board_per_worker(tmp_path: Path) -> None:
     assert summary["workers"] == 2 and summary["passed_rate"] == 1.0
 
 
+@pytest.mark.slow
 def test_hil_sweep_interrupted_keeps_the_finished_runs(tmp_path: Path) -> None:
     scen = tmp_path / "short.toml"
     scen.write_text(SHORT)
