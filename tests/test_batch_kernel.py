@@ -113,6 +113,7 @@ def test_engine_option(p) -> None:
         simulate_batch(p, controller_ss(p), _runs(p, 2), engine="fortran")
 
 
+@pytest.mark.slow
 def test_kernel_trig_is_numpys_on_a_large_sample() -> None:
     # the kernel's sine and cosine of one angle compile to one glibc sincos call: bit for bit
     # numpy's np.sin/np.cos on 10 x 1e6 values from 1e-9 to 1e9 rad

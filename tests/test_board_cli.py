@@ -24,6 +24,9 @@ import pytest
 from host.boards.vport import PTMX, VirtualBoard, slave_of
 from host.link import messages as M
 
+# every test runs an `upright board` process against the virtual board in real time (4-25 s each)
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parent.parent
 UPRIGHT = [sys.executable, "-m", "host.cli.main"]
 

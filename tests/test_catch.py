@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from host.bench.catch import run_tilt
-from host.boards import fwharness as H
-from host.boards.mpyrun import run_unix, run_wasm, wasm_available
+import fwharness as H
+from host.boards.mpyrun import run_unix, run_wasm
 from host.design.catch import CATCH_DEFAULT, physical_bound
 from host.design.export import export
 from host.hil.runs import run_scenarios
@@ -159,17 +159,7 @@ def run(name, fn):
     print(name, ok)
 """
 
-WASM_RUN = """
-import gc
-def run(name, fn):
-    gc.collect()
-    gc.disable()
-    a = gc.mem_alloc()
-    fn()
-    b = gc.mem_alloc()
-    gc.enable()
-    print(name, b - a)
-"""
+WASM_RUN = H.WASM_ALLOC_RUN
 
 PHASES = """
 ticks(200)
@@ -199,7 +189,6 @@ def test_no_allocation_with_catch_mode_active_unix() -> None:
 
 
 @pytest.mark.wasm
-@pytest.mark.skipif(not wasm_available(), reason="node / MicroPython WebAssembly port not installed")
 def test_no_allocation_with_catch_mode_32bit_wasm_small_ints() -> None:
     # 32-bit small ints: an intermediate of schedule() outside +-2**30 would be a heap big int
     res = _parse(run_wasm(_alloc_code(WASM_RUN), timeout=300))

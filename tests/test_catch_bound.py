@@ -35,6 +35,7 @@ def bound() -> DriveBound:
     return drive_bound(P)
 
 
+@pytest.mark.slow
 def test_bound_lies_below_atan_and_both_track_and_speed_bind(bound: DriveBound) -> None:
     atan = physical_bound(P)
     assert bound.v_max == pytest.approx(float(no_load_speed(P))) and bound.v_max == pytest.approx(1.8)
@@ -51,6 +52,7 @@ def test_bound_lies_below_atan_and_both_track_and_speed_bind(bound: DriveBound) 
     assert 0 < bound.t_brake < bound.t_stop < 1.5
 
 
+@pytest.mark.slow
 def test_bound_rises_without_the_drive_speed_limit(bound: DriveBound) -> None:
     fast = drive_bound(P.replace(V_supply=100 * P.V_supply))
     assert fast.v_max == pytest.approx(100 * bound.v_max)
@@ -60,6 +62,7 @@ def test_bound_rises_without_the_drive_speed_limit(bound: DriveBound) -> None:
     assert fast.phi_max_no_track == pytest.approx(physical_bound(P), abs=1e-3)
 
 
+@pytest.mark.slow
 def test_firmware_recovers_nothing_above_the_bound(bound: DriveBound) -> None:
     assert run_tilt(0.33).recovered  # the firmware's best (bench: 0.334 rad) ...
     assert 0.33 < bound.phi_max  # ... lies below the bound

@@ -7,23 +7,17 @@ its hand-back.  1.5 s of board time (the hand-back comes at ~1.1 s): ~15-25 s wa
 from __future__ import annotations
 
 import dataclasses
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from host.boards.rp2040.board import FIRMWARE, ROOT, build_bundle
+from host.boards.rp2040.board import build_bundle
 from host.hil.emulated import EmulatedHil
 from sim.params import load_params
 from sim.scenario import load_scenario
 
-pytestmark = [
-    pytest.mark.rp2040,
-    pytest.mark.skipif(shutil.which("node") is None, reason="node not installed"),
-    pytest.mark.skipif(not (ROOT / "node_modules" / "rp2040js").is_dir(), reason="rp2040js not installed (make setup)"),
-    pytest.mark.skipif(not FIRMWARE.is_file(), reason="MicroPython RP2040 image missing (make rp2040)"),
-]
+pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
 
 
 def test_board_catches_0p3_rad_through_its_pins(tmp_path: Path) -> None:

@@ -66,6 +66,7 @@ def _interrupted_cleanly(rc: int, err: str) -> None:
     assert "interrupted" in err.splitlines()[-1], err
 
 
+@pytest.mark.slow
 def test_sweep_interrupted_writes_the_finished_runs(tmp_path: Path) -> None:
     out = tmp_path / "sweep"
     cmd = Cmd(tmp_path, "sweep", "robustness", "--n", "100000", "--chunk", "50", "--duration", "1.0",
@@ -85,6 +86,7 @@ def test_sweep_interrupted_writes_the_finished_runs(tmp_path: Path) -> None:
     cmd.assert_children_gone()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("group", [True, False], ids=["ctrl-c-to-group", "sigint-to-upright"])
 def test_hil_interrupted_keeps_finished_scenarios_and_ends_the_board(tmp_path: Path, group: bool) -> None:
     out = tmp_path / "hil"
@@ -103,6 +105,7 @@ def test_hil_interrupted_keeps_finished_scenarios_and_ends_the_board(tmp_path: P
     cmd.assert_children_gone()
 
 
+@pytest.mark.slow
 def test_demo_interrupted_writes_index_and_partial_summary(tmp_path: Path) -> None:
     cmd = Cmd(tmp_path, "demo", "--out", str(tmp_path), "--no-design", "--no-gif")
     demo = tmp_path / "demo"
@@ -114,6 +117,7 @@ def test_demo_interrupted_writes_index_and_partial_summary(tmp_path: Path) -> No
     cmd.assert_children_gone()
 
 
+@pytest.mark.slow
 def test_soak_interrupted_prints_the_finished_chunks(tmp_path: Path) -> None:
     cmd = Cmd(tmp_path, "soak", "--sim-seconds", "880", "--chunk", "8.8")
     cmd.wait_for(lambda: re.search(r"^\s+[1-9][\d.]* / 880 s simulated", cmd.err.read_text(), re.M) is not None,
@@ -125,6 +129,7 @@ def test_soak_interrupted_prints_the_finished_chunks(tmp_path: Path) -> None:
     cmd.assert_children_gone()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig,status", [(signal.SIGTERM, 143), (signal.SIGHUP, 129)], ids=["SIGTERM", "SIGHUP"])
 def test_hil_terminated_is_handled_as_ctrl_c(tmp_path: Path, sig: int, status: int) -> None:
     """SIGTERM (kill) and SIGHUP (a closed terminal) end a run as Ctrl-C does -- the finished

@@ -34,11 +34,10 @@ from host.dashboard.hub import COLUMNS, PAGE_TIMEOUT_S, Hub, SharedLink
 from host.dashboard.server import PAGE_HEADER, TOKEN_HEADER, split_url
 from host.link import messages as M
 from host.link.clients import Link
-from host.operate.board import has_message
 
 ROOT = Path(__file__).resolve().parent.parent
-# the frame that feeds the board's watchdog: the protocol's host heartbeat where it has one
-KEEP = "host_heartbeat" if has_message("host_heartbeat") else "request"
+# the frame that feeds the board's watchdog
+KEEP = "host_heartbeat"
 
 
 # ---------------------------------------------------------------- gain tables
@@ -111,6 +110,7 @@ class _Board(Link):
         return sum(1 for t, n in self.log if n == name and t >= since)
 
 
+@pytest.mark.slow
 def test_host_heartbeat_only_while_a_live_page_asked_for_the_arm(tmp_path: Path) -> None:
     board = _Board()
     hub = Hub(SharedLink(board), {"mode": "test"}, tmp_path)
@@ -319,6 +319,7 @@ def served(tmp_path_factory: pytest.TempPathFactory):
     assert "Traceback" not in err and "internal error" not in err, err[-3000:]
 
 
+@pytest.mark.slow
 def test_server_serves_the_page_and_guards_its_commands(served: _Served) -> None:
     url = served.url
     page = urllib.request.urlopen(served.page_url, timeout=10).read().decode()

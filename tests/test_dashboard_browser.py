@@ -77,6 +77,7 @@ def dashboard(tmp_path: Path):
                 proc.wait()
 
 
+@pytest.mark.slow
 def test_dashboard_in_chromium(dashboard, tmp_path: Path) -> None:
     _need_browser()
     url, proc = dashboard

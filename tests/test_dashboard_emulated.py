@@ -21,7 +21,6 @@ import io
 import os
 import json
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -33,16 +32,11 @@ from pathlib import Path
 
 import pytest
 
-from host.boards.rp2040.board import FIRMWARE, ROOT
+from host.boards.rp2040.board import ROOT
 from host.dashboard.hub import COLUMNS
 from host.dashboard.server import PAGE_HEADER, TOKEN_HEADER, split_url
 
-pytestmark = [
-    pytest.mark.rp2040,
-    pytest.mark.skipif(shutil.which("node") is None, reason="node not installed"),
-    pytest.mark.skipif(not (ROOT / "node_modules" / "rp2040js").is_dir(), reason="rp2040js not installed (make setup)"),
-    pytest.mark.skipif(not FIRMWARE.is_file(), reason="MicroPython RP2040 image missing (make rp2040)"),
-]
+pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
 
 
 TOKEN = {"": ""}  # this run's token (set from the printed address)

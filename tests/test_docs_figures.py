@@ -48,3 +48,32 @@ def test_the_default_design_quoted_is_the_shipped_one() -> None:
     assert float(m.group(2)) == d.R_DEFAULT
     m = re.search(r"`OBSERVER_DEFAULT = ([\d.]+)`", doc)
     assert m and float(m.group(1)) == d.OBSERVER_DEFAULT
+
+
+def test_every_stall_duty_in_prose_is_the_firmwares() -> None:
+    # the fault tables and the no-motion paragraph quote the duty as a bare number too
+    fw = _text("docs/firmware.md")
+    m = re.search(r"\*\*No-motion check \(F_STALL\), on by default\.\*\* (\d+) duty .*? held for (\d+) ms", fw)
+    assert m, "docs/firmware.md no longer explains the no-motion check"
+    assert (int(m.group(1)), int(m.group(2))) == (app.STALL_DUTY, app.STALL_MS)
+    rel = _text("docs/reliability.md")
+    m = re.search(r"`stall_duty` \((\d+), ~2 N at rest\) for `stall_ms` \((\d+) ms\)", rel)
+    assert m, "docs/reliability.md no longer gives the stall thresholds"
+    assert (int(m.group(1)), int(m.group(2))) == (app.STALL_DUTY, app.STALL_MS)
+    header = (ROOT / "firmware" / "app.py").read_text().split("\nSTALL_MS", 1)[0]
+    # the header names the constants instead of restating them (it once said 2000)
+    assert "STALL_DUTY" in header and not re.search(r"\|duty\| >= \d", header)
+
+
+def test_every_default_clamp_in_prose_is_the_shipped_one() -> None:
+    from host.design import catch, discrete as d
+
+    quotes = {
+        "README.md": re.findall(r"clamps the force at ([\d.]+) m/s² of cart acceleration", _text("README.md")),
+        "docs/firmware.md": re.findall(r"force clamped at [\d.]+ N \(([\d.]+) m/s² of cart acceleration",
+                                       _text("docs/firmware.md")),
+        "host/design/catch.py": re.findall(r"``A_CMD_DEFAULT`` \(([\d.]+) m/s\^2\)", " ".join(catch.__doc__.split())),
+    }
+    for where, found in quotes.items():
+        assert found, f"{where} no longer quotes the default clamp"
+        assert {float(v) for v in found} == {d.A_CMD_DEFAULT}, (where, found)

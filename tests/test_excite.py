@@ -14,7 +14,7 @@ import pytest
 
 from firmware import msgtable as T
 from firmware.excite import Excite
-from host.boards import fwharness as H
+import fwharness as H
 from host.boards.mpyrun import run_unix
 
 

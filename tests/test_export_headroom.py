@@ -205,7 +205,7 @@ def test_cli_export(tmp_path) -> None:
 @pytest.mark.parametrize("v_limit, w_limit, v_want, w_want",
                          [(None, None, 16.0, 120.0), (3.6, 30.0, 3.6, 30.0)])
 def test_estimate_limits_default_and_option(v_limit, w_limit, v_want, w_want) -> None:
-    from host.boards import fwharness as H
+    import fwharness as H
 
     p = load_params()
     fd = ex.export(p, v_limit=v_limit, w_limit=w_limit)

@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import pytest
 
-from host.boards import fwharness as H
+import fwharness as H
 from host.design.export import export
-from host.boards.mpyrun import run_unix, run_wasm, wasm_available
+from host.boards.mpyrun import run_unix, run_wasm
 
 FD = export()
 FD_KI = export(ki=40.0, deadband=300)
@@ -138,17 +138,7 @@ def run(name, fn):
     print(name, 'ok' if ok else 'ALLOC')
 """
 
-WASM_RUN = """
-import gc
-def run(name, fn):
-    gc.collect()
-    gc.disable()
-    a = gc.mem_alloc()
-    fn()
-    b = gc.mem_alloc()
-    gc.enable()
-    print(name, b - a)
-"""
+WASM_RUN = H.WASM_ALLOC_RUN
 
 
 def _parse(out: str) -> dict[str, str]:
@@ -172,7 +162,6 @@ def test_no_allocation_unix_heap_lock() -> None:
 
 @pytest.mark.slow
 @pytest.mark.wasm
-@pytest.mark.skipif(not wasm_available(), reason="node / MicroPython WebAssembly port not installed")
 def test_no_allocation_32bit_wasm_small_ints() -> None:
     res = _parse(run_wasm(BODY + WASM_RUN + PHASES, timeout=300))
     control = int(res.pop("control"))

@@ -20,7 +20,7 @@ import pytest
 
 from firmware import msgtable as T
 from firmware.supervisor import F_RESET, F_STALL
-from host.boards import fwharness as H
+import fwharness as H
 from host.boards.mpyrun import run_unix
 from host.design.export import export
 from sim.params import load_params

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import pytest
 
-from host.boards import fwharness as H
+import fwharness as H
 from host.design.export import export, render_fastpath
 from host.boards.mpyrun import run_unix
 from sim.params import load_params

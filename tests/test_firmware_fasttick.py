@@ -11,7 +11,7 @@ App with the viper emitter builds these classes and steps allocation-free.
 
 from __future__ import annotations
 
-from host.boards import fwharness as H
+import fwharness as H
 from host.boards.mpyrun import run_unix
 
 SCRIPT = r"""

@@ -14,10 +14,9 @@ import numpy as np
 import pytest
 
 from firmware.supervisor import BALANCING
-from host.boards import fwharness as H
+import fwharness as H
 from host.design.discrete import force_clamp, simulate_loop
 from host.design.export import export
-from host.boards.mpyrun import wasm_available
 from sim.params import load_params
 
 P = load_params()
@@ -99,7 +98,6 @@ def test_closed_loops_agree_in_phi(name) -> None:
 
 
 @pytest.mark.wasm
-@pytest.mark.skipif(not wasm_available(), reason="node / MicroPython WebAssembly port not installed")
 def test_32bit_port_gives_the_same_numbers(sequences) -> None:
     s = sequences["tilt_0.1"]
     n = 1000

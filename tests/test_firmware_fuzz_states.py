@@ -15,6 +15,7 @@ from firmware.app import App
 from host.bench import fuzz_states as F
 
 
+@pytest.mark.slow
 def test_command_sequence_fuzz_short() -> None:
     F.STATS.clear()
     # a fixed draw (derandomize): 40 random examples missed one of the four fault kinds below in

@@ -8,7 +8,7 @@ import pytest
 
 from firmware.msgtable import OK, R_ARMED, R_BAD_LENGTH, R_BAD_SHAPE, R_UNSTABLE
 from firmware.supervisor import BALANCING
-from host.boards import fwharness as H
+import fwharness as H
 from host.design.discrete import controller_ss
 from host.design.export import export
 from host.boards.mpyrun import run_unix
@@ -41,12 +41,9 @@ BLOBS = {
     "short": FD.blob().hex()[:-8],
 }
 
-SCRIPT = H.FAKE_HAL + f"""
+SCRIPT = H.CHK_SRC + H.FAKE_HAL + f"""
 from array import array
 from firmware.app import App
-OUT = []
-def chk(name, v):
-    OUT.append(name + ' ' + str(int(v)))
 BLOBS = {{k: bytes.fromhex(v) for k, v in {BLOBS!r}.items()}}
 hal = Hal()
 app = App(hal, config={{'watchdog_ms': 0}})
@@ -98,15 +95,12 @@ chk('t_overruns', arr[3])
 chk('t_step_us', app.step_us)
 app.fill_timing(arr)
 chk('t_after_reset_max', arr[1])
-for line in OUT:
-    print(line)
-"""
+""" + H.CHK_END
 
 
 @pytest.fixture(scope="module")
 def obs() -> dict[str, int]:
-    out = run_unix(SCRIPT, timeout=120)
-    return {k: int(v) for k, v in (line.split() for line in out.splitlines() if line.strip())}
+    return H.parse_ints(run_unix(SCRIPT, timeout=120))
 
 
 def test_good_tables_are_applied(obs) -> None:

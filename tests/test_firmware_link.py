@@ -12,7 +12,7 @@ from __future__ import annotations
 import pytest
 
 from firmware.supervisor import ARMED, BALANCING, F_WATCHDOG
-from host.boards import fwharness as H
+import fwharness as H
 from host.boards.mpyrun import run_unix
 
 SCRIPT = H.FAKE_HAL + """
@@ -140,8 +140,7 @@ print('step_max', app.timing.step_max)
 
 @pytest.fixture(scope="module")
 def obs() -> dict[str, int]:
-    out = run_unix(SCRIPT, timeout=120)
-    return {k: int(v) for k, v in (line.split() for line in out.splitlines() if line.strip())}
+    return H.parse_ints(run_unix(SCRIPT, timeout=120))
 
 
 def test_run_with_link_allocates_nothing(obs) -> None:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import pytest
 
 from firmware import msgtable as T
-from host.boards import fwharness as H
+import fwharness as H
 from host.boards.mpyrun import run_unix
 
 SCRIPT = H.FAKE_HAL + """

@@ -25,7 +25,8 @@ import pytest
 
 from firmware import msgtable as T
 from firmware.supervisor import F_LOOP, F_WATCHDOG
-from host.boards.mpyrun import run_unix, run_wasm, wasm_available
+import fwharness as H
+from host.boards.mpyrun import run_unix, run_wasm
 
 N_TICKS = 2000
 
@@ -238,8 +239,7 @@ print('ctl_unlocked', len(x))
 """
 
 
-def _obs(out: str) -> dict[str, int]:
-    return {k: int(v) for k, v in (line.split() for line in out.splitlines() if line.strip())}
+_obs = H.parse_ints
 
 
 def _script(lock: bool, control: str = "") -> str:
@@ -267,7 +267,6 @@ def _check_run(obs: dict[str, int]) -> None:
 
 @pytest.mark.slow
 @pytest.mark.wasm
-@pytest.mark.skipif(not wasm_available(), reason="node / MicroPython WebAssembly port not installed")
 def test_paced_loop_with_link_allocates_nothing_32bit_wasm() -> None:
     obs = _obs(run_wasm(_script(lock=False), timeout=600))
     assert obs["alloc"] == 0, f"{obs['alloc']} bytes over {N_TICKS} ticks"
@@ -295,23 +294,15 @@ def test_loop_fault_is_a_flag_of_its_own_in_the_low_byte() -> None:
 
 # ---- CPython: the pieces, one behaviour each ----
 
-class _Hal:
+class _Hal(H.StandInHal):
+    # counts its ADC reads (one per control step)
     def __init__(self) -> None:
-        self.adc, self.enc, self.duty, self.t, self.n = 2048, 0, 0, 0, 0
+        super().__init__(inc=500)
+        self.n = 0
 
     def read_angle_raw(self) -> int:
         self.n += 1
         return self.adc
-
-    def read_encoder(self) -> int:
-        return self.enc
-
-    def set_motor(self, duty: int) -> None:
-        self.duty = duty
-
-    def ticks_us(self) -> int:
-        self.t = (self.t + 500) & 0x3FFFFFFF
-        return self.t
 
 
 class _Disp:

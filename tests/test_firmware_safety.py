@@ -676,10 +676,38 @@ def test_supervisor_flags_are_the_message_table_faults() -> None:
 
 
 def test_the_app_uses_the_supervisor_flags() -> None:
-    from firmware import app as A
+    # one definition of each fault flag: the supervisor's F_* constants, which are the bits the
+    # protocol's fault table names; every other firmware module that names a flag imports it
+    # (a module that wrote its own F_LOOP = const(128) would drift silently)
+    import ast
+    import importlib
 
-    for k in ("F_DEADLINE", "F_ESTOP", "F_RESET", "F_GAINS", "F_LOOP", "F_CONFIG", "F_UNDERVOLT", "F_ADC_OPEN"):
-        assert getattr(A, k) is getattr(S, k) or getattr(A, k) == getattr(S, k)
+    bits = {name: bit for bit, name, _doc in T.FAULTS}
+    defined = {k: v for k, v in vars(S).items() if k.startswith("F_") and isinstance(v, int)}
+    assert {k[2:].lower(): v for k, v in defined.items()} == bits
+    used: dict[str, set[str]] = {}
+    for path in sorted((ROOT / "firmware").glob("*.py")):
+        if path.name == "supervisor.py":
+            continue
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.Assign, ast.AnnAssign)):
+                targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+                for t in targets:
+                    if isinstance(t, ast.Name) and t.id in defined:
+                        raise AssertionError(f"{path.name} defines its own {t.id}")
+            if isinstance(node, ast.ImportFrom):
+                for a in node.names:
+                    if a.name in defined:
+                        assert node.module in ("supervisor", "firmware.supervisor"), (path.name, node.module)
+                        used.setdefault(path.stem, set()).add(a.name)
+    # the app latches the flags it computes itself (deadline, e-stop, reset, config...)
+    assert {"F_DEADLINE", "F_ESTOP", "F_RESET", "F_GAINS", "F_LOOP", "F_CONFIG", "F_UNDERVOLT",
+            "F_ADC_OPEN"} <= set().union(*used.values()), used
+    for mod, names in used.items():
+        m = importlib.import_module(f"firmware.{mod}")
+        for k in names:
+            assert getattr(m, k) == bits[k[2:].lower()], (mod, k)
 
 
 def test_docs_describe_every_fault_flag() -> None:

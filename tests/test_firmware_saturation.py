@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from host.boards import fwharness as H
+import fwharness as H
 from host.design.discrete import simulate_loop
 from host.design.export import export
 from host.boards.mpyrun import run_unix
@@ -30,13 +30,10 @@ def _gains_src(name, fd) -> str:
     )
 
 
-SCRIPT = H.INTS_SRC + H.FAKE_HAL + _gains_src("G0", FD) + _gains_src("G1", FD_KI) + """
+SCRIPT = H.CHK_SRC + H.INTS_SRC + H.FAKE_HAL + _gains_src("G0", FD) + _gains_src("G1", FD_KI) + """
 from firmware.app import App
 from firmware import msgtable as T
 from firmware.supervisor import BALANCING
-OUT = []
-def chk(name, v):
-    OUT.append(name + ' ' + str(int(v)))
 
 # --- duty within range: random sensor readings while balancing, both tables ---
 seed = 12345
@@ -138,15 +135,12 @@ for k in range(200000):
     e = (e + 40) & 0xFFFF
     s.update(2048, e)
 chk('enc_pos_after_8M_counts', s.pos)
-for line in OUT:
-    print(line)
-"""
+""" + H.CHK_END
 
 
 @pytest.fixture(scope="module")
 def obs() -> dict[str, int]:
-    out = run_unix(SCRIPT, timeout=180)
-    return {k: int(v) for k, v in (line.split() for line in out.splitlines() if line.strip())}
+    return H.parse_ints(run_unix(SCRIPT, timeout=180))
 
 
 @pytest.mark.parametrize("g", [0, 1])

@@ -21,7 +21,7 @@ import struct
 import pytest
 
 from firmware import msgtable as T
-from host.boards import fwharness as H
+import fwharness as H
 from host.boards.mpyrun import run_unix
 from host.link import messages as M
 
@@ -105,7 +105,7 @@ def test_boots_differ_even_when_urandom_repeats(tmp_path, monkeypatch) -> None:
 
     from firmware.app import App
     from firmware.session import seed
-    from host.boards.fwharness import FAKE_HAL
+    from fwharness import FAKE_HAL
 
     monkeypatch.setattr(os, "urandom", lambda n: b"\x2a" * n)
     ns: dict = {}
@@ -257,7 +257,7 @@ class _Null:
 
 def _app():
     from firmware.app import App
-    from host.boards.fwharness import FAKE_HAL
+    from fwharness import FAKE_HAL
 
     ns: dict = {}
     exec(FAKE_HAL, ns)

@@ -21,26 +21,13 @@ from firmware import msgtable as T
 from firmware.app import App
 from firmware.store import CORRUPT, EMPTY, LOADED, NAMES, ConfigStore, encode
 from firmware.supervisor import F_CONFIG
+import fwharness as H
 from host.boards.mpyrun import ROOT, micropython_exe
 from proto_helpers import RecordingSender
 
 
-class _Hal:
-    def __init__(self) -> None:
-        self.adc, self.enc, self.duty, self.t = 2048, 0, 0, 0
-
-    def read_angle_raw(self) -> int:
-        return self.adc
-
-    def read_encoder(self) -> int:
-        return self.enc
-
-    def set_motor(self, duty: int) -> None:
-        self.duty = duty
-
-    def ticks_us(self) -> int:
-        self.t = (self.t + 2000) & 0x3FFFFFFF
-        return self.t
+def _Hal() -> H.StandInHal:
+    return H.StandInHal(inc=2000)
 
 
 def _app(d: Path) -> tuple[App, int]:
@@ -144,6 +131,7 @@ def test_a_copy_with_a_good_crc_but_bad_content_is_not_loaded(tmp_path: Path) ->
     assert st == CORRUPT and app.sup.faults & F_CONFIG
 
 
+@pytest.mark.slow
 def test_save_cut_at_every_byte_leaves_old_or_new(tmp_path: Path) -> None:
     """A save torn after k bytes (what a killed process or a power cut leaves in the slot being
     written, here without the rename's help: the slot itself torn), for every k, with the old copy

@@ -21,7 +21,7 @@ from firmware.supervisor import F_ENC_JUMP as F_JUMP
 from firmware.supervisor import F_STALL, F_TILT, F_TRACK
 from firmware.supervisor import F_WATCHDOG as F_WD
 from firmware.supervisor import FAULT as FLT
-from host.boards import fwharness as H
+import fwharness as H
 from host.design.export import export
 from host.boards.mpyrun import run_unix
 from sim.params import load_params
@@ -36,13 +36,10 @@ def counts(rad: float) -> int:
     return OFF + int(round(rad * CPR))
 
 
-SCRIPT = H.FAKE_HAL + f"""
+SCRIPT = H.CHK_SRC + H.FAKE_HAL + f"""
 from firmware.app import App
 from firmware import supervisor as S
 from firmware import msgtable as T
-OUT = []
-def chk(name, v):
-    OUT.append(name + ' ' + str(int(v)))
 
 def fresh(stall=False, **cfg):
     # the fake HAL's encoder moves only when a test moves it: the no-motion check
@@ -234,15 +231,12 @@ hal, app = fresh()
 chk('ref_out_of_range', app.cmd_set_reference(900000))
 chk('ref_ok', app.cmd_set_reference(-800000))
 chk('ref_lsb', app.ref)
-for line in OUT:
-    print(line)
-"""
+""" + H.CHK_END
 
 
 @pytest.fixture(scope="module")
 def obs() -> dict[str, int]:
-    out = run_unix(SCRIPT, timeout=120)
-    return {k: int(v) for k, v in (line.split() for line in out.splitlines() if line.strip())}
+    return H.parse_ints(run_unix(SCRIPT, timeout=120))
 
 
 def test_arming_waits_for_upright(obs) -> None:

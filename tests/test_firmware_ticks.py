@@ -16,7 +16,8 @@ import random
 import pytest
 
 from firmware.fixmath import ticks_add, ticks_diff, ticks_next
-from host.boards.mpyrun import run_wasm, wasm_available
+import fwharness as H
+from host.boards.mpyrun import run_wasm
 
 PERIOD = 1 << 30
 MASK = PERIOD - 1
@@ -119,16 +120,8 @@ def old():
             d -= P
 
 
-def measure(name, fn):
-    gc.collect()
-    gc.disable()
-    a = gc.mem_alloc()
-    fn()
-    b = gc.mem_alloc()
-    gc.enable()
-    print(name, b - a)
-
-
+""" + H.WASM_ALLOC_RUN + """
+measure = run
 measure('diff', diffs)
 measure('add', adds)
 measure('next', nexts)
@@ -149,7 +142,6 @@ print('R', ' '.join(str(v) for v in R))
 
 
 @pytest.mark.wasm
-@pytest.mark.skipif(not wasm_available(), reason="node / MicroPython WebAssembly port not installed")
 def test_no_big_ints_and_time_semantics_on_32bit_wasm() -> None:
     a, b, d = _cases()
     code = SCRIPT % {"a": " ".join(map(str, a)), "b": " ".join(map(str, b)), "d": " ".join(map(str, d))}

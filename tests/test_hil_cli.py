@@ -19,6 +19,7 @@ def _cli(*args: str) -> subprocess.CompletedProcess[str]:
                           timeout=120)
 
 
+@pytest.mark.slow
 def test_hil_cli_runs_a_scenario_and_writes_outputs(tmp_path: Path) -> None:
     r = _cli("hil", "--virtual", "--scenario", "tilt_0p1", "--no-gif", "--out", str(tmp_path))
     assert r.returncode == 0, r.stdout + r.stderr
@@ -28,6 +29,7 @@ def test_hil_cli_runs_a_scenario_and_writes_outputs(tmp_path: Path) -> None:
     assert (tmp_path / "tilt_0p1.png").stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_hil_cli_exits_0_when_the_verdicts_match_a_falling_scenario(tmp_path: Path) -> None:
     # tilt_0p3 starts at 0.3 rad, so |phi| < 0.3 is expected to FAIL (documented); the
     # firmware's catch mode recovers it, the float reference (tracking row only) falls and
@@ -37,6 +39,7 @@ def test_hil_cli_exits_0_when_the_verdicts_match_a_falling_scenario(tmp_path: Pa
     assert "FAIL*" in r.stdout and "0 unexpected outcome(s)" in r.stdout and "not as expected" not in r.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args, needle", [
     (("--port", "/dev/does-not-exist-upright"), "/dev/does-not-exist-upright"),
     (("--port", "/dev/does-not-exist-upright", "--link", "can", "--can-interface", "serial"), "CAN channel"),

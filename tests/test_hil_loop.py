@@ -10,11 +10,13 @@ and the tick sequence.  Real-time, saturation and cut-off tests follow.
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import pytest
 
 from firmware import msgtable as T
+import fwharness as H
 from host.design.catch import CATCH_DEFAULT
 from host.link import messages as M
 from host.hil.errors import TickError
@@ -275,20 +277,7 @@ def _tilt_counts(limit_mrad: int) -> int:
     # the firmware's own threshold (ADC counts) for a tilt limit, computed by its code
     from firmware.app import App
 
-    class _Hal:
-        def read_angle_raw(self) -> int:
-            return 2048
-
-        def read_encoder(self) -> int:
-            return 0
-
-        def set_motor(self, duty: int) -> None:
-            pass
-
-        def ticks_us(self) -> int:
-            return 0
-
-    app = App(_Hal())
+    app = App(H.StandInHal(inc=0))
     assert app.param_set(T.P_TILT_LIMIT, limit_mrad) == T.OK
     return app.sup.tilt_counts
 
@@ -324,7 +313,55 @@ RT_BOUNDS = {
     "late_fraction": 0.02,
     "overrun_fraction": 0.01,  # firmware overruns (period > 1.5 T or step > T) per step
     "period_max_periods": 10.0,  # longest period between two step starts (+ stolen time)
+    # The steal allowance is capped, so that a real regression fails on any machine (issue 25:
+    # uncapped, one noisy run allowed ~1545 overruns of 5000 and measured 138): the stolen
+    # periods count once per vCPU (/proc/stat sums both; the firmware runs on one), at most
+    # 4 % of the run on the counts (so overruns stay under 5 %, late answers under 6 %: a
+    # step slower than its period overruns on every tick) and at most 0.2 s on the longest
+    # gaps (steal episodes measured here: up to ~50 ms).
+    "steal_cap_fraction": 0.04,
+    "steal_cap_s": 0.2,
 }
+
+
+def rt_violations(st: dict, latency_us: np.ndarray, ncpu: int | None = None) -> list[str]:
+    """The real-time bounds a run's stats break (empty: none), against the capped steal."""
+    n = st["ticks"]
+    T_us = st["period_us"]
+    ncpu = ncpu or os.cpu_count() or 1
+    steal_s = st["steal_s"] / ncpu if math.isfinite(st["steal_s"]) else 0.0
+    stolen_us = min(steal_s, RT_BOUNDS["steal_cap_s"]) * 1e6
+    stolen = min(steal_s * 1e6 / T_us, RT_BOUNDS["steal_cap_fraction"] * n)  # periods taken
+    gap_us = RT_BOUNDS["period_max_periods"] * T_us + stolen_us
+    slow = int(np.sum(latency_us[np.isfinite(latency_us)] > RT_BOUNDS["latency_periods"] * T_us))
+    bounds = [
+        ("fw_step_us_mean", 0 < st["fw_step_us_mean"] < T_us / 4),
+        ("fw_step_max_us", 0 < st["fw_step_max_us"] <= gap_us),
+        ("fw_overruns", st["fw_overruns"] <= RT_BOUNDS["overrun_fraction"] * n + stolen),
+        ("fw_period_max_us", st["fw_period_max_us"] <= gap_us),
+        ("slow latency", slow <= RT_BOUNDS["slow_fraction"] * n + stolen),
+        ("late", st["late"] <= RT_BOUNDS["late_fraction"] * n + stolen),
+        ("answered", st["answered"] >= n - (RT_BOUNDS["late_fraction"] * n + stolen)),
+        ("latency_us_mean", math.isfinite(st["latency_us_mean"]) and st["latency_us_mean"] < T_us),
+    ]
+    return [f"{name} (slow {slow}, stolen periods {stolen:.1f}): {st}" for name, ok in bounds if not ok]
+
+
+def test_the_realtime_bounds_fail_a_regression_even_on_a_noisy_machine() -> None:
+    # a clean 10 s run at 500 Hz, then the same with 3 s of steal (both vCPUs: ~1500 periods)
+    ok = {"ticks": 5000, "period_us": 2000.0, "steal_s": 0.0, "fw_step_us_mean": 300.0, "fw_step_max_us": 900.0,
+          "fw_overruns": 3, "fw_period_max_us": 3500.0, "late": 10, "answered": 4990, "latency_us_mean": 700.0}
+    lat = np.full(5000, 700.0)
+    assert rt_violations(ok, lat, ncpu=2) == []
+    noisy = {**ok, "steal_s": 3.0, "fw_overruns": 138, "fw_period_max_us": 60000.0, "late": 150, "answered": 4850}
+    assert rt_violations(noisy, lat, ncpu=2) == []  # what a noisy VM measured passes
+    # regressions fail whatever the steal: overruns on one tick in ten, a 0.5 s hang, late answers
+    for bad in ({"fw_overruns": 500}, {"fw_period_max_us": 500000.0}, {"fw_step_max_us": 400000.0},
+                {"late": 600, "answered": 4400}):
+        assert rt_violations({**noisy, **bad}, lat, ncpu=2), bad
+    slow = lat.copy()
+    slow[:400] = 2500.0  # 8 % of the answers a period late
+    assert [v.split(" ")[0] for v in rt_violations(noisy, slow, ncpu=2)] == ["slow"]
 
 
 @pytest.mark.slow
@@ -357,23 +394,12 @@ def test_realtime_loop_timing_over_ten_seconds(link) -> None:
     # the longest one is bounded like the period (a vCPU descheduled by the hypervisor in
     # the middle of a step stretches that step: measured up to 1.9 ms, also before any
     # firmware change, so a hard T/2 on the maximum failed now and then)
-    stolen_us = st["steal_s"] * 1e6 if math.isfinite(st["steal_s"]) else 0.0
-    stolen = stolen_us / T_us  # periods the hypervisor took (both vCPUs)
-    assert 0 < st["fw_step_us_mean"] < T_us / 4, st
-    assert 0 < st["fw_step_max_us"] <= RT_BOUNDS["period_max_periods"] * T_us + stolen_us, st
-    # overruns plus the stolen periods, like the host-side counts below: a vCPU taken from the
-    # firmware stretches its period as it delays the host (measured: 52 of 5000 in one
-    # of four CI dry runs); with no steal the 1 % alone applies
-    print(f"overruns {st['fw_overruns']}, stolen periods {stolen:.1f}")
-    assert st["fw_overruns"] <= RT_BOUNDS["overrun_fraction"] * n + stolen, st
-    assert st["fw_period_max_us"] <= RT_BOUNDS["period_max_periods"] * T_us + stolen_us, st
-    # the host's measurements: latency at most one period, answers in time
-    lat = run.log["latency_us"]
-    slow = int(np.sum(lat[np.isfinite(lat)] > RT_BOUNDS["latency_periods"] * T_us))
-    assert slow <= RT_BOUNDS["slow_fraction"] * n + stolen, (slow, st)
-    assert st["late"] <= RT_BOUNDS["late_fraction"] * n + stolen, st
-    assert st["answered"] >= n - (RT_BOUNDS["late_fraction"] * n + stolen), st
-    assert math.isfinite(st["latency_us_mean"]) and st["latency_us_mean"] < T_us
+    # overruns plus the stolen periods (capped), like the host-side counts: a vCPU taken from
+    # the firmware stretches its period as it delays the host (measured: 52 of 5000 in one
+    # of four CI dry runs); with no steal the 1 % alone applies.  The host's measurements:
+    # latency at most one period, answers in time.
+    print(f"overruns {st['fw_overruns']}, steal {st['steal_s']:.3f} s")
+    assert rt_violations(st, run.log["latency_us"]) == []
 
 
 def test_silent_firmware_is_an_error_not_a_hang() -> None:

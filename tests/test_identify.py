@@ -72,6 +72,7 @@ def test_recovers_perturbed_plant(corner: str, tmp_path: Path) -> None:
         assert lo <= res["estimates"][k] <= hi and lo < hi, (k, res["ci"][k])
 
 
+@pytest.mark.slow
 def test_firmware_in_the_loop(tmp_path: Path) -> None:
     # the real firmware's excitation and telemetry; the plant off the design everywhere
     plant = S.perturbed_plant(DESIGN, I=0.7, M=1.1, m=0.9, b=1.5, kt=1.05, delay=0.014, pot_offset=20)

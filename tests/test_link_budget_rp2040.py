@@ -15,21 +15,13 @@ module: about 45-70 s of wall time.
 
 from __future__ import annotations
 
-import shutil
-
 import pytest
 
 from host.bench.link_sweep import BURST, sweep
-from host.boards.rp2040.board import FIRMWARE, ROOT, EmulatedBoard, build_bundle
+from host.boards.rp2040.board import EmulatedBoard, build_bundle
 from host.hil.emulated import EmulatedHil
 
-pytestmark = [
-    pytest.mark.rp2040,
-    pytest.mark.slow,
-    pytest.mark.skipif(shutil.which("node") is None, reason="node not installed"),
-    pytest.mark.skipif(not (ROOT / "node_modules" / "rp2040js").is_dir(), reason="rp2040js not installed (make setup)"),
-    pytest.mark.skipif(not FIRMWARE.is_file(), reason="MicroPython RP2040 image missing (make rp2040)"),
-]
+pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
 
 
 @pytest.fixture(scope="module")

@@ -98,6 +98,7 @@ def test_float_simulation_of_the_plant_differs_and_the_firmware_side_keeps_the_d
 
 
 # ------------------------------------------------------------------ CLI
+@pytest.mark.slow
 def test_hil_plant_runs_the_shipped_firmware_on_another_robot(soft: Path, tmp_path: Path) -> None:
     args = ("hil", "--virtual", "--scenario", "ref_step_20cm", "--no-plots", "--quiet")
     nominal = _cli(*args, "--out", str(tmp_path / "n"), "--json", str(tmp_path / "n.json"))
@@ -177,6 +178,7 @@ def test_sweep_centres_the_ranges_on_the_plant(soft: Path) -> None:
     assert math.isclose(float(np.mean(off["I"] / nom["I"])), 0.7, rel_tol=1e-9)
 
 
+@pytest.mark.slow
 def test_demo_accepts_plant(soft: Path, tmp_path: Path) -> None:
     r = _cli("demo", "--scenario", "tilt_0p1", "--no-design", "--no-gif", "--quiet", "--out", str(tmp_path),
              "--plant", str(soft))

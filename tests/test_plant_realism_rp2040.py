@@ -4,24 +4,17 @@ its own (the counts on the pins are the realistic plant's)."""
 
 from __future__ import annotations
 
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from host.boards.rp2040.board import FIRMWARE, ROOT
+from host.boards.rp2040.board import ROOT
 
 from test_plant_realism import REALISTIC, SHORT, SHORT_TOML, replay_matches
 
-pytestmark = [
-    pytest.mark.slow,
-    pytest.mark.rp2040,
-    pytest.mark.skipif(shutil.which("node") is None, reason="node not installed"),
-    pytest.mark.skipif(not (ROOT / "node_modules" / "rp2040js").is_dir(), reason="rp2040js not installed (make setup)"),
-    pytest.mark.skipif(not FIRMWARE.is_file(), reason="MicroPython RP2040 image missing (make rp2040)"),
-]
+pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
 
 
 def test_hil_emulated_rp2040_runs_the_realistic_plant(tmp_path: Path) -> None:

@@ -9,27 +9,14 @@ from firmware import codec, commands
 from firmware import msgtable as T
 from firmware.app import App
 from firmware.supervisor import F_ADC_RAIL
+import fwharness as H
 from host.link import messages as M
 from host.design.export import export
 from proto_helpers import RecordingSender
 
 
-class _Hal:
-    def __init__(self) -> None:
-        self.adc, self.enc, self.duty, self.t = 2048, 0, 0, 0
-
-    def read_angle_raw(self) -> int:
-        return self.adc
-
-    def read_encoder(self) -> int:
-        return self.enc
-
-    def set_motor(self, duty: int) -> None:
-        self.duty = duty
-
-    def ticks_us(self) -> int:
-        self.t = (self.t + 2000) & 0x3FFFFFFF
-        return self.t
+def _Hal() -> H.StandInHal:
+    return H.StandInHal(inc=2000)
 
 
 def _setup():

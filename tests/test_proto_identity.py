@@ -19,6 +19,7 @@ import pytest
 from firmware import codec, commands, framing, identity
 from firmware import msgtable as T
 from firmware.app import App
+import fwharness as H
 from host.boards.mpyrun import micropython_exe, run_unix
 from host.link import clients as L
 from host.link import identity as ID
@@ -62,22 +63,8 @@ def test_host_refuses_a_board_with_another_message_table(monkeypatch):
         b.shutdown()
 
 
-class _Hal:
-    def __init__(self) -> None:
-        self.t = 0
-
-    def read_angle_raw(self) -> int:
-        return 2048
-
-    def read_encoder(self) -> int:
-        return 0
-
-    def set_motor(self, duty: int) -> None:
-        pass
-
-    def ticks_us(self) -> int:
-        self.t = (self.t + 2000) & 0x3FFFFFFF
-        return self.t
+def _Hal() -> H.StandInHal:
+    return H.StandInHal(inc=2000)
 
 
 def test_version_and_stats_report_what_the_board_knows():

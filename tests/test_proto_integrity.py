@@ -23,6 +23,7 @@ from firmware import canframe, codec, commands, framing
 from firmware import msgtable as T
 from firmware.app import App
 from firmware.supervisor import ARMED, BALANCING, DISARMED, FAULT
+import fwharness as H
 from host.link import messages as M
 
 COMMANDS = [c for c in M.MESSAGES.values() if c.DIRECTION == "to_board"]
@@ -146,6 +147,7 @@ def _run_serial_can(frames: list[bytes]) -> tuple[int, int, int]:
     return n_var, acted, silent
 
 
+@pytest.mark.slow
 def test_every_single_and_double_bit_flip_of_every_command_frame_is_dropped_and_counted():
     serial = _run_serial(_frames("serial", 12))
     can = _run_serial_can(_frames("can", 7))
@@ -168,24 +170,15 @@ def test_the_flip_harness_sees_a_clean_frame():
 
 
 # ---------------------------------------------------------------- replay schedules
-class _Hal:
+class _Hal(H.StandInHal):
     # sensors at rest upright; the ADC rails while `rail` (a fault the board latches)
+    rail = False
+
     def __init__(self) -> None:
-        self.rail = False
-        self.t = 0
+        super().__init__(inc=2000)
 
     def read_angle_raw(self) -> int:
         return 0 if self.rail else 2048
-
-    def read_encoder(self) -> int:
-        return 0
-
-    def set_motor(self, duty: int) -> None:
-        pass
-
-    def ticks_us(self) -> int:
-        self.t = (self.t + 2000) & 0x3FFFFFFF
-        return self.t
 
 
 class _Null:
@@ -270,6 +263,7 @@ def _schedule(board: _Board, rng: random.Random, defeat_epoch: bool = False) -> 
     return unintended
 
 
+@pytest.mark.slow
 def test_10000_lossy_schedules_never_arm_after_a_later_disarm():
     board = _Board()
     rng = random.Random(2013)

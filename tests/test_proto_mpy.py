@@ -176,7 +176,6 @@ def locked(streams):
 
 
 @pytest.mark.wasm
-@pytest.mark.skipif(not wasm_available(), reason="node / MicroPython wasm port not installed")
 def test_wasm_32bit_decoder_dispatcher_allocate_nothing():
     data = _stream(2, 6000)
     code = _FEED + f"""

@@ -129,8 +129,14 @@ def test_the_readme_shows_commands() -> None:
     assert "upright hil --port /dev/ttyUSB0" in ROBOT_COMMANDS and len(ROBOT_COMMANDS) >= 14, ROBOT_COMMANDS
 
 
-@pytest.mark.parametrize("cmd", [c for c in COMMANDS if c not in ROBOT_COMMANDS and c not in BOARD_COMMANDS
-                                 and c not in USB_LINK])
+def _marks(cmd: str) -> list:
+    # the emulated board needs its parts
+    return [pytest.mark.rp2040] if "--emulate rp2040" in cmd else []
+
+
+@pytest.mark.slow  # each an `upright` process: 2-5 s of CPU, the robust search and the emulated board minutes
+@pytest.mark.parametrize("cmd", [pytest.param(c, marks=_marks(c)) for c in COMMANDS
+                                 if c not in ROBOT_COMMANDS and c not in BOARD_COMMANDS and c not in USB_LINK])
 def test_readme_command_works_as_shown(cmd: str, tmp_path: Path) -> None:
     if cmd in SKIP:
         pytest.skip(SKIP[cmd])
@@ -180,6 +186,7 @@ def _check_soft_pendulum_claim(stdout: str) -> None:
     assert abs(settle - float(claim.group(1))) <= 0.05, (settle, claim.group(1))
 
 
+@pytest.mark.slow
 def test_readme_scenario_format_loads_and_runs(tmp_path: Path) -> None:
     """The scenario TOML the README documents is a valid scenario, and it runs."""
     from sim.scenario import load_scenario
@@ -229,16 +236,11 @@ def test_readme_usb_link_commands(tmp_path: Path) -> None:
     About 60-90 s of wall time (the boot, the board's 2 s REPL window at 0.1-0.2x real time).
     """
     import os
-    import shutil
     import signal
     import time
 
     import serial
 
-    from host.boards.rp2040.board import FIRMWARE
-
-    if shutil.which("node") is None or not (ROOT / "node_modules" / "rp2040js").is_dir() or not FIRMWARE.is_file():
-        pytest.skip("the emulated RP2040 is not set up (make setup, make rp2040)")
     env = dict(os.environ, TMPDIR=str(tmp_path))
     p = subprocess.Popen([sys.executable, "-m", "host.cli.main", "emulate", "rp2040", "--pty", "--link", "usb"],
                          cwd=tmp_path, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,

@@ -26,7 +26,6 @@ import json
 import os
 import re
 import shlex
-import shutil
 import signal
 import subprocess
 import sys
@@ -35,15 +34,9 @@ from pathlib import Path
 
 import pytest
 
-from host.boards.rp2040.board import FIRMWARE, ROOT
+from host.boards.rp2040.board import ROOT
 
-pytestmark = [
-    pytest.mark.slow,
-    pytest.mark.rp2040,
-    pytest.mark.skipif(shutil.which("node") is None, reason="node not installed"),
-    pytest.mark.skipif(not (ROOT / "node_modules" / "rp2040js").is_dir(), reason="rp2040js not installed (make setup)"),
-    pytest.mark.skipif(not FIRMWARE.is_file(), reason="MicroPython RP2040 image missing (make rp2040)"),
-]
+pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
 
 UPRIGHT = [sys.executable, "-m", "host.cli.main"]
 README = ROOT / "README.md"

@@ -138,6 +138,7 @@ def test_gain_upload_interrupted_or_corrupted_never_applied(board) -> None:
     assert np.array_equal(_trace(board), base)
 
 
+@pytest.mark.slow
 def test_gain_upload_over_corrupted_link_applies_all_or_nothing(board) -> None:
     if board.link_kind != "serial":
         pytest.skip("bit errors exist on the serial line only (CAN frames are CRC-checked by the controller)")

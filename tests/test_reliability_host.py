@@ -197,12 +197,14 @@ def _one_line_error(r: subprocess.CompletedProcess[str], *needles: str) -> str:
     return lines[0]
 
 
+@pytest.mark.slow
 def test_bad_serial_port_one_line() -> None:
     with pytest.raises(PortError, match="/dev/ttyNOPE"):
         HilSession("/dev/ttyNOPE").open()
     _one_line_error(_cli("hil", "--port", "/dev/ttyNOPE", "--scenario", "tilt_0p1", "--quiet"), "/dev/ttyNOPE")
 
 
+@pytest.mark.slow
 def test_bad_can_channel_one_line() -> None:
     with pytest.raises(PortError, match="nocan7"):
         HilSession("nocan7", link="can", can_interface="socketcan").open()
@@ -210,6 +212,7 @@ def test_bad_can_channel_one_line() -> None:
                          "--scenario", "tilt_0p1", "--quiet"), "nocan7")
 
 
+@pytest.mark.slow
 def test_bad_scenario_toml_names_the_key(tmp_path: Path) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text('name = "bad"\nduration = 2.0\n[initial]\nphi = "lots"\n')

@@ -67,6 +67,7 @@ def test_soak_checks_can_fail(over, probe, needle: str) -> None:
     assert any(needle in f for f in bad.failures), bad.failures
 
 
+@pytest.mark.slow
 def test_soak_cli_refuses_too_short_in_one_line() -> None:
     r = subprocess.run([sys.executable, "-m", "host.cli", "soak", "--sim-seconds", "3", "--quiet"], cwd=ROOT,
                        capture_output=True, text=True, timeout=60)

@@ -35,6 +35,7 @@ def _upright(*args: str) -> subprocess.CompletedProcess[str]:
                           timeout=600)
 
 
+@pytest.mark.slow
 def test_robust_command_tiny_budget_reproduced_by_direct_simulation(tmp_path: Path) -> None:
     unc = tmp_path / "tiny.toml"
     unc.write_text(TINY)
@@ -119,6 +120,7 @@ def test_bad_uncertainty_file_names_the_key(tmp_path: Path, text: str, key: str)
     assert ei.value.key == key
 
 
+@pytest.mark.slow
 def test_bad_uncertainty_file_on_the_command_line(tmp_path: Path) -> None:
     f = tmp_path / "bad.toml"
     f.write_text("motor_constant = [0.9, 1.1]\ninertai = [0.5, 1.2]\n")

@@ -73,6 +73,7 @@ def _met(run: dict) -> bool:
     return all(v["status"] == "PASS" for c, v in run["checks"].items() if c != "a_max" or run["name"] != "impulse_kick")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(CORNERS))
 def test_unix_port_hil_at_a_corner_agrees_with_the_evaluation(tmp_path: Path, name: str) -> None:
     point = _corner(name)

@@ -3,20 +3,14 @@ driving the pins the harness observes.  Needs node, rp2040js and build/rp2040/fi
 
 from __future__ import annotations
 
-import shutil
 import time
 from pathlib import Path
 
 import pytest
 
-from host.boards.rp2040.board import FIRMWARE, ROOT, BoardError, BoardExecError, EmulatedBoard, build_bundle
+from host.boards.rp2040.board import BoardError, BoardExecError, EmulatedBoard, build_bundle
 
-pytestmark = [
-    pytest.mark.rp2040,
-    pytest.mark.skipif(shutil.which("node") is None, reason="node not installed"),
-    pytest.mark.skipif(not (ROOT / "node_modules" / "rp2040js").is_dir(), reason="rp2040js not installed (make setup)"),
-    pytest.mark.skipif(not FIRMWARE.is_file(), reason="MicroPython RP2040 image missing (make rp2040)"),
-]
+pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
 
 HAL = "import firmware.board as B\nfrom firmware.hal_pico import HalPico\nhal = HalPico(B)\n"
 PWM_TOP = 125_000_000 // 20_000 - 1  # 20 kHz at 125 MHz, divider 1

@@ -14,23 +14,17 @@ switched off after one call.  One board (REPL, bundle importable) shared by the 
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from firmware.supervisor import F_LOOP
-from host.boards.rp2040.board import FIRMWARE, ROOT, EmulatedBoard, build_bundle
+from host.boards.rp2040.board import EmulatedBoard, build_bundle
 from host.link import messages as M
 from sim.params import load_params
 
-pytestmark = [
-    pytest.mark.rp2040,
-    pytest.mark.skipif(shutil.which("node") is None, reason="node not installed"),
-    pytest.mark.skipif(not (ROOT / "node_modules" / "rp2040js").is_dir(), reason="rp2040js not installed (make setup)"),
-    pytest.mark.skipif(not FIRMWARE.is_file(), reason="MicroPython RP2040 image missing (make rp2040)"),
-]
+pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
 
 # what main.py builds, with the command watchdog relaxed (the test feeds no keep-alive) and
 # telemetry every tick (the link's worst case) unless told

@@ -8,23 +8,17 @@ link for the loop tests.  Needs node, rp2040js and build/rp2040/firmware.bin."""
 from __future__ import annotations
 
 import dataclasses
-import shutil
 
 import numpy as np
 import pytest
 
 from firmware import msgtable as T
 from firmware.supervisor import F_CAN, F_WATCHDOG
-from host.boards.rp2040.board import CYCLES_PER_US, FIRMWARE, ROOT, EmulatedBoard
+from host.boards.rp2040.board import CYCLES_PER_US, ROOT, EmulatedBoard
 from host.boards.rp2040.can import CanBoard, CanBridge, harness_args
 from host.link import messages as M
 
-pytestmark = [
-    pytest.mark.rp2040,
-    pytest.mark.skipif(shutil.which("node") is None, reason="node not installed"),
-    pytest.mark.skipif(not (ROOT / "node_modules" / "rp2040js").is_dir(), reason="rp2040js not installed (make setup)"),
-    pytest.mark.skipif(not FIRMWARE.is_file(), reason="MicroPython RP2040 image missing (make rp2040)"),
-]
+pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
 
 NODE = 1
 SETUP = """

@@ -22,7 +22,6 @@ import dataclasses
 import json
 import os
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -31,15 +30,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from host.boards.rp2040.board import FIRMWARE, ROOT
+from host.boards.rp2040.board import ROOT
 from sim.plantsim import read_csv
 
-pytestmark = [
-    pytest.mark.rp2040,
-    pytest.mark.skipif(shutil.which("node") is None, reason="node not installed"),
-    pytest.mark.skipif(not (ROOT / "node_modules" / "rp2040js").is_dir(), reason="rp2040js not installed (make setup)"),
-    pytest.mark.skipif(not FIRMWARE.is_file(), reason="MicroPython RP2040 image missing (make rp2040)"),
-]
+pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
 
 UPRIGHT = [sys.executable, "-m", "host.cli.main"]
 DPHI_MAX = 0.005

@@ -18,21 +18,14 @@ The bounds below are generous: the cut-off exists and is of that order, not the 
 
 from __future__ import annotations
 
-import shutil
-
 import pytest
 
 from firmware import board as BOARD
 from firmware import msgtable as T
 from firmware.supervisor import F_ESTOP
-from host.boards.rp2040.board import FIRMWARE, ROOT, EmulatedBoard
+from host.boards.rp2040.board import EmulatedBoard
 
-pytestmark = [
-    pytest.mark.rp2040,
-    pytest.mark.skipif(shutil.which("node") is None, reason="node not installed"),
-    pytest.mark.skipif(not (ROOT / "node_modules" / "rp2040js").is_dir(), reason="rp2040js not installed (make setup)"),
-    pytest.mark.skipif(not FIRMWARE.is_file(), reason="MicroPython RP2040 image missing (make rp2040)"),
-]
+pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
 
 US = 125  # cycles per microsecond
 MARK = 25  # a spare pin (the LED) the test code raises at the moment it hangs

@@ -20,17 +20,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from host.boards.rp2040.board import FIRMWARE, ROOT, build_bundle
+from host.boards.rp2040.board import ROOT, build_bundle
 from host.hil.emulated import EmulatedHil
 from sim.params import load_params
 from sim.scenario import load_scenario
 
-pytestmark = [
-    pytest.mark.rp2040,
-    pytest.mark.skipif(shutil.which("node") is None, reason="node not installed"),
-    pytest.mark.skipif(not (ROOT / "node_modules" / "rp2040js").is_dir(), reason="rp2040js not installed (make setup)"),
-    pytest.mark.skipif(not FIRMWARE.is_file(), reason="MicroPython RP2040 image missing (make rp2040)"),
-]
+pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
 
 UPRIGHT = [sys.executable, "-m", "host.cli.main"]
 # long enough to settle (~2 s), short enough for make test (2.5 s of board time ~ 15-25 s wall)

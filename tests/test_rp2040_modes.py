@@ -17,15 +17,10 @@ import pytest
 
 from firmware import msgtable as T
 from host.boards import bundle as B
-from host.boards.rp2040.board import FIRMWARE, ROOT, EmulatedBoard
+from host.boards.rp2040.board import ROOT, EmulatedBoard
 from host.link import messages as M
 
-pytestmark = [
-    pytest.mark.rp2040,
-    pytest.mark.skipif(shutil.which("node") is None, reason="node not installed"),
-    pytest.mark.skipif(not (ROOT / "node_modules" / "rp2040js").is_dir(), reason="rp2040js not installed (make setup)"),
-    pytest.mark.skipif(not FIRMWARE.is_file(), reason="MicroPython RP2040 image missing (make rp2040)"),
-]
+pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,6 @@ the flash image.  Also: the wiper test and the motor supply through the real Hal
 from __future__ import annotations
 
 import random
-import shutil
 import tempfile
 from pathlib import Path
 
@@ -16,14 +15,9 @@ import pytest
 from firmware import gains as G
 from firmware import msgtable as T
 from firmware.store import LOADED, NAMES, ConfigStore
-from host.boards.rp2040.board import FIRMWARE, ROOT, EmulatedBoard, apply_flash_ops, build_bundle
+from host.boards.rp2040.board import EmulatedBoard, apply_flash_ops, build_bundle
 
-pytestmark = [
-    pytest.mark.rp2040,
-    pytest.mark.skipif(shutil.which("node") is None, reason="node not installed"),
-    pytest.mark.skipif(not (ROOT / "node_modules" / "rp2040js").is_dir(), reason="rp2040js not installed (make setup)"),
-    pytest.mark.skipif(not FIRMWARE.is_file(), reason="MicroPython RP2040 image missing (make rp2040)"),
-]
+pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
 
 SETUP = """
 from firmware.store import ConfigStore

@@ -4,19 +4,11 @@ read from the board's own ``time.ticks_us`` and ``machine.mem32``."""
 
 from __future__ import annotations
 
-import shutil
-
 import pytest
 
-from host.boards.rp2040.board import FIRMWARE, ROOT, EmulatedBoard
+from host.boards.rp2040.board import EmulatedBoard
 
-pytestmark = [
-    pytest.mark.rp2040,
-    pytest.mark.slow,
-    pytest.mark.skipif(shutil.which("node") is None, reason="node not installed"),
-    pytest.mark.skipif(not (ROOT / "node_modules" / "rp2040js").is_dir(), reason="rp2040js not installed (make setup)"),
-    pytest.mark.skipif(not FIRMWARE.is_file(), reason="MicroPython RP2040 image missing (make rp2040)"),
-]
+pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
 
 N = 2000  # reads per loop: 2000 misses of 64 cycles = 1 ms, timed to 1 us
 MISS = 64.0

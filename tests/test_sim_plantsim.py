@@ -197,6 +197,7 @@ def test_float_run_is_deterministic_and_seeded(p) -> None:
     assert not np.array_equal(a["adc"], c["adc"])
 
 
+@pytest.mark.slow
 def test_summary_of_float_runs_prints(float_runs, capsys) -> None:
     text = summary_table([v[2] for v in float_runs.values()], title="float reference")
     print(text)

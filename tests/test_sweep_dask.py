@@ -34,6 +34,7 @@ def test_robustness_on_dask_equals_single_process(cluster, cfg) -> None:
     assert seen[0] == (0, 10) and seen[-1] == (10, 10)
 
 
+@pytest.mark.slow
 def test_tune_and_tilt_on_dask_equal_single_process(cluster, cfg) -> None:
     designs = [Design("soft", R=0.1), Design("report")]
     rows_l, t_l = tune(cfg, designs, 3, chunk=2)

@@ -30,6 +30,7 @@ def _upright(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[st
                           timeout=timeout)
 
 
+@pytest.mark.slow
 def test_sweep_ranges_file_sets_the_draw(tmp_path: Path) -> None:
     ranges = tmp_path / "r.toml"
     ranges.write_text("inertia = 0.4\nmass = 0.0\nmotor = 0.0\nfriction = [1.0, 1.0]\ndelay = [0.0, 0.004]\n")
@@ -47,6 +48,7 @@ def test_sweep_ranges_file_sets_the_draw(tmp_path: Path) -> None:
     assert set(np.round(np.array(t["delay"]) * p.rate).astype(int)) <= {0, 1, 2}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("text, key", [
     ("inertai = 0.3\n", "inertai"),
     ("mass = 1.5\n", "mass"),
@@ -65,6 +67,7 @@ def test_bad_ranges_file_names_the_key(tmp_path: Path, text: str, key: str) -> N
         assert r.returncode == 2 and "inertai" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_hil_monte_carlo_on_dask_one_board_per_worker(tmp_path: Path) -> None:
     scen = tmp_path / "short.toml"
     scen.write_text(SHORT)
@@ -88,6 +91,7 @@ def test_hil_monte_carlo_on_dask_one_board_per_worker(tmp_path: Path) -> None:
     assert summary["workers"] == 2 and summary["passed_rate"] == 1.0
 
 
+@pytest.mark.slow
 def test_hil_sweep_interrupted_keeps_the_finished_runs(tmp_path: Path) -> None:
     scen = tmp_path / "short.toml"
     scen.write_text(SHORT)

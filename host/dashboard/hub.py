@@ -12,8 +12,8 @@ message it reads to :meth:`Hub.on_message` with the time it arrived.  The hub
 * gives commands from any thread a thread-safe :class:`PumpedLink` (a
   :class:`~host.link.clients.Link`: ``arm``, ``upload_gains``, ``param_get``... with their
   retries and refusals), whose replies the pump fans out to it;
-* applies the watchdog policy: the host heartbeat (a ``request(heartbeat)`` every
-  :data:`KEEPALIVE_S`, which also refreshes the state) is sent only while at least one page is
+* applies the watchdog policy: the host heartbeat (:class:`~host.link.clients.Keepalive`,
+  every :data:`KEEPALIVE_S`) is sent only while at least one page is
   live (its event stream open and a ping within :data:`PAGE_TIMEOUT_S`) *and* the arm was
   requested from a live page; when the last live page goes, feeding stops and the board is
   disarmed.  A closed page therefore never keeps a board armed: its watchdog
@@ -35,9 +35,10 @@ from pathlib import Path
 from typing import Any, Callable
 
 from firmware import msgtable as T
+from host.hil.accounting import SeqAccount
 from host.link import messages as M
-from host.link.clients import Link, LinkClosed, LinkError
-from host.operate.board import Board, BoardError, has_message
+from host.link.clients import Keepalive, Link, LinkClosed, LinkError
+from host.operate.board import Board, BoardError, fault_table
 
 __all__ = [
     "KEEPALIVE_S",
@@ -48,7 +49,6 @@ __all__ = [
     "Client",
     "Hub",
     "PlainPump",
-    "fault_names",
 ]
 
 KEEPALIVE_S = 0.1
@@ -69,22 +69,6 @@ _REQUEST = M.BY_NAME["request"]
 _SCALE = {f.name: f.scale for f in (*_TS.FIELDS, *_TC.FIELDS)}
 _PERIODIC = (_TS, _TC, _HB)
 _ARMED_STATES = {s[0] for s in T.STATES if s[1] in ("armed", "balancing")}
-
-
-def fault_names() -> list[tuple[int, str, str]]:
-    """``(bit, name, doc)`` of every fault flag: ``firmware.msgtable.FAULTS`` where the table has
-    it, completed by the supervisor's ``F_*`` constants."""
-    out = [(int(b), str(n), str(d)) for b, n, d in getattr(T, "FAULTS", ())]
-    have = {b for b, _, _ in out}
-    try:
-        from firmware import supervisor
-    except ImportError:  # pragma: no cover - the firmware is part of the tree
-        supervisor = None
-    for k, v in sorted(vars(supervisor).items() if supervisor else (), key=lambda kv: str(kv[1])):
-        if k.startswith("F_") and isinstance(v, int) and v not in have:
-            out.append((v, k[2:].lower(), ""))
-            have.add(v)
-    return sorted(out)
 
 
 class SharedLink:
@@ -231,8 +215,7 @@ class Hub:
         self.n = 0
         self.heartbeat: dict[str, int] | None = None
         self.hb_count = 0
-        self.lost = 0
-        self._last_seq: int | None = None
+        self.seqs = SeqAccount()
         self._had_live = False
         self._pending: tuple[M.Message, int | None] | None = None
         self.half_pairs = 0
@@ -240,8 +223,7 @@ class Hub:
         self._next_client = 0
         self.arm_requested = False
         self.feeding = False
-        self.keepalives = 0
-        self._last_keepalive = 0.0
+        self._keepalive = Keepalive(self.link.send, KEEPALIVE_S)
         self.events: collections.deque[dict[str, Any]] = collections.deque(maxlen=200)
         self._listeners: list[PumpedLink] = []
         self.cmd = self.listener()
@@ -280,7 +262,7 @@ class Hub:
         if t is _ACT:
             return
         if seq is not None and t in _PERIODIC and not (t is _HB and self.link.is_reply(seq)):
-            self._account(seq)
+            self.seqs.add(m, seq)
         if t is _TS:
             if self._pending is not None:
                 self.half_pairs += 1
@@ -300,9 +282,9 @@ class Hub:
             # the heartbeat carries the low 8 bits of the active table's CRC-16 (VERSION has all 16):
             # a table known here whose low byte matches stays; another low byte means the board runs
             # a table this dashboard did not upload
-            low = getattr(m, "gains_crc", None)
+            low = m.gains_crc
             known = self.gains.get("crc")
-            if low is not None and (known is None or (known & 0xFF) != low) and self.gains.get("crc_low8") != low:
+            if (known is None or (known & 0xFF) != low) and self.gains.get("crc_low8") != low:
                 up = self.gains.get("uploaded_crc")
                 if up is not None and (up & 0xFF) == low:
                     self.gains = {**self.gains, "crc": up, "crc_low8": low,
@@ -318,15 +300,11 @@ class Hub:
             if t is not _TS and t is not _TC:
                 pl.put(m, seq)
 
-    def _account(self, seq: int) -> None:
-        # telemetry pairs and heartbeats share the board's periodic counter: a gap is a loss
-        last = self._last_seq
-        if last is not None:
-            d = (seq - last) & 0xFF
-            if d == 0 or d >= 128:
-                return
-            self.lost += d - 1
-        self._last_seq = seq
+    @property
+    def lost(self) -> int:
+        """Periodic frames missing by the board's sequence number (telemetry pairs and
+        heartbeats share its counter; :class:`~host.hil.accounting.SeqAccount`)."""
+        return self.seqs.lost
 
     def _row(self, s: M.Message, c: M.Message, t_rx: float) -> None:
         hb = self.heartbeat or {"state": -1, "faults": 0}
@@ -356,7 +334,7 @@ class Hub:
         hb = self.heartbeat or {}
         st = hb.get("state")
         return {**hb, "state_name": M.STATES.get(st, "unknown") if st is not None else "no heartbeat yet",
-                "fault_names": [n for b, n, _ in fault_names() if hb.get("faults", 0) & b]}
+                "fault_names": [n for b, (n, _) in fault_table().items() if hb.get("faults", 0) & b]}
 
     # ------------------------------------------------------------------ pages
     def connect(self) -> Client:
@@ -427,19 +405,16 @@ class Hub:
 
     def tick_keepalive(self, now: float | None = None) -> None:
         """Send the host heartbeat if it is due (the pump's thread calls this)."""
-        now = time.monotonic() if now is None else now
-        if self.keepalive and self.feeding and now - self._last_keepalive >= KEEPALIVE_S:
-            self._last_keepalive = now
+        if self.keepalive and self.feeding:
             try:
-                # the protocol's host heartbeat where it has one (as `upright board arm` sends),
-                # else a heartbeat request (any valid frame feeds the watchdog)
-                if has_message("host_heartbeat"):
-                    self.link.send(M.BY_NAME["host_heartbeat"]())
-                else:
-                    self.link.send(_REQUEST(msg_id=T.HEARTBEAT))
-                self.keepalives += 1
+                self._keepalive.tick(now)
             except LinkError as exc:
                 self.note(f"host heartbeat failed: {exc}")
+
+    @property
+    def keepalives(self) -> int:
+        """Host heartbeats sent."""
+        return self._keepalive.sent
 
     def note(self, text: str) -> None:
         """An event line for the pages (and the console)."""
@@ -594,7 +569,7 @@ class Hub:
     def hello(self, cid: str) -> dict[str, Any]:
         return {"id": cid, "info": self.info, "columns": COLUMNS, "gains": self.gains,
                 "states": {str(k): v for k, v in M.STATES.items()},
-                "faults": [[b, n, d] for b, n, d in fault_names()],
+                "faults": [[b, n, d] for b, (n, d) in fault_table().items()],
                 "heartbeat": self._hb_payload(), "virtual": self.virtual is not None,
                 "t0_wall_ms": self.t0_wall * 1000.0, "record": self.record_status(),
                 "notes": list(self.events)[-20:]}

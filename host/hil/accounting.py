@@ -12,8 +12,6 @@ import math
 import time
 from typing import Any
 
-import numpy as np
-
 from firmware import msgtable as T
 from host.hil.errors import HilError
 from host.link import messages as M
@@ -29,11 +27,15 @@ _PARAM_VALUE = M.BY_NAME["param_value"]
 
 
 class SeqAccount:
-    """Accounts for the board's periodic frames by their serial sequence number.
+    """Accounts for the board's periodic frames by their serial sequence number: the one loss
+    counter of the host (HIL runs, ``upright board log``'s recorder, the dashboard).
 
     Telemetry (``telem_state`` + ``telem_ctrl``, one seq for the pair) and heartbeats share
     one counter on the board, incremented once per periodic event, so the seqs seen must be
-    contiguous; a gap is a lost frame, a repeat a duplicate, a step back a reordered frame.
+    contiguous; a gap is a lost frame, a repeat a duplicate, a step back a reordered frame
+    (a late frame fills its gap again).  The 8-bit seqs are unwrapped against the newest seen
+    (a step of less than 128 forward is forward); the memory is bounded: events more than
+    :data:`WINDOW` behind the newest are only counted.
 
     Attributes
     ----------
@@ -41,15 +43,23 @@ class SeqAccount:
         Distinct periodic events seen.
     telemetry, heartbeats : int
         Distinct telemetry / heartbeat events seen.
+    half_pairs : int
+        Telemetry events of which only one of the two frames arrived.
     duplicates, reordered : int
         Frames seen again / seen after a later one.
     """
 
+    #: events kept for duplicate and pair checks behind the newest (the unwrapping reaches 128)
+    WINDOW = 256
+
     def __init__(self) -> None:
         self._last: int | None = None
         self._first: int | None = None
-        self._seen: dict[int, str] = {}
-        self._pair: dict[int, int] = {}
+        self._pair: dict[int, int] = {}  # unwrapped seq -> bits seen (1 state, 2 ctrl, 4 heartbeat)
+        self.events = 0
+        self.telemetry = 0
+        self.heartbeats = 0
+        self.half_pairs = 0
         self.duplicates = 0
         self.reordered = 0
 
@@ -67,28 +77,26 @@ class SeqAccount:
             u = self._last + d if d < 128 else self._last - (256 - d)
             if u > self._last:
                 self._last = u
+                if len(self._pair) > 2 * self.WINDOW:
+                    keep = u - self.WINDOW
+                    self._pair = {k: v for k, v in self._pair.items() if k >= keep}
             elif u < self._last:
                 self.reordered += 1
-        kind = "hb" if t is _HEARTBEAT else "tel"
         bit = 1 if t is _TELEM_STATE else 2 if t is _TELEM_CTRL else 4
         have = self._pair.get(u, 0)
         if have & bit:
             self.duplicates += 1
             return
         self._pair[u] = have | bit
-        self._seen[u] = kind
-
-    @property
-    def events(self) -> int:
-        return len(self._seen)
-
-    @property
-    def telemetry(self) -> int:
-        return sum(1 for v in self._seen.values() if v == "tel")
-
-    @property
-    def heartbeats(self) -> int:
-        return sum(1 for v in self._seen.values() if v == "hb")
+        if have == 0:
+            self.events += 1
+            if bit == 4:
+                self.heartbeats += 1
+            else:
+                self.telemetry += 1
+                self.half_pairs += 1
+        elif have | bit == 3:
+            self.half_pairs -= 1
 
     @property
     def span(self) -> int:
@@ -99,11 +107,6 @@ class SeqAccount:
     def lost(self) -> int:
         """Periodic events missing between the first and the last seen."""
         return self.span - self.events
-
-    @property
-    def half_pairs(self) -> int:
-        """Telemetry events of which only one of the two frames arrived."""
-        return sum(1 for u, v in self._seen.items() if v == "tel" and self._pair[u] != 3)
 
     def stats(self) -> dict[str, int]:
         """All counters as a dict."""
@@ -194,6 +197,8 @@ class Sink:
 
     def stats(self) -> dict[str, Any]:
         """The figures of a run: telemetry (and what is lost of it), heartbeats, acks, step time."""
+        import numpy as np  # here, not at import: the board recorder imports this module for SeqAccount
+
         s = np.asarray(self.step_us, dtype=float)
         return {
             "telemetry": self.telemetry,

@@ -47,6 +47,7 @@ __all__ = [
     "IncompatibleBoard",
     "PortBusy",
     "port_holders",
+    "Keepalive",
     "Link",
     "SerialLink",
     "CanLink",
@@ -155,6 +156,47 @@ _VERSION = M.BY_NAME["version"]
 HOST_HEARTBEAT_S = 0.05
 #: board heartbeats that may be missing before :attr:`Link.board_silent` is set
 SILENT_PERIODS = 3
+
+
+class Keepalive:
+    """The host heartbeat, the one frame that feeds the board's link watchdog: every tool that
+    keeps a board armed sends it through this (a thread in :meth:`Link.start_heartbeat`, a
+    poll loop in :meth:`host.operate.board.Board.keepalive`, the dashboard's pump).
+
+    Parameters
+    ----------
+    send : callable
+        Sends one message (a link's ``send``; thread-safe where several threads send).
+    period : float
+        Seconds between heartbeats for :meth:`tick`.
+    """
+
+    def __init__(self, send: Callable[[M.Message], Any], period: float = HOST_HEARTBEAT_S) -> None:
+        if period <= 0:
+            raise ValueError(f"period must be > 0, got {period!r}")
+        self._send = send
+        self.period = float(period)
+        self.last = -float("inf")
+        #: host heartbeats sent
+        self.sent = 0
+
+    def beat(self, now: float | None = None) -> None:
+        """Send one host heartbeat now (the next is due a period later even if this one failed)."""
+        self.fed(now)
+        self._send(_HOST_HEARTBEAT())
+        self.sent += 1
+
+    def fed(self, now: float | None = None) -> None:
+        """The watchdog was fed at ``now`` (a heartbeat, or another frame that feeds it)."""
+        self.last = time.monotonic() if now is None else now
+
+    def tick(self, now: float | None = None) -> bool:
+        """Send a host heartbeat if ``period`` s passed since the last feed; True if sent."""
+        now = time.monotonic() if now is None else now
+        if now - self.last < self.period:
+            return False
+        self.beat(now)
+        return True
 
 
 class Link:
@@ -426,8 +468,9 @@ class Link:
         self._board_period = board_period or None
         self.last_heartbeat_at = time.monotonic()
         self._hb_stop.clear()
-        self.send(_HOST_HEARTBEAT())
-        self._hb_thread = threading.Thread(target=self._heartbeat_loop, args=(period,), daemon=True,
+        keep = Keepalive(self.send, period)
+        keep.beat()
+        self._hb_thread = threading.Thread(target=self._heartbeat_loop, args=(keep,), daemon=True,
                                            name="upright-host-heartbeat")
         self._hb_thread.start()
 
@@ -445,10 +488,10 @@ class Link:
         """True while :meth:`start_heartbeat`'s thread sends."""
         return self._hb_thread is not None
 
-    def _heartbeat_loop(self, period: float) -> None:
-        while not self._hb_stop.wait(period):
+    def _heartbeat_loop(self, keep: Keepalive) -> None:
+        while not self._hb_stop.wait(keep.period):
             try:
-                self.send(_HOST_HEARTBEAT())
+                keep.beat()
                 # nobody reading: take what arrived (board heartbeats) into the queue
                 if self._background_reads and self._rx_lock.acquire(blocking=False):
                     try:

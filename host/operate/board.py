@@ -3,9 +3,8 @@
 One :class:`Board` wraps an open :class:`host.link.clients.Link` (serial or CAN; a real board,
 the emulated Pico of ``upright emulate rp2040 --pty`` or the virtual board of
 :mod:`host.boards.vport` -- the same code).  It learns what the firmware offers from the one
-message table (:mod:`firmware.msgtable`): the VERSION and STATS messages, the host heartbeat,
-the arming epoch, the save command and the raw-sensor message are used when the table has
-them, and left out otherwise.
+message table (:mod:`firmware.msgtable`), the one this checkout's firmware speaks (a board with
+another table is refused by its hash): no branch here for a table without a message.
 
 Every failure is a :class:`BoardError` (one line, exit status 1 in the CLI) or, for a bad
 parameter name or value, a :class:`ParamInputError` (exit status 2).
@@ -20,19 +19,19 @@ Example
 from __future__ import annotations
 
 import collections
-import re
 import time
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from firmware import msgtable as T
 from host.link import messages as M
-from host.link.clients import CommandRefused, Link, LinkError, LinkTimeout, open_link
+from host.link import identity as I  # noqa: N812
+from host.link.clients import CommandRefused, Keepalive, Link, LinkError, LinkTimeout, open_link
 
 __all__ = [
     "BoardError", "NotSupported", "ParamInputError", "IdentityMismatch",
     "Board", "fault_table", "fault_names", "param_table", "param_info", "param_read_only", "check_param",
-    "periodic_kinds", "has_message", "gains_blob_from_file", "gains_blob_from_design",
+    "periodic_kinds", "gains_blob_from_file", "gains_blob_from_design",
 ]
 
 
@@ -53,26 +52,10 @@ class ParamInputError(ValueError):
 
 
 # ------------------------------------------------------------------ tables
-def has_message(name: str) -> bool:
-    """True if the message table has a message of this name."""
-    return name in M.BY_NAME
-
-
 def fault_table() -> dict[int, tuple[str, str]]:
-    """Fault bit -> ``(name, doc)``: names from ``firmware/supervisor.py`` ``F_*``, docs from
-    ``msgtable.FAULTS`` where the table has it, else from the supervisor's comments."""
-    from firmware import supervisor
-
-    src = Path(supervisor.__file__).read_text()
-    comments = {m.group(1): m.group(3).strip() for m in re.finditer(r"^(F_\w+)\s*=\s*(\d+)\s*#\s*(.*)$", src, re.M)}
-    out: dict[int, tuple[str, str]] = {}
-    for name, v in vars(supervisor).items():
-        if name.startswith("F_") and isinstance(v, int) and v > 0:
-            out[v] = (name[2:].lower(), comments.get(name, ""))
-    for row in getattr(T, "FAULTS", ()):
-        bit, name, doc = row[0], row[1], row[2]
-        out[bit] = (out.get(bit, (name, ""))[0], doc)
-    return dict(sorted(out.items()))
+    """Fault bit -> ``(name, doc)``: ``firmware.msgtable.FAULTS``, the one fault table (the
+    supervisor's ``F_*`` constants agree with it: ``tests/test_firmware_supervisor.py``)."""
+    return {int(bit): (str(name), str(doc)) for bit, name, doc in sorted(T.FAULTS)}
 
 
 def fault_names(flags: int) -> list[str]:
@@ -152,17 +135,6 @@ def check_param(name: str, value: Any) -> int:
 def periodic_kinds() -> tuple[str, ...]:
     """Messages the board's pacer numbers with its own sequence counter (lost ones are counted)."""
     return ("heartbeat", "telem_state")
-
-
-def _save_message() -> str | None:
-    # the persistence command, whatever the firmware calls it
-    for cls in M.BY_NAME.values():
-        if cls.DIRECTION == "to_board" and "save" in cls.NAME and not cls.FIELDS:
-            return cls.NAME
-    for cls in M.BY_NAME.values():
-        if cls.DIRECTION == "to_board" and "save" in cls.NAME:
-            return cls.NAME
-    return None
 
 
 # ------------------------------------------------------------------ gain tables
@@ -254,7 +226,7 @@ class Board:
         self.hb_times: collections.deque[float] = collections.deque(maxlen=64)
         self.identity: dict[str, Any] = {}
         self.armed_by_us = False
-        self._last_keepalive = 0.0
+        self._keepalive = Keepalive(self.send)
         self._closed = False
         self.listeners: list[Callable[[Any, int | None, float], None]] = []
 
@@ -304,39 +276,30 @@ class Board:
         return self.identify(check=check_identity)
 
     def identify(self, *, check: bool = True) -> dict[str, Any]:
-        """Identity: firmware version, table hashes, gain CRC, reset cause (VERSION where the
-        firmware has it; else what the heartbeat carries).
+        """Identity: firmware version, table hashes, gain CRC, reset cause (VERSION; what the
+        heartbeat carries if the board does not answer it).
 
         Raises
         ------
         IdentityMismatch
             ``check`` and the board's message-table hash differs from this host's.
         """
-        ident: dict[str, Any] = {"version_message": False}
+        ident: dict[str, Any] = {"version_message": False,
+                                 "host_table_hash": I.table_hash(), "host_param_hash": I.param_hash()}
         try:
-            from host.link import identity as I
-
-            ident["host_table_hash"] = I.table_hash()
-            ident["host_param_hash"] = I.param_hash()
-        except ImportError:  # pragma: no cover - before the identity module
-            I = None  # noqa: N806
-        if has_message("version"):
-            try:
-                v = self.query("version")
-            except (NotSupported, BoardError):
-                v = None
-            if v is not None:
-                ident["version_message"] = True
-                ident.update(v.physical())
-                fw = ident.get("fw_version")
-                if isinstance(fw, int):
-                    ident["fw_version_text"] = f"{fw >> 4}.{fw & 15}"
-                rc = ident.get("reset_cause")
-                names = {r[0]: r[1] for r in getattr(T, "RESET_CAUSES", ())}
-                if rc is not None:
-                    ident["reset_cause_name"] = names.get(rc, str(rc))
+            v = self.query("version")
+        except (NotSupported, BoardError):
+            v = None
+        if v is not None:
+            ident["version_message"] = True
+            ident.update(v.physical())
+            fw = ident["fw_version"]
+            ident["fw_version_text"] = f"{fw >> 4}.{fw & 15}"
+            rc = ident["reset_cause"]
+            names = {r[0]: r[1] for r in T.RESET_CAUSES}
+            ident["reset_cause_name"] = names.get(rc, str(rc))
         hb = self.heartbeat
-        if hb is not None and "gains_crc" not in ident and hasattr(hb, "gains_crc"):
+        if hb is not None and "gains_crc" not in ident:
             ident["gains_crc_low8"] = hb.gains_crc
         if "table_hash" in ident and "host_table_hash" in ident:
             ident["table_match"] = ident["table_hash"] == ident["host_table_hash"]
@@ -414,19 +377,10 @@ class Board:
             raise _link_error(self.port, exc) from exc
 
     # ---- the host heartbeat ----
-    def keepalive(self, period: float = 0.05) -> bool:
-        """Feed the board's link watchdog if ``period`` s passed since the last feed: the
-        host heartbeat where the table has one, else a request for TIMING (any valid frame
-        fed the watchdog before the host heartbeat).  Returns True if something was sent."""
-        now = time.monotonic()
-        if now - self._last_keepalive < period:
-            return False
-        self._last_keepalive = now
-        if has_message("host_heartbeat"):
-            self.send(M.BY_NAME["host_heartbeat"]())
-        else:
-            self.send(M.BY_NAME["request"](msg_id=M.BY_NAME["timing"].ID))
-        return True
+    def keepalive(self) -> bool:
+        """Feed the board's link watchdog (:class:`host.link.clients.Keepalive`: the host
+        heartbeat) if its period passed since the last feed.  Returns True if it was sent."""
+        return self._keepalive.tick()
 
     # ---- state ----
     def state(self, fresh: bool = True) -> dict[str, Any]:
@@ -449,15 +403,12 @@ class Board:
     def stats(self) -> dict[str, Any]:
         """The board's own counters (STATS messages, where the firmware has them) and TIMING."""
         out: dict[str, Any] = {}
-        if has_message("stats_decode"):
-            try:
-                first = self.query("stats_decode")
-                out["decode"] = first.physical()
-                for name in ("stats_frames", "stats_loop"):
-                    if has_message(name):
-                        out[name.split("_", 1)[1]] = self.link.expect(name, timeout=self.timeout * 2).physical()
-            except (BoardError, LinkError):
-                pass
+        try:
+            out["decode"] = self.query("stats_decode").physical()
+            for name in ("stats_frames", "stats_loop"):
+                out[name.split("_", 1)[1]] = self.link.expect(name, timeout=self.timeout * 2).physical()
+        except (BoardError, LinkError):
+            pass
         try:
             out["timing"] = self.query("timing").physical()
         except BoardError:
@@ -467,18 +418,14 @@ class Board:
     def status_values(self) -> dict[str, int]:
         """The board's read-only status figures (``msgtable.STATUS``: uptime in full, loop
         starts, the saved copy in force...), read as PARAM_GET(``STATUS_BASE`` + k) where the
-        table has them; empty otherwise or when the firmware does not answer them."""
-        rows = getattr(T, "STATUS", ())
-        base = getattr(T, "STATUS_BASE", None)
+        board answers them (the first it does not answer ends the list)."""
         out: dict[str, int] = {}
-        if not rows or base is None:
-            return out
-        for row in rows:
+        for row in T.STATUS:
             k, name = row[0], row[1]
             try:
-                out[name] = int(self.request(M.BY_NAME["param_get"](index=base + k)).value)
+                out[name] = int(self.request(M.BY_NAME["param_get"](index=T.STATUS_BASE + k)).value)
             except BoardError:
-                break  # older firmware: bad_index for the first, no point asking the rest
+                break
         return out
 
     def status(self, listen: float = 1.0) -> dict[str, Any]:
@@ -506,28 +453,20 @@ class Board:
 
     # ---- commands ----
     def arm(self) -> None:
-        """Arm (with the board's arming epoch where the protocol has one)."""
+        """Arm with the board's arming token (SESSION); once more with a fresh token if the
+        first was stale (a disarm drew a new one in between)."""
         cls = M.BY_NAME["arm"]
-        fields = [f.name for f in cls.FIELDS]
-        if "epoch" in fields:
-            for attempt in range(2):
-                # the arming token: SESSION where the table has it, else the heartbeat's epoch
-                if has_message("session"):
-                    token = int(self.query("session").token)
-                else:
-                    self.query("heartbeat")
-                    token = getattr(self.heartbeat, "epoch", 0)
-                try:
-                    self.request(cls(epoch=token))
-                    break
-                except BoardError as exc:
-                    cause = exc.__cause__
-                    if attempt or not isinstance(cause, CommandRefused) or cause.reason_name != "stale_epoch":
-                        raise
-        else:
-            self.request(cls())
+        for attempt in range(2):
+            token = int(self.query("session").token)
+            try:
+                self.request(cls(epoch=token))
+                break
+            except BoardError as exc:
+                cause = exc.__cause__
+                if attempt or not isinstance(cause, CommandRefused) or cause.reason_name != "stale_epoch":
+                    raise
         self.armed_by_us = True
-        self._last_keepalive = time.monotonic()
+        self._keepalive.fed()
 
     def disarm(self) -> None:
         """Disarm (always accepted)."""
@@ -548,7 +487,7 @@ class Board:
     def set_reference(self, x_m: float) -> None:
         """Cart position reference (m); feeds the watchdog."""
         self.request(M.BY_NAME["set_reference"].from_physical(x_um=x_m))
-        self._last_keepalive = time.monotonic()
+        self._keepalive.fed()
 
     def param_get(self, name: str) -> int:
         """A parameter by name (:class:`ParamInputError` for an unknown name)."""
@@ -568,17 +507,16 @@ class Board:
     def save(self) -> str:
         """Persist the parameters and the active gain table on the board.
 
+        Returns the command's name (``save_config``).
+
         Raises
         ------
         NotSupported
-            The message table has no save command, or the firmware refuses it as unknown.
+            The firmware refuses it as unknown.
         """
-        name = _save_message()
-        if name is None:
-            raise NotSupported("this firmware has no save command (parameters and gains live in RAM until reset)")
-        cls = M.BY_NAME[name]
-        self.request(cls(**{f.name: 0 for f in cls.FIELDS}), timeout=max(self.timeout, 1.0))
-        return name
+        cls = M.BY_NAME["save_config"]
+        self.request(cls(), timeout=max(self.timeout, 1.0))
+        return cls.NAME
 
     def upload_gains(self, blob: bytes) -> dict[str, Any]:
         """Upload a gain table (only while the motor is off) and read its CRC back.
@@ -606,9 +544,8 @@ class Board:
             out["verified"] = ident["gains_crc"] == crc
         else:
             hb = self.query("heartbeat")
-            if hasattr(hb, "gains_crc"):
-                out["board_crc_low8"] = hb.gains_crc
-                out["verified"] = hb.gains_crc == crc & 0xFF
+            out["board_crc_low8"] = hb.gains_crc
+            out["verified"] = hb.gains_crc == crc & 0xFF
         if out["verified"] is False:
             raise BoardError(f"{self.port}: gain table CRC read back {out.get('board_crc', out.get('board_crc_low8'))!r} "
                              f"differs from the uploaded table's {crc:#06x}")
@@ -622,8 +559,6 @@ class Board:
         NotSupported
             The firmware cannot report its raw sensors.
         """
-        if not has_message("sensors_raw"):
-            raise NotSupported("this firmware cannot report its raw sensors (no sensors_raw message)")
         return self.query("sensors_raw").physical()
 
     # ---- lifetime ----

@@ -36,7 +36,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from host.operate.board import Board, BoardError, NotSupported, has_message, param_table
+from host.operate.board import Board, BoardError, NotSupported, param_table
 
 MOTOR_TILT_RAD = 0.05
 """Step 4 with a robot's hands: the forward tilt (rad) held while the wheels turn."""
@@ -156,9 +156,6 @@ def run_calibration(board: Board, ask: Ask, say: Callable[[str], None], *, robot
     """
     from sim.params import DEFAULT_PATH, load_params
 
-    if not has_message("sensors_raw"):
-        raise NotSupported("this firmware cannot report its raw sensors (no sensors_raw message): "
-                           "flash this checkout's firmware")
     src = Path(robot_in) if robot_in else Path(DEFAULT_PATH)
     p = load_params(src)
     full = 2 ** int(p.adc_bits)

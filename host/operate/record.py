@@ -5,7 +5,7 @@ TELEM_STATE + TELEM_CTRL (one control tick) into a row, with the host time, the 
 sequence number, the latest heartbeat's state and faults and any extra columns the caller
 sets (``excite`` adds the excitation's mode, amplitude and bit length).  The board's pacer numbers its periodic
 frames (heartbeats and telemetry) with one counter, so a gap in it is a lost frame
-(serial framing; CAN frames carry no sequence number and losses are not counted there).
+(:class:`host.hil.accounting.SeqAccount`, the one loss counter; serial framing; CAN frames carry no sequence number and losses are not counted there).
 
 Rows go to disk as they come: CSV flushed at least every ``flush_s`` s, Parquet (``.parquet``
 or ``.pq``, pyarrow) in row groups of the same interval -- so Ctrl-C, a closed link or an
@@ -19,7 +19,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["COLUMNS", "UNITS", "Recorder", "SeqCounter", "format_of"]
+from host.hil.accounting import SeqAccount
+
+__all__ = ["COLUMNS", "UNITS", "Recorder", "format_of"]
 
 COLUMNS = ("t", "seq", "x", "xdot", "phi", "phidot", "ref", "force", "duty", "step_us", "state", "faults")
 UNITS: dict[str, str] = {
@@ -40,30 +42,6 @@ def format_of(path: str | Path) -> str:
     if suf in (".parquet", ".pq"):
         return "parquet"
     raise ValueError(f"{str(path)!r}: record to .csv or .parquet")
-
-
-class SeqCounter:
-    """Lost frames from an 8-bit sequence counter (one per periodic frame)."""
-
-    def __init__(self) -> None:
-        self.last: int | None = None
-        self.lost = 0
-        self.seen = 0
-
-    def see(self, seq: int | None) -> int:
-        """Account for a frame with ``seq``; returns how many were lost before it."""
-        if seq is None:
-            return 0
-        self.seen += 1
-        gap = 0
-        if self.last is not None:
-            gap = (seq - self.last - 1) & 0xFF
-            # a repeat (gap 255) is a duplicate, not 255 losses
-            if gap == 0xFF:
-                gap = 0
-        self.last = seq
-        self.lost += gap
-        return gap
 
 
 class Recorder:
@@ -91,7 +69,7 @@ class Recorder:
         self.rows = 0
         self.telemetry_frames = 0  # TELEM_STATE and TELEM_CTRL received
         self.unpaired = 0  # a half of a tick whose other half did not come
-        self.seqs = SeqCounter()
+        self.seqs = SeqAccount()
         self.t0: float | None = None
         self._pending: Any = None
         self._pending_seq: int | None = None
@@ -150,22 +128,24 @@ class Recorder:
             self.t0 = t
         if name == "heartbeat":
             self._state, self._faults = msg.state, msg.faults
-            self.seqs.see(seq)
+            self.seqs.add(msg, seq)
         elif name == "telem_state":
             self.telemetry_frames += 1
             if self._pending is not None:
                 self.unpaired += 1
-            self.seqs.see(seq)
+            self.seqs.add(msg, seq)
             self._pending, self._pending_seq = (msg, t), seq
         elif name == "telem_ctrl":
             self.telemetry_frames += 1
             if self._pending is None or (seq is not None and seq != self._pending_seq):
                 # (the second half of a tick before the first TELEM_STATE: the recording
                 # started between the two, nothing was lost)
-                if self.seqs.seen or self._pending is not None:
+                if self.seqs.events or self._pending is not None:
                     self.unpaired += 1
+                self.seqs.add(msg, seq)
                 self._pending = None
                 return
+            self.seqs.add(msg, seq)
             st, ts = self._pending
             self._pending = None
             a, b = st.physical(), msg.physical()

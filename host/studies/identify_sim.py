@@ -234,11 +234,7 @@ def firmware_balancing_log(plant: RobotParams, *, seconds: float = 30.0, amp_mn:
     RuntimeError
         The interpreter stopped, the board refused EXCITE, or it stopped balancing.
     """
-    import os
-    import subprocess
-
-    from host.boards.fwharness import FAKE_HAL
-    from host.boards.mpyrun import ROOT, micropython_exe
+    from host.boards.fwharness import FAKE_HAL, app_process
 
     rate = plant.rate
     Ts = 1.0 / rate
@@ -247,9 +243,7 @@ def firmware_balancing_log(plant: RobotParams, *, seconds: float = 30.0, amp_mn:
     adc0, enc0 = sim.read()
     cfg = {"watchdog_ms": 0, "stall_ms": 0, "arm_tilt_mrad": 150}
     code = f"CONFIG = {cfg!r}\nADC0 = {adc0}\nENC0 = {enc0}\n" + FAKE_HAL + FW_LOOP
-    env = dict(os.environ, MICROPYPATH=f"{ROOT}:.frozen")
-    proc = subprocess.Popen([micropython_exe(), "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, bufsize=1, env=env, cwd=ROOT)
+    proc = app_process(code)
     assert proc.stdin is not None and proc.stdout is not None
     n0 = int(round(start_s * rate))
     n = sim.n_ticks

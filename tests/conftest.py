@@ -1,0 +1,62 @@
+"""What every test shares: the markers' requirements, written once.
+
+* ``rp2040`` (the emulated Pico): skipped with the reason when node, rp2040js or the MicroPython
+  RP2040 image is missing, and always ``slow`` -- booting the emulated board alone takes seconds
+  of wall time (it runs at 0.1-0.2x real time), so ``pytest -m "not slow"`` never waits for one.
+* ``wasm`` (the MicroPython WebAssembly port under node): skipped with the reason when it is
+  not installed.
+* ``long`` (minutes; left out of ``make test``) is ``slow`` too, so ``-m "not slow"`` (which
+  replaces the default ``-m 'not long'``) leaves it out as well.
+
+The test helpers live in modules of this folder, imported by name (the folder is on the path):
+``fwharness`` (the firmware run in an interpreter: the stand-in HAL ``StandInHal``/``FAKE_HAL``,
+print-and-parse ``CHK_SRC``/``parse_ints``, allocation probes), ``proto_helpers`` (the protocol's
+boards and bridges), ``hil_probe``, ``mpy_proto_board``.  Which test covers which behaviour:
+``tests/README.md``.
+"""
+
+from __future__ import annotations
+
+import functools
+import shutil
+
+import pytest
+
+
+@functools.lru_cache(maxsize=None)
+def rp2040_missing() -> str | None:
+    """Why the emulated RP2040 cannot run here (``None``: it can)."""
+    from host.boards.rp2040.board import FIRMWARE, ROOT
+
+    if shutil.which("node") is None:
+        return "node not installed"
+    if not (ROOT / "node_modules" / "rp2040js").is_dir():
+        return "rp2040js not installed (make setup)"
+    if not FIRMWARE.is_file():
+        return "MicroPython RP2040 image missing (make rp2040)"
+    return None
+
+
+@functools.lru_cache(maxsize=None)
+def wasm_missing() -> str | None:
+    """Why the MicroPython WebAssembly port cannot run here (``None``: it can)."""
+    from host.boards.mpyrun import wasm_available
+
+    return None if wasm_available() else "node / MicroPython WebAssembly port not installed"
+
+
+@pytest.hookimpl(tryfirst=True)  # before `-m` deselects: an rp2040 test is slow
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.get_closest_marker("long") is not None and item.get_closest_marker("slow") is None:
+            item.add_marker(pytest.mark.slow)
+        if item.get_closest_marker("rp2040") is not None:
+            if item.get_closest_marker("slow") is None:
+                item.add_marker(pytest.mark.slow)
+            why = rp2040_missing()
+            if why:
+                item.add_marker(pytest.mark.skip(reason=why))
+        if item.get_closest_marker("wasm") is not None:
+            why = wasm_missing()
+            if why:
+                item.add_marker(pytest.mark.skip(reason=why))

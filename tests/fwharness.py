@@ -1,0 +1,246 @@
+"""The firmware tests' harness: the fixed-point controller and the whole app run over
+measurement sequences under MicroPython (unix or WebAssembly port) or CPython.
+
+Sequences are passed to the interpreter once and every tick runs inside one interpreter
+process, so a test of thousands of ticks costs one start-up.  The production pieces it
+builds on (the firmware's inputs from SI measurements, the scripted HAL ``FAKE_HAL``,
+``INTS_SRC``) are :mod:`host.boards.fwharness`'s, re-exported here: tests import this module
+(``import fwharness as H``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, Sequence
+
+import numpy as np
+
+from host.boards.fwharness import (  # noqa: F401 - re-exported for the tests
+    FAKE_HAL, INTS_SRC, Sequence3, _ints, app_process, controller_inputs, layout_of, measurements, ref_lsb,
+)
+from host.boards.mpyrun import run_unix, run_wasm
+from host.design.export import FixedDesign, export
+from sim.params import RobotParams
+
+_NS: dict = {}
+exec(compile(FAKE_HAL, "<FAKE_HAL>", "exec"), _NS)
+
+
+# print-and-parse: a MicroPython script records named integer observations with chk() and
+# prints them at the end (CHK_END) as "name value" lines, which parse_ints() reads back
+CHK_SRC = """
+OUT = []
+def chk(name, v):
+    OUT.append(name + ' ' + str(int(v)))
+"""
+CHK_END = """
+for line in OUT:
+    print(line)
+"""
+
+# allocation of fn() in bytes on the WebAssembly port (no heap_lock() there: a gc.mem_alloc()
+# delta with the collector off), printed as "name bytes"
+WASM_ALLOC_RUN = """
+import gc
+def run(name, fn):
+    gc.collect()
+    gc.disable()
+    a = gc.mem_alloc()
+    fn()
+    b = gc.mem_alloc()
+    gc.enable()
+    print(name, b - a)
+"""
+
+
+def parse_ints(out: str) -> dict[str, int]:
+    """The ``name value`` lines of an interpreter's output as a dict (blank lines skipped)."""
+    return {k: int(v) for k, v in (line.split() for line in out.splitlines() if line.strip())}
+
+
+class StandInHal(_NS["Hal"]):  # type: ignore[misc,valid-type]
+    """:data:`FAKE_HAL`'s ``Hal`` under CPython: the one stand-in HAL of the tests (the
+    MicroPython scripts paste the same source).  ``values`` set its attributes (``adc``,
+    ``enc``, ``duty``, ``t``, ``inc``: the microseconds each ``ticks_us`` call advances)."""
+
+    def __init__(self, **values: int) -> None:
+        super().__init__()
+        for k, v in values.items():
+            if not hasattr(self, k):
+                raise TypeError(f"StandInHal has no attribute {k!r}")
+            setattr(self, k, v)
+
+
+def _flat_src(fd: FixedDesign) -> str:
+    return INTS_SRC + f"LAYOUT = {tuple(layout_of(fd))!r}\nFLAT = tuple(ints({_ints(fd.flat())!r}))\n"
+
+
+def mp_controller_run(fd: FixedDesign, yx: Sequence[int], yp: Sequence[int], r: Sequence[int],
+                      runner: str = "unix") -> tuple[list[int], list[int]]:
+    """Run ``firmware.controller.Controller`` under MicroPython over a sequence.
+
+    Returns the force (u LSB) and speed estimate (xdot LSB) of every tick.
+    """
+    code = (
+        "from array import array\nfrom firmware.controller import Controller\n"
+        + _flat_src(fd)
+        + f"YX = ints({_ints(yx)!r})\nYP = ints({_ints(yp)!r})\nR = ints({_ints(r)!r})\n"
+        + """
+c = Controller(LAYOUT, FLAT)
+n = len(YX)
+U = array('i', [0] * n)
+V = array('i', [0] * n)
+for k in range(n):
+    U[k] = c.step(YX[k], YP[k], R[k])
+    V[k] = c.vh
+print(' '.join(str(v) for v in U))
+print(' '.join(str(v) for v in V))
+"""
+    )
+    out = (run_unix if runner == "unix" else run_wasm)(code).strip().splitlines()
+    return [int(v) for v in out[0].split()], [int(v) for v in out[1].split()]
+
+
+def py_controller_run(fd: FixedDesign, yx: Sequence[int], yp: Sequence[int], r: Sequence[int]) -> tuple[list[int], list[int]]:
+    """The same firmware controller under CPython (identical integer semantics)."""
+    from firmware.controller import Controller
+
+    c = Controller(layout_of(fd), fd.flat())
+    u, v = [], []
+    for k in range(len(yx)):
+        u.append(c.step(yx[k], yp[k], r[k]))
+        v.append(c.vh)
+    return u, v
+
+
+def fixed_controller(params: RobotParams, fd: FixedDesign) -> Callable[[int, float, float, float], float]:
+    """A ``simulate_loop`` controller callable running the firmware controller (CPython).
+
+    Measurements are quantised like the sensors; returns the saturated force in N.
+    """
+    from firmware.controller import Controller
+
+    c = Controller(layout_of(fd), fd.flat())
+    mpc = 2 * math.pi * params.r_wheel / params.enc_cpr
+    rpc = params.pot_range / 2**params.adc_bits
+    qx, qp = fd.fmt["QX"], fd.fmt["QP"]
+    ylx, ylp = fd.tables["YLIM"]
+    su = fd.lsb["u"]
+
+    def f(k: int, xm: float, pm: float, xr: float) -> float:
+        yx = max(-ylx, min(ylx, int(round(xm / mpc)))) << qx
+        yp = max(-ylp, min(ylp, int(round(pm / rpc)))) << qp
+        return c.step(yx, yp, ref_lsb(fd, xr)) * su
+
+    return f
+
+
+def default_design() -> FixedDesign:
+    """The design of the generated ``firmware/gains.py``."""
+    return export()
+
+
+APP_LOOP = FAKE_HAL + """
+import sys
+from firmware.app import App
+hal = Hal()
+app = App(hal, config=CONFIG)
+hal.adc = ADC0
+hal.enc = ENC0
+app.step()
+app.cmd_set_reference(REF_UM)
+app.cmd_arm()
+while True:
+    line = sys.stdin.readline()
+    if not line:
+        break
+    w = line.split()
+    hal.adc = int(w[0])
+    hal.enc = int(w[1])
+    if len(w) > 2:
+        app.cmd_set_reference(int(w[2]))
+    app.step()
+    sys.stdout.write('%d %d %d %d\\n' % (hal.duty, app.ctrl.u, app.sup.state, app.sup.faults))
+"""
+
+
+class MicroPythonApp:
+    """The whole firmware app in a MicroPython unix-port process, stepped over a pipe.
+
+    Each :meth:`step` sends one sensor reading (ADC counts, 16-bit encoder counter,
+    optionally a new reference in um) and returns ``(duty, u_lsb, state, faults)``.
+    The app is armed at start (watchdog off) so it balances as soon as the tilt is
+    inside the arming window.  Use as a context manager.
+    """
+
+    def __init__(self, adc0: int, enc0: int, ref_um: int = 0, config: dict | None = None) -> None:
+        cfg = {"watchdog_ms": 0, **(config or {})}
+        self.proc = app_process(f"CONFIG = {cfg!r}\nADC0 = {adc0}\nENC0 = {enc0}\nREF_UM = {ref_um}\n" + APP_LOOP)
+
+    def step(self, adc: int, enc: int, ref_um: int | None = None) -> tuple[int, int, int, int]:
+        """One control tick; returns ``(duty, u_lsb, state, faults)``."""
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(f"{adc} {enc}\n" if ref_um is None else f"{adc} {enc} {ref_um}\n")
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        if not line:
+            err = self.proc.stderr.read() if self.proc.stderr else ""
+            raise RuntimeError(f"MicroPython app stopped: {err}")
+        a, b, c, d = (int(v) for v in line.split())
+        return a, b, c, d
+
+    def close(self) -> None:
+        """End the interpreter."""
+        if self.proc.stdin:
+            self.proc.stdin.close()
+        self.proc.wait(timeout=10)
+
+    def __enter__(self) -> "MicroPythonApp":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def app_closed_loop(params: RobotParams, x0: Sequence[float], duration: float, *, x_ref: float = 0.0,
+                    rate: float | None = None, substeps: int = 2, config: dict | None = None) -> dict[str, np.ndarray]:
+    """The nonlinear plant closed around the firmware app running under MicroPython.
+
+    Sensors as ``sim/sensors.py`` (ADC counts, 16-bit encoder, ``delay`` ticks late, no
+    noise), the duty through the DC-motor model ``sim/motor.py`` (back EMF included).
+    The arming window is widened to 0.15 rad so a run may start from the report's 0.1 rad.
+    """
+    from sim import motor as smotor
+    from sim import sensors as ssens
+    from sim.plant import dynamics, rk4_step
+
+    rate = float(params.rate if rate is None else rate)
+    Ts = 1.0 / rate
+    d = int(round(params.delay * rate))
+    n = int(round(duration / Ts))
+    phys = params.physical
+    x = np.asarray(x0, dtype=float).copy()
+    hist = [x.copy()] * (d + 1)
+
+    def f(xx: np.ndarray, uu: float) -> np.ndarray:
+        return dynamics(0.0, xx, np.array([uu]), phys)
+
+    def meas(xx: np.ndarray) -> tuple[int, int]:
+        return int(ssens.phi_to_adc(xx[2], params)), int(ssens.x_to_encoder(xx[0], params))
+
+    cols = {k: np.zeros(n) for k in ("t", "x", "xdot", "phi", "phidot", "duty", "force", "state")}
+    adc0, enc0 = meas(x)
+    cfg = {"arm_tilt_mrad": 150, **(config or {})}
+    with MicroPythonApp(adc0, enc0, int(round(x_ref * 1e6)), cfg) as fw:
+        for k in range(n):
+            adc, enc = meas(hist[0])
+            duty, _, state, _ = fw.step(adc, enc)
+            F = float(smotor.force_from_duty(duty, x[1], params))
+            cols["t"][k] = k * Ts
+            for j, name in enumerate(("x", "xdot", "phi", "phidot")):
+                cols[name][k] = x[j]
+            cols["duty"][k], cols["force"][k], cols["state"][k] = duty, F, state
+            for _ in range(substeps):
+                x = rk4_step(f, x, F, Ts / substeps)
+            hist = hist[1:] + [x.copy()]
+    return cols
