@@ -20,7 +20,7 @@ import pytest
 
 from firmware import msgtable as T
 from firmware.controller import Controller
-from host.boards import fwharness as H
+import fwharness as H
 from host.boards.mpyrun import wasm_available
 from host.design.discrete import DiscreteController, closed_loop_poles, controller_ss, force_clamp, simulate_loop
 from host.design.export import EST_FULL, EST_REDUCED, SMALL_MAX, VERSION, export, filter_gain
