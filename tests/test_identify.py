@@ -110,7 +110,7 @@ def test_cli_writes_a_robot_file_for_design(cli_logs, tmp_path: Path, capsys) ->
     assert abs(p.delay - plant.delay) <= 1 / plant.rate + 1e-9 and abs(p.pot_offset - plant.pot_offset) <= 2
     assert p.M == plant.M and p.m == pytest.approx(plant.m)
     res = json.loads(js.read_text())
-    assert set(res["estimates"]) == set(I.PARAM_NAMES) and all(len(v) == 2 for v in res["ci"].values())
+    assert set(res["estimates"]) == set(I.PARAM_NAMES) | set(I.STAGE1_EXTRA) and all(len(v) == 2 for v in res["ci"].values())
     # it goes straight into a design
     from host.design.discrete import controller_ss
 
