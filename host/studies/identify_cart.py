@@ -147,7 +147,8 @@ def _data(logs: Sequence[RunLog], d: int) -> list[tuple[np.ndarray, np.ndarray, 
 
 def cart_fit(logs: Sequence[RunLog], M: float, dt: float, d: int, *, latency: bool = True,
              deadband: float | None = 0.0, half: int | None = None, f_hold: float = 0.0,
-             brake_hold: float | None = None, one_constant: tuple[float, float] | None = None) -> dict[str, Any]:
+             brake_hold: float | None = None, one_constant: tuple[float, float] | None = None,
+             driven_only: bool = False) -> dict[str, Any]:
     """Output-error fit of cart-only runs at whole delay ``d``: ``a``, ``D'``, ``b``, the latency ``f``.
 
     Parameters
@@ -171,6 +172,9 @@ def cart_fit(logs: Sequence[RunLog], M: float, dt: float, d: int, *, latency: bo
     one_constant : (float, float), optional
         ``(ca, cd)``: the motor's one constant ``k`` (``kt = ke``, a DC motor in SI units) gives
         ``a = ca k`` and ``D' = cd k^2`` -- ``D'`` is not a free parameter then.
+    driven_only : bool
+        Only the driven rows enter the residual (``b`` and the brake held at 0: the coarse
+        search of the delay, which the coast-down's model cannot mislead then).
     half : int, optional
         0 or 1: only that half of each log's driven rows (and all its coast-down) enters the
         residual (the split-half check of the method's bias).
@@ -186,6 +190,9 @@ def cart_fit(logs: Sequence[RunLog], M: float, dt: float, d: int, *, latency: bo
     data = _data(logs, d)
     masks = []
     for _, dr, _ in data:
+        if driven_only:
+            masks.append(dr.copy())
+            continue
         if half is None:
             masks.append(None)
             continue
@@ -197,7 +204,7 @@ def cart_fit(logs: Sequence[RunLog], M: float, dt: float, d: int, *, latency: bo
         else:
             m_[mid:] |= dr[mid:]
         masks.append(m_)
-    has_coast = any((~dr).any() for _, dr, _ in data)
+    has_coast = any((~dr).any() for _, dr, _ in data) and not driven_only
     fit_db = deadband is None
     # scaled unknowns: a (1e-3 N per count), D' (10 N s/m), b, f, deadband (100 counts), brake (ticks)
     sc = np.array([1e-3, 10.0, 1.0, 1.0, 100.0, 1.0])
@@ -291,7 +298,7 @@ def _stage(carts: Sequence[RunLog], params: RobotParams, dmax: int, latency: boo
     # then the full fit at the best candidate and its neighbours
     M, dt = float(params.M), 1.0 / float(params.rate)
     sse = [cart_fit(carts, M, dt, d, latency=False, deadband=db_known, f_hold=0.5 if latency else 0.0,
-                    brake_hold=1.0, one_constant=oc)["sse"] for d in range(dmax + 1)]
+                    one_constant=oc, driven_only=True)["sse"] for d in range(dmax + 1)]
     d0 = int(np.argmin(sse))
     fits = {d: cart_fit(carts, M, dt, d, latency=latency, deadband=dbk, one_constant=oc)
             for d in (d0 - 1, d0, d0 + 1) if 0 <= d <= dmax}
