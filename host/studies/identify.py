@@ -16,27 +16,35 @@ Known (from ``--params``, the robot TOML: weighed and read off datasheets): the 
 the sensor scales.  Estimated: the pendulum inertia ``I`` (``J = I + m L^2`` about the pivot),
 ``m L``, the cart friction ``b``, the motor's force constant ``kt`` (from the duty -> force
 gain ``a``) and back-EMF constant ``ke`` (from the drive's speed damping ``D'``), the sensor
-delay (whole samples) and the pot offset (counts).  Per candidate delay ``d`` (measurement
-``k + d`` is the state at ``k``):
+delay (whole samples), the board's read-to-drive latency and the pot offset (counts).  Staged
+(issue 24 item 2), never needing a balancing robot for the first stage:
 
-1. cart-only runs, output error (:func:`cart_fit`): ``M xdd = a duty - (D' + b) xd`` driven,
-   ``M xdd = -b xd`` coasting, simulated exactly per tick (:func:`cart_sim`) and fitted to the
-   positions with ``scipy.optimize.least_squares``: ``a``, ``D'``, ``b``; their covariance from
-   the Jacobian (inflated by the residuals' autocorrelation);
-2. balancing runs, equation error on signals through one zero-phase Butterworth low-pass
-   (linear terms stay exact: filtering commutes with the central differences):
-   pendulum ``phidd = (g sin(phi_m) + cos(phi_m) xdd) / Leq - (g beta / Leq) cos(phi_m)`` gives
-   ``Leq = J / (m L)`` and the pot offset ``beta`` (rad, the tilt's second derivative is the
-   regressand, not a regressor); cart ``(M + m) xdd + b xd - a u + D' xd = kappa cos(phi)
-   (g sin(phi) + cos(phi) xdd)`` (the pendulum's reaction ``mL cos(phi) phidd`` through the
-   pendulum equation, ``kappa = mL / Leq``; ``mL phid^2 sin(phi)`` is negligible) gives ``mL``.
-   In closed loop duty, speed and tilt are nearly collinear: ``a`` and ``D'`` come from step 1
-   (without a cart-only run they are fitted here too, poorly conditioned, with a note).
+1. **cart-only runs** (:func:`host.studies.identify_cart.identify_cart`, usable alone:
+   ``upright identify cart.csv --cart-only``): output error of the positions, each tick
+   simulated exactly with the board's timing (the delay in whole ticks plus a fitted latency,
+   the enable's delay at the disarm), ``kt = ke`` (one motor constant) by default -- the drive,
+   ``b`` from the coast-down, the delay, the latency, the deadband with two amplitudes;
+2. **balancing runs**, with the first stage's drive and timing: the pendulum by equation error
+   on signals through one zero-phase Butterworth low-pass (linear terms stay exact: filtering
+   commutes with the central differences), ``phidd = (g sin(phi_m) + cos(phi_m) xdd) / Leq -
+   (g beta / Leq) cos(phi_m)``: ``Leq = J / (m L)`` and the pot offset ``beta`` (rad); ``m L`` by
+   output error of the cart's positions (:func:`_reaction_terms`: ``x = X0 + mL X1``, no
+   derivative of a measurement) where the logs resolve it -- refitted with the latency
+   +-:data:`LAT_SPREAD` tick it must stay within :data:`ML_REL`, else the robot file's geometry
+   (``pendulum.m_*``, ``L_cm``: weighed and measured) gives ``m L``, said in a note and in
+   ``sources``.  On the virtual robot and the bench's plants the cart's back-EMF damping
+   (44 N s/m) leaves the pendulum's reaction a fraction of an encoder count (0.03 mm rms):
+   ``m L`` comes from the robot file there, ``I`` from ``Leq`` with it.
+   Without a cart-only run the drive is fitted in closed loop too, poorly conditioned, with a note.
 
-The delay is the ``d`` with the least cart-only residual (else balancing residual).  95 %
-intervals: moving-block bootstrap of the balancing rows with ``a, D', b`` drawn from their
-covariance, percentiles of every derived parameter; the delay's is the grid's +-1 sample.
-They cover noise, not the method's own bias (a few % on ``I`` and ``mL`` in the validation).
+95 % intervals: the first stage's (noise from the Jacobian, inflated by the residuals'
+autocorrelation; the method's bias as the change between the fit and each half of the
+excitation fitted alone; :data:`host.studies.identify_cart.BIAS_FLOOR`), in quadrature; for the
+balancing stage a moving-block bootstrap of its rows with ``a, D', b`` drawn from the first
+stage's covariance, widened by :data:`BIAS_FLOOR` and the latency check.  The delay's is the
+grid's +-1 sample.  Logs too short to identify (:data:`MIN_BAL_S`,
+:data:`host.studies.identify_cart.MIN_DRIVEN_S`, ``MIN_COAST_S`` board seconds) are refused
+in one line saying how many board seconds they need.
 """
 
 from __future__ import annotations
