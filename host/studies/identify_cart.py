@@ -40,6 +40,7 @@ import numpy as np
 from scipy import signal
 
 from host.studies.identify_log import LogError, RunLog
+from sim import sensors as ssens
 from sim.motor import DUTY_MAX
 from sim.params import RobotParams
 
@@ -53,6 +54,8 @@ of full duty; fitted only from two or more amplitudes)."""
 CART_UNITS = {"b": "N*s/m", "kt": "N*m/A", "ke": "V*s/rad", "delay": "s", "latency": "s", "deadband": "1"}
 BIAS_FLOOR = {"b": 0.03, "kt": 0.03, "ke": 0.02, "deadband": 0.0}
 """Fraction of each estimate added (in quadrature) to its interval for the method's own bias."""
+MAX_RES_COUNTS = 1.0
+"""Largest rms residual of the cart-only fit, in encoder counts (clean runs: 0.3-0.5)."""
 MIN_DRIVEN_S = 1.5
 """Board seconds of excitation a cart-only log needs at least (several drive time constants of
 PRBS bits: fewer fit the delay and the latency into the noise)."""
@@ -361,6 +364,15 @@ def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: flo
     dbk = None if fit_db else db_known
     oc = _coefs(params) if one_constant else None
     d, cf, sse = _stage(carts, params, dmax, latency, dbk, db_known, oc)
+    count = 1.0 / float(ssens.enc_counts_per_m(params))
+    rms = math.sqrt(cf["sse"])
+    if rms > MAX_RES_COUNTS * count:
+        # nothing to identify from a log the drive's model does not fit: say so, in one line
+        raise LogError(", ".join(lg.name for lg in carts), "x",
+                       f"the cart's drive model does not fit: residual {1e3 * rms:.3f} mm rms, "
+                       f"{rms / count:.1f} encoder counts (a clean run fits within {MAX_RES_COUNTS:g}): was the "
+                       "cart held, on its end stop, the pendulum still on, or the driver enabled after the disarm? "
+                       "record again")
     dr = drive_of(cf, params)
     # the whole-tick sensor delay and the latency from the total d + f (module docstring):
     # up to 0.75 of a tick is the board's latency, more is one more tick of delay
