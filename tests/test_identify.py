@@ -159,6 +159,7 @@ def test_bad_logs_one_line_exit_2(cli_logs, tmp_path: Path, capsys) -> None:
 
 # ---------------------------------------------------------------- the first stage (issue 24 item 2)
 
+@pytest.mark.slow
 def test_first_stage_recovers_drive_delay_and_latency(tmp_path: Path) -> None:
     # a board's timing: each duty applied 0.6 tick after the tick's reading, the enable off 1 tick
     # after the disarm; 6 ms of sensor delay -- the total lag 3.6 ticks, split into whole and latency
@@ -180,6 +181,7 @@ def test_first_stage_recovers_drive_delay_and_latency(tmp_path: Path) -> None:
     assert abs(old["estimates"]["kt"] / tr["kt"] - 1) > 2 * abs(e["kt"] / tr["kt"] - 1)
 
 
+@pytest.mark.slow
 def test_cli_first_stage_alone_and_short_logs(tmp_path: Path, capsys) -> None:
     plant = S.perturbed_plant(DESIGN, I=1.0, M=0.9, m=1.0, b=0.8, kt=1.05, delay=0.01, pot_offset=0)
     cart = S.write_log(S.cart_log(plant, DESIGN, seconds=4.0, coast_s=2.5, seed=6), tmp_path / "cart.csv")
