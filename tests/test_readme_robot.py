@@ -343,7 +343,9 @@ def _excite_runs(robot: Robot, bal: str, cart: str) -> None:
         robot.hands.do("pendulum", on=True)
     rows = list(csv.DictReader(open(robot.tmp / "cart.csv")))
     assert not any(int(float(r["faults"])) for r in rows), "no fault during the cart-only excitation"
-    assert sum(r["excite"] == "2" and int(r["duty"]) != 0 for r in rows) >= CART_BOARD_S * 500, "the PRBS drove the cart"
+    # every tick of the excitation but the first few (the ACK's tick: the PRBS starts on the next)
+    assert sum(r["excite"] == "2" and int(r["duty"]) != 0 for r in rows) >= CART_BOARD_S * 500 - 10, \
+        "the PRBS drove the cart"
 
 
 def test_7_excite_and_identify_recover_the_plant(robot: Robot, plant) -> None:
