@@ -180,7 +180,8 @@ def cart_fit(logs: Sequence[RunLog], M: float, dt: float, d: int, *, latency: bo
         search of the delay, which the coast-down's model cannot mislead then).
     half : int, optional
         0 or 1: only that half of each log's driven rows (and all its coast-down) enters the
-        residual (the split-half check of the method's bias).
+        residual; 2: all driven rows and the first half of the coast-down (the split-half
+        checks of the method's bias).
 
     Returns
     -------
@@ -202,7 +203,12 @@ def cart_fit(logs: Sequence[RunLog], M: float, dt: float, d: int, *, latency: bo
         on = np.flatnonzero(dr)
         mid = on[len(on) // 2] if len(on) else 0
         m_ = ~dr.copy()
-        if half == 0:
+        if half == 2:
+            # every driven row, the first half of the coast-down
+            off = np.flatnonzero(~dr)
+            m_ = dr.copy()
+            m_[off[:len(off) // 2]] = True
+        elif half == 0:
             m_[:mid] = True
         else:
             m_[mid:] |= dr[mid:]
@@ -426,7 +432,7 @@ def _intervals(carts: Sequence[RunLog], params: RobotParams, cf: dict[str, Any],
             "b": 1.96 * math.sqrt(max(cf["cov"][2, 2], 0.0)) if cf["has_coast"] else math.nan,
             "deadband": 1.96 * math.sqrt(max(cf["cov_full"][4, 4], 0.0)) / DUTY_MAX}
     moves: dict[str, float] = {k: 0.0 for k in ("b", "kt", "ke", "deadband")}
-    for part in (0, 1):
+    for part in (0, 1, 2):
         try:
             ph = cart_fit(carts, M, dt, d, latency=latency, deadband=dbk, half=part, one_constant=oc)
         except (ValueError, np.linalg.LinAlgError):
