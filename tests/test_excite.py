@@ -227,3 +227,88 @@ def test_excitation_allocates_nothing_32bit_wasm() -> None:
     assert r1 == T.OK and r2 == T.OK and st1 == 2
     assert dc > 1000  # 2**30 + k is a heap int on this port: the measurement sees it
     assert d1 == 0 and d2 == 0, (d1, d2)
+
+
+# ---------------------------------------------------------------- upright board excite (issue 22)
+# against the virtual board (firmware under the unix port, real time) through the relay of
+# tests/test_board_cli.py, whose hands set the sensors
+
+def _relay():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_board_cli import Relay
+
+    return Relay()
+
+
+@pytest.fixture
+def relay():
+    r = _relay()
+    try:
+        yield r
+    finally:
+        r.close()
+
+
+def _excite(relay, *argv: str):
+    import subprocess
+
+    from test_board_cli import ROOT, UPRIGHT
+
+    return subprocess.Popen([*UPRIGHT, "board", "--port", relay.port, "excite", *argv], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+@pytest.mark.slow
+def test_excite_board_seconds_counts_the_boards_ticks(relay, tmp_path) -> None:
+    # --board-seconds: the excitation lasts that many of the board's ticks (one row each at telem_div 1)
+    import csv
+
+    out = tmp_path / "cart.csv"
+    p = _excite(relay, "--cart-only", "--board-seconds", "1.2", "--board-coast", "0.6", "--amplitude", "0.5",
+                "--out", str(out), "--quiet")
+    _, err = p.communicate(timeout=90)
+    assert p.returncode == 0, err
+    rows = list(csv.DictReader(out.open()))
+    ex = [r for r in rows if r["excite"] == "2"]
+    driven = ex[:max(i for i, r in enumerate(ex) if int(r["duty"]) != 0) + 1]  # up to the disarm
+    # 600 ticks excited (+ the ticks of one 20 ms poll), 300 coasting (the rows after the disarm)
+    assert 600 <= len(driven) <= 640, len(driven)
+    assert 300 <= len(ex) - len(driven) <= 360, len(ex) - len(driven)
+    last = err.strip().splitlines()[-1]
+    assert "s of board time excited" in last and "coasting" in last, last
+    # nothing moves on the relay's frozen sensors: still warned, in one line
+    assert sum("nothing moved" in ln for ln in err.splitlines()) == 1, err
+
+
+@pytest.mark.slow
+def test_excite_exits_nonzero_when_the_board_faults(relay, tmp_path) -> None:
+    # the pendulum "falls" during a balancing run (the hands tilt it 0.6 rad): the tilt fault ends the run,
+    # and the command says so in one line and exits 1 -- the rows received stay on disk
+    import csv
+    import time
+
+    out = tmp_path / "bal.csv"
+    p = _excite(relay, "--board-seconds", "30", "--amplitude", "0.3", "--out", str(out), "--quiet")
+    try:
+        deadline = time.monotonic() + 60
+        # 300 rows of the excitation on disk (the columns excite, exc_amp_n, exc_div end a row)
+        while time.monotonic() < deadline and (not out.exists() or
+                                               sum(ln.endswith(",1,0.3,4\n") for ln in out.open()) < 300):
+            time.sleep(0.2)
+        for _ in range(5):
+            relay.sensors(2048 + 520, 0)  # +0.6 rad on a 270-degree, 12-bit pot
+            time.sleep(0.05)
+        _, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    lines = err.strip().splitlines()
+    assert p.returncode == 1, err
+    assert "faulted during the excitation (tilt" in lines[-1] and "kept" in lines[-1], lines[-1]
+    assert not any("Traceback" in ln for ln in lines), err
+    rows = list(csv.DictReader(out.open()))
+    assert sum(r["excite"] == "1" for r in rows) >= 300

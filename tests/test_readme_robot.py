@@ -16,7 +16,7 @@ time and the tools' ``--seconds`` are wall seconds.  Wall time of the module: 4.
 this 2-core machine with a load average of 8-11 (eight runs: 189-362 s, the last three 189, 209, 209 s), most of
 it the identification runs, whose wall time follows the emulator's speed.  Known problems are
 expected failures with their reason: issue 23 (``deadline`` latched while a tool talks to a
-balancing board), ``hil --port``'s fixed answer time, the identification's spread on short logs.
+balancing board), ``hil --port``'s fixed answer time.
 """
 
 from __future__ import annotations
@@ -52,10 +52,8 @@ PLANT_CHANGES = {"pot_offset": 2010, "enc_cpr": 1100, "b": 0.5}
 EXTRA: dict[str, list[str]] = {
     # serves until Ctrl-C: the test sends SIGINT itself (arm) or bounds it (dashboard)
     "upright dashboard --port /dev/ttyUSB0": ["--http-port", "0", "--seconds", "90"],
-    # the two excite runs get --seconds (and --coast) at test time: the identification needs
-    # board seconds, and at 0.05-0.15x real time 30 s of wall time is 1.5-4.5 s of board time; the
-    # coast-down (3 s of wall time by default) must be a few of the cart's time constants
-    # M / b = 1 s long to separate friction from back-EMF (BAL_BOARD_S, ...)
+    # the two excite runs get --board-seconds (and --board-coast) at test time: the identification
+    # needs board seconds, and the emulator runs at 0.05-0.4x real time (BAL_BOARD_S, ...)
     # eight scenarios of 5-8 s by default: minutes each on the emulated board; a 1 s tilt shows the
     # same loop, and --virtual runs it too
     "upright hil --port /dev/ttyUSB0": ["--scenario", "SHORT_TILT", "--no-plots", "--out", "hil_port",
@@ -65,12 +63,13 @@ EXTRA: dict[str, list[str]] = {
 # request attempt of the default 0.3 s of wall time is 30-100 ms of board time -- less than the
 # emulated board takes for a gains_commit under load; the first answer likewise
 SLOW = ["--timeout", "3", "--answer-timeout", "60"]
-# board seconds the identification runs get at least (--seconds and --coast are wall seconds,
-# set from the emulator's measured speed): the bench identifies from 30 s of balancing and 15 s
-# cart-only logs; 5 s of balancing identified I within 3 % here, 2 s missed it by 28 %
-BAL_BOARD_S = 5.0
-CART_BOARD_S = 1.5
-COAST_BOARD_S = 2.5
+# board seconds of the identification runs (excite --board-seconds / --board-coast: counted in the
+# board's own ticks, whatever the emulator's speed); what upright identify needs at least:
+# 5 s balancing, 1.5 s cart-only excitation, 2 s coast-down (host/studies/identify*.py MIN_*)
+BAL_BOARD_S = 10.0
+CART_BOARD_S = 5.0
+COAST_BOARD_S = 3.0
+WATCHDOG_MS = 2000  # the board's link watchdog during the identification runs (test_7's reason)
 SHORT_TILT = ('name = "short_tilt"\nduration = 1.0\nseed = 1\n[initial]\nphi = 0.05\n'
               '[expect]\nphi_max = "pass"\nsettle = "any"\na_max = "any"\n')
 
@@ -303,27 +302,32 @@ def _truth(plant) -> dict:
     return truth_of(plant)
 
 
-def test_7_excite_and_identify_recover_the_plant(robot: Robot, plant) -> None:
-    from sim.params import load_params
+def _run_excite(robot: Robot, cmd: str) -> subprocess.CompletedProcess:
+    # an excitation the virtual robot spoils: `enc_jump` latched at its start (seen in two of the last
+    # five balancing runs here, within its first 10 rows; once with the board already in `enc_jump`
+    # before the run) -- the robot's quadrature edges and the board's PIO count disagree
+    # (host/hil/virtual_robot.py, host/hil/emulated.py PinDrive): an expected failure with its reason;
+    # excite itself refuses the log (exit 1, one line) as it must
+    r = subprocess.run(UPRIGHT + robot.argv(cmd), cwd=robot.tmp, capture_output=True, text=True, timeout=900,
+                       env=robot.env)
+    if r.returncode == 1 and "faulted during the excitation (enc_jump" in r.stderr:
+        pytest.xfail(f"the virtual robot latched enc_jump: {r.stderr.strip().splitlines()[-1][-200:]}")
+    assert r.returncode == 0, f"{cmd}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
+    assert "Traceback" not in r.stderr
+    return r
 
-    # the pendulum upright (the stand-by person holds it until the board balances)
-    robot.hands.do("hold", phi=0.0, until="driving")
-    # --seconds is wall time: the runs get at least BAL_BOARD_S / CART_BOARD_S of board time at the
-    # emulator's speed measured now (a loaded machine runs it at 0.05x, an idle one at 0.15x)
-    speed = robot.speed()
-    bal = "upright board --port /dev/ttyUSB0 excite --seconds 30 --amplitude 0.5 --out bal.csv"
-    cart = "upright board --port /dev/ttyUSB0 excite --cart-only --seconds 15 --amplitude 1 --out cart.csv"
-    EXTRA[bal] = ["--seconds", f"{max(30.0, min(150.0, BAL_BOARD_S / speed)):.0f}"]
-    EXTRA[cart] = ["--seconds", f"{max(15.0, min(60.0, CART_BOARD_S / speed)):.0f}",
-                                 "--coast", f"{max(30.0, min(90.0, COAST_BOARD_S / speed)):.0f}"]
-    robot.run(bal)
+
+def _excite_runs(robot: Robot, bal: str, cart: str) -> None:
+    r = _run_excite(robot, bal)
+    m = re.search(r"; ([0-9.]+) s of board time excited", r.stderr.strip().splitlines()[-1])
+    assert m and BAL_BOARD_S <= float(m.group(1)) < BAL_BOARD_S + 0.2, r.stderr[-500:]
     rows = list(csv.DictReader(open(robot.tmp / "bal.csv")))
     # no fault during the excitation -- `deadline` included: a tool asking the balancing board for
-    # its state never makes a tick late (issue 23)
+    # its state never makes a tick late (issue 23); excite itself exits 1 on a fault
     assert not any(int(float(r["faults"])) for r in rows), "no fault during the excitation"
     rows = [r for r in rows if r["excite"] == "1"]
     phis = [abs(float(r["phi"])) for r in rows]
-    assert len(rows) > 500 and max(phis) > 0.005, "the excitation moved the pendulum"
+    assert len(rows) >= BAL_BOARD_S * 500 and max(phis) > 0.005, "the excitation moved the pendulum"
     # balancing all through (the recorder labels a row with the last heartbeat it has: the first
     # rows of the run may still carry the one from before the arm)
     states = [int(float(r["state"])) for r in rows]
@@ -331,48 +335,71 @@ def test_7_excite_and_identify_recover_the_plant(robot: Robot, plant) -> None:
     assert first < len(states) / 10 and set(states[first:]) == {2}, "balancing all through the excitation"
     robot.hands.do("pendulum", on=False)  # "take the pendulum off"
     try:
-        robot.run(cart)
+        _run_excite(robot, cart)
     finally:
         robot.hands.do("pendulum", on=True)
     rows = list(csv.DictReader(open(robot.tmp / "cart.csv")))
     assert not any(int(float(r["faults"])) for r in rows), "no fault during the cart-only excitation"
-    assert sum(r["excite"] == "2" and int(r["duty"]) != 0 for r in rows) > 200, "the PRBS drove the cart"
+    # every tick of the excitation but the first few (the ACK's tick: the PRBS starts on the next)
+    assert sum(r["excite"] == "2" and int(r["duty"]) != 0 for r in rows) >= CART_BOARD_S * 500 - 10, \
+        "the PRBS drove the cart"
+
+
+def test_7_excite_and_identify_recover_the_plant(robot: Robot, plant) -> None:
+    from sim.params import load_params
+
+    # the pendulum upright (the stand-by person holds it until the board balances)
+    robot.hands.do("hold", phi=0.0, until="driving")
+    bal = "upright board --port /dev/ttyUSB0 excite --seconds 30 --amplitude 0.5 --out bal.csv"
+    cart = "upright board --port /dev/ttyUSB0 excite --cart-only --seconds 15 --amplitude 1 --out cart.csv"
+    # board time instead of the README's wall seconds: the same logs on a loaded machine
+    EXTRA[bal] = ["--board-seconds", f"{BAL_BOARD_S:g}"]
+    # bits of 16 ticks (32 ms, three drive time constants): the cart at full speed at the disarm, most
+    # of the time -- the coast-down's start speed is what b is measured from
+    EXTRA[cart] = ["--board-seconds", f"{CART_BOARD_S:g}", "--board-coast", f"{COAST_BOARD_S:g}", "--div", "16"]
+    # the link watchdog counts board time: 250 ms are 0.6-5 s of wall time here, and on this 2-core
+    # machine at a load of 10 the host tool was seen to stall for 1 s between two host heartbeats
+    # (four of eight runs latched `watchdog`, excite then exits 1): WATCHDOG_MS for these runs
+    wd = robot.params("watchdog_ms")["watchdog_ms"]
+    robot.board("params", "set", "watchdog_ms", str(WATCHDOG_MS))
+    try:
+        _excite_runs(robot, bal, cart)
+    finally:
+        robot.board("params", "set", "watchdog_ms", str(wd))
+    truth = _truth(plant)
+    # the first stage alone (issue 24): the cart-only log gives the drive, the friction and the delay
+    s1 = subprocess.run(UPRIGHT + ["identify", "cart.csv", "--cart-only", "--params", "robot.toml", "--out",
+                                   "stage1.toml"], cwd=robot.tmp, capture_output=True, text=True, timeout=300,
+                        env=robot.env)
+    if s1.returncode == 2 and "drive model does not fit" in s1.stderr:
+        # identify refuses such a log (host/studies/identify_cart.py MAX_RES_COUNTS); seen in two of five
+        # cart-only runs on the emulated board here: residual steps of about one encoder count during the
+        # run and a cart that stops dead in the coast-down, once with an `enc_jump` fault in the balancing
+        # run before -- encoder counts lost between the virtual robot's quadrature edges and the board's
+        # PIO counter (host/hil/virtual_robot.py, host/hil/emulated.py PinDrive), not the identification
+        pytest.xfail(f"the cart-only log is not the plant's motion: {s1.stderr.strip().splitlines()[-1][-240:]}")
+    assert s1.returncode == 0, s1.stdout + s1.stderr
+    st1 = load_params(robot.tmp / "stage1.toml")
+    IDENT["stage1"] = {"b": st1.b, "kt": st1.kt, "delay": st1.delay}
     cmd = "upright identify bal.csv cart.csv --params robot.toml --out robot_id.toml"
     r = subprocess.run(UPRIGHT + robot.argv(cmd), cwd=robot.tmp, capture_output=True, text=True, timeout=300,
                        env=robot.env)
-    if r.returncode != 0 and "bad parameter" in r.stderr:
-        pytest.xfail("upright identify estimated a robot that does not validate from the virtual robot's short "
-                     "logs (two of eight runs here: I -0.083 and -0.004 kg m^2; b within 1 % all the same) -- the "
-                     f"identification's spread, see the next test; reported with issue 22: {r.stderr.strip()[-200:]}")
     assert r.returncode == 0, f"{cmd}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
     IDENT["got"] = got = _truth(load_params(robot.tmp / "robot_id.toml"))
     IDENT["out"] = r.stdout
-    truth = _truth(plant)
-    # what every run here recovered: the friction and the back-EMF (the coast-down separates them)
-    # within the identify bench's 10 % (host/bench/identify.py), the pot offset to a few counts;
-    # the rest of the bench's goal: the next test
-    # (ke moved to the next test: 11 % off in one run on a loaded machine, where the emulator's
-    # slower clock gave a shorter coast-down -- within 9 % in the eight runs before)
-    assert abs(got["b"] / truth["b"] - 1) < 0.10, ("b", got["b"], truth["b"], r.stdout)
-    assert abs(got["pot_offset"] - truth["pot_offset"]) <= 2
-
-
-@pytest.mark.xfail(strict=False, reason="measured over eight runs here (b, ke within 9 % in all): kt -28 % .. +6 %, "
-                                        "the delay 8-14 ms for 10 ms, I -71 % .. +3 % (once negative), mL -9 % .. "
-                                        "+280 %: the "
-                                        "emulator gives the identification 2-5 s of board time where the bench uses "
-                                        "30 s and 15 s, the cart barely moves under the README's 1 N (back-EMF "
-                                        "damping 44 N s/m), and upright identify models the delay in whole samples "
-                                        "while the board adds its read-to-drive latency (~0.5-1 ms) -- reported "
-                                        "with issue 22")
-def test_7_identify_recovers_the_plant_within_the_benchs_goal(plant) -> None:
-    got = IDENT.get("got")
-    if got is None:
-        pytest.skip("no identification (the test before failed)")
-    truth = _truth(plant)
-    for k in ("I", "mL", "kt", "ke"):
-        assert abs(got[k] / truth[k] - 1) < 0.10, (k, got[k], truth[k], IDENT["out"])
-    assert abs(got["delay"] - truth["delay"]) * plant.rate <= 1 + 1e-9, (got["delay"], IDENT["out"])
+    # the identify bench's goal (host/bench/identify.py): every parameter within 10 %, the delay to the
+    # sample, the pot offset to a couple of counts
+    for k in ("b", "kt", "ke", "I"):
+        assert abs(got[k] / truth[k] - 1) < 0.10, (k, got[k], truth[k], r.stdout)
+    assert abs(got["delay"] - truth["delay"]) * plant.rate <= 1 + 1e-9, (got["delay"], r.stdout)
+    assert abs(got["pot_offset"] - truth["pot_offset"]) <= 2, r.stdout
+    # m*L: from the logs where they resolve it, else (said so) the robot file's -- the cart's back-EMF
+    # damping (44 N s/m) leaves the pendulum's reaction a fraction of an encoder count
+    ml = [ln for ln in r.stdout.splitlines() if ln.split()[:1] == ["mL"]]
+    assert ml and ("(from --params)" in ml[0] or abs(got["mL"] / truth["mL"] - 1) < 0.10), r.stdout
+    for k in ("b", "kt"):
+        assert abs(IDENT["stage1"][k] / truth[k] - 1) < 0.10, (k, IDENT["stage1"], s1.stdout)
+    assert abs(IDENT["stage1"]["delay"] - truth["delay"]) * plant.rate <= 1 + 1e-9, s1.stdout
 
 
 def test_7_dashboard_step_moves_the_cart(robot: Robot) -> None:

@@ -113,7 +113,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sp.add_argument("--div", type=A.int_range(1, 255), default=4, help="control ticks per PRBS bit (default 4)")
     sp.add_argument("--cart-only", action="store_true",
                     help="pendulum removed/locked: PRBS open loop, then disarm and record the coast-down")
-    sp.add_argument("--coast", type=A.in_range(0.5, 60), default=3.0, help="--cart-only: coast-down s (default 3)")
+    sp.add_argument("--coast", type=A.in_range(0.5, 60), default=3.0,
+                    help="--cart-only: coast-down, wall-clock s (default 3)")
+    sp.add_argument("--board-seconds", type=A.in_range(0, 3600, lo_open=True), default=None, metavar="S",
+                    help="excite for S seconds of the BOARD's clock (counted in its ticks) instead of --seconds "
+                         "of wall time: the same log on a board slower than real time (the emulated Pico)")
+    sp.add_argument("--board-coast", type=A.in_range(0.5, 600), default=None, metavar="S",
+                    help="--cart-only: the coast-down in board seconds instead of --coast")
     sp.add_argument("--arm", dest="arm_flag", action="store_true",
                     help="deprecated, does nothing: arming first and disarming at the end is the default "
                          "(--no-arm for a board that already balances)")
@@ -526,7 +532,8 @@ def _excite(b: Any, args: argparse.Namespace) -> int:
 
     try:
         s = run_excite(b, args.out, seconds=args.seconds, amplitude_n=args.amplitude, div=args.div,
-                       cart_only=args.cart_only, coast_s=args.coast, arm=args.arm, progress=progress)
+                       cart_only=args.cart_only, coast_s=args.coast, arm=args.arm,
+                       board_seconds=args.board_seconds, board_coast_s=args.board_coast, progress=progress)
     except BoardError as exc:
         if interrupted():
             raise KeyboardInterrupt from exc
@@ -541,8 +548,16 @@ def _excite(b: Any, args: argparse.Namespace) -> int:
              "`upright identify` cannot use this log")
     _err(f"upright board: {s['rows']} rows ({s['telemetry_frames']} telemetry frames) to {s['file']}; "
          f"{s['lost']} lost; excitation {'cart-only' if args.cart_only else 'balancing'} "
-         f"+-{args.amplitude:g} N, {args.div} ticks per bit")
+         f"+-{args.amplitude:g} N, {args.div} ticks per bit" + _board_time(s))
     return 0
+
+
+def _board_time(s: dict[str, Any]) -> str:
+    # the board time the log holds (its ticks / loop rate): what upright identify needs
+    if s.get("board_s") is None:
+        return ""
+    co = f" + {s['coast_board_s']:.2f} s coasting" if s.get("coast_board_s") is not None else ""
+    return f"; {s['board_s']:.2f} s of board time excited{co}"
 
 
 def _ask_factory(args: argparse.Namespace) -> Callable[..., str]:
@@ -619,6 +634,8 @@ def run(args: argparse.Namespace) -> int:
         if args.action in ("log", "excite"):
             A.check_out_file(args.out, "--out")
             format_of(args.out)
+        if args.action == "excite" and args.board_coast is not None and not args.cart_only:
+            raise A.UsageError("--board-coast is the coast-down of a --cart-only run: give --cart-only too")
         if args.action == "params" and args.params_action == "set":
             check_param(args.name, args.value)
         if args.action == "params" and args.params_action == "get":

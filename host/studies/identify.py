@@ -16,27 +16,35 @@ Known (from ``--params``, the robot TOML: weighed and read off datasheets): the 
 the sensor scales.  Estimated: the pendulum inertia ``I`` (``J = I + m L^2`` about the pivot),
 ``m L``, the cart friction ``b``, the motor's force constant ``kt`` (from the duty -> force
 gain ``a``) and back-EMF constant ``ke`` (from the drive's speed damping ``D'``), the sensor
-delay (whole samples) and the pot offset (counts).  Per candidate delay ``d`` (measurement
-``k + d`` is the state at ``k``):
+delay (whole samples), the board's read-to-drive latency and the pot offset (counts).  Staged
+(issue 24 item 2), never needing a balancing robot for the first stage:
 
-1. cart-only runs, output error (:func:`cart_fit`): ``M xdd = a duty - (D' + b) xd`` driven,
-   ``M xdd = -b xd`` coasting, simulated exactly per tick (:func:`cart_sim`) and fitted to the
-   positions with ``scipy.optimize.least_squares``: ``a``, ``D'``, ``b``; their covariance from
-   the Jacobian (inflated by the residuals' autocorrelation);
-2. balancing runs, equation error on signals through one zero-phase Butterworth low-pass
-   (linear terms stay exact: filtering commutes with the central differences):
-   pendulum ``phidd = (g sin(phi_m) + cos(phi_m) xdd) / Leq - (g beta / Leq) cos(phi_m)`` gives
-   ``Leq = J / (m L)`` and the pot offset ``beta`` (rad, the tilt's second derivative is the
-   regressand, not a regressor); cart ``(M + m) xdd + b xd - a u + D' xd = kappa cos(phi)
-   (g sin(phi) + cos(phi) xdd)`` (the pendulum's reaction ``mL cos(phi) phidd`` through the
-   pendulum equation, ``kappa = mL / Leq``; ``mL phid^2 sin(phi)`` is negligible) gives ``mL``.
-   In closed loop duty, speed and tilt are nearly collinear: ``a`` and ``D'`` come from step 1
-   (without a cart-only run they are fitted here too, poorly conditioned, with a note).
+1. **cart-only runs** (:func:`host.studies.identify_cart.identify_cart`, usable alone:
+   ``upright identify cart.csv --cart-only``): output error of the positions, each tick
+   simulated exactly with the board's timing (the delay in whole ticks plus a fitted latency,
+   the enable's delay at the disarm), ``kt = ke`` (one motor constant) by default -- the drive,
+   ``b`` from the coast-down, the delay, the latency, the deadband with two amplitudes;
+2. **balancing runs**, with the first stage's drive and timing: the pendulum by equation error
+   on signals through one zero-phase Butterworth low-pass (linear terms stay exact: filtering
+   commutes with the central differences), ``phidd = (g sin(phi_m) + cos(phi_m) xdd) / Leq -
+   (g beta / Leq) cos(phi_m)``: ``Leq = J / (m L)`` and the pot offset ``beta`` (rad); ``m L`` by
+   output error of the cart's positions (:func:`_reaction_terms`: ``x = X0 + mL X1``, no
+   derivative of a measurement) where the logs resolve it -- refitted with the latency
+   +-:data:`LAT_SPREAD` tick it must stay within :data:`ML_REL`, else the robot file's geometry
+   (``pendulum.m_*``, ``L_cm``: weighed and measured) gives ``m L``, said in a note and in
+   ``sources``.  On the virtual robot and the bench's plants the cart's back-EMF damping
+   (44 N s/m) leaves the pendulum's reaction a fraction of an encoder count (0.03 mm rms):
+   ``m L`` comes from the robot file there, ``I`` from ``Leq`` with it.
+   Without a cart-only run the drive is fitted in closed loop too, poorly conditioned, with a note.
 
-The delay is the ``d`` with the least cart-only residual (else balancing residual).  95 %
-intervals: moving-block bootstrap of the balancing rows with ``a, D', b`` drawn from their
-covariance, percentiles of every derived parameter; the delay's is the grid's +-1 sample.
-They cover noise, not the method's own bias (a few % on ``I`` and ``mL`` in the validation).
+95 % intervals: the first stage's (noise from the Jacobian, inflated by the residuals'
+autocorrelation; the method's bias as the change between the fit and each half of the
+excitation fitted alone; :data:`host.studies.identify_cart.BIAS_FLOOR`), in quadrature; for the
+balancing stage a moving-block bootstrap of its rows with ``a, D', b`` drawn from the first
+stage's covariance, widened by :data:`BIAS_FLOOR` and the latency check.  The delay's is the
+grid's +-1 sample.  Logs too short to identify (:data:`MIN_BAL_S`,
+:data:`host.studies.identify_cart.MIN_DRIVEN_S`, ``MIN_COAST_S`` board seconds) are refused
+in one line saying how many board seconds they need.
 """
 
 from __future__ import annotations
@@ -47,32 +55,55 @@ from typing import Any, Sequence
 import numpy as np
 from scipy import signal
 
+from host.studies.identify_cart import _eff, identify_cart
 from host.studies.identify_log import LogError, RunLog, read_log
 from sim import sensors as ssens
 from sim.motor import DUTY_MAX
 from sim.params import SCHEMA, RobotParams
 
-__all__ = ["LogError", "RunLog", "read_log", "identify", "robot_toml", "PARAM_NAMES", "truth_of"]
+__all__ = ["LogError", "RunLog", "read_log", "identify", "identify_cart", "identified_params", "robot_toml",
+           "PARAM_NAMES", "STAGE1_EXTRA", "truth_of"]
 
 PARAM_NAMES = ("I", "mL", "b", "kt", "ke", "delay", "pot_offset")
 """Estimated parameters: pivot inertia term (kg m^2), m*L (kg m), cart friction (N s/m), force
 and back-EMF constants (N m/A, V s/rad), sensor delay (s), pot offset (ADC counts)."""
 
+STAGE1_EXTRA = ("latency", "deadband")
+"""Estimated by the first stage (:func:`identify_cart`) besides :data:`PARAM_NAMES`: the board's
+read-to-drive latency (s) and the bridge's deadband (fraction of full duty; held unless fitted)."""
+
 UNITS = {"I": "kg*m^2", "mL": "kg*m", "b": "N*s/m", "kt": "N*m/A", "ke": "V*s/rad", "delay": "s",
-         "pot_offset": "count"}
+         "pot_offset": "count", "latency": "s", "deadband": "1"}
+BIAS_FLOOR = {"I": 0.05, "mL": 0.04}
+"""Fraction of the estimate added (in quadrature) to the bootstrap interval of the balancing stage's
+estimates for the method's bias (the equation-error fit through the low-pass)."""
+MIN_BAL_S = 5.0
+"""Board seconds of balancing excitation a log needs at least."""
+
+
+def check_balancing_log(lg: RunLog, rate: float, fc: float) -> None:
+    """Refuse (one line, :class:`LogError`) a balancing log too short to identify the pendulum."""
+    if len(lg.x) < MIN_BAL_S * rate:
+        raise LogError(lg.name, "", f"{len(lg.x) / rate:.2f} s of board time excited, the pendulum's fit needs at "
+                                    f"least {MIN_BAL_S:g} s: record again with `upright board excite "
+                                    f"--board-seconds {2 * MIN_BAL_S:g}`")
 
 # ---------------------------------------------------------------- regressions
 
-def _prep(log: RunLog, d: int, sos: np.ndarray, dt: float, edge: int) -> dict[str, np.ndarray]:
+def _prep(log: RunLog, d: int, sos: np.ndarray, dt: float, edge: int, f: float = 0.0,
+          deadband: float = 0.0) -> dict[str, np.ndarray]:
     # shift the measurements d samples back (y[k + d] is the state at k), filter, differentiate
     n = len(log.x) - d
     x = log.x[d:d + n]
     ph = log.phi[d:d + n]
-    du = log.duty[:n]
-    # the force over [k-1, k+1] (what the second difference at k sees): mean of two duties
+    du = _eff(log.duty[:n], deadband)
+    # the duty over tick k: the previous one for the latency f, then its own (identify_cart)
+    ui = du.copy()
+    ui[1:] = (1.0 - f) * du[1:] + f * du[:-1]
+    # the force over [k-1, k+1] (what the second difference at k sees): mean of two ticks
     u = np.empty(n)
-    u[0] = du[0]
-    u[1:] = 0.5 * (du[1:] + du[:-1])
+    u[0] = ui[0]
+    u[1:] = 0.5 * (ui[1:] + ui[:-1])
     xf = signal.sosfiltfilt(sos, x)
     pf = signal.sosfiltfilt(sos, ph)
     uf = signal.sosfiltfilt(sos, u)
@@ -90,7 +121,8 @@ def _prep(log: RunLog, d: int, sos: np.ndarray, dt: float, edge: int) -> dict[st
     if log.cart_only and coast.any():
         # the coast-down and the rows the filter mixes with it are not powered rows
         valid[max(0, int(np.argmax(coast)) - edge):] = False
-    return {"x": xf, "phi": pf, "u": uf, "xd": xd, "xdd": xdd, "pd": pd, "pdd": pdd, "valid": valid, "coast": coast}
+    return {"x": xf, "phi": pf, "u": uf, "xd": xd, "xdd": xdd, "pd": pd, "pdd": pdd, "valid": valid, "coast": coast,
+            "x_raw": x, "phi_raw": ph, "duty_raw": log.duty[:n]}
 
 
 def _rows(log: RunLog, s: dict[str, np.ndarray], M: float, m: float, g: float, beta: float,
@@ -117,6 +149,42 @@ def _rows(log: RunLog, s: dict[str, np.ndarray], M: float, m: float, g: float, b
     return A, y, P, q
 
 
+LAT_SPREAD = 0.25
+"""Ticks by which a balancing tick's read-to-drive latency may differ from the cart-only run's."""
+ML_REL = 0.10
+"""Largest 95 % half-width of m*L (fraction) for which the logs' value is used, else the robot file's."""
+HP_HZ = 0.5
+"""High-pass (Hz) of the balancing run's cart positions in the reaction fit: the open-loop
+integration of the drive model drifts, the pendulum's reaction is faster."""
+
+
+def _reaction_terms(s: dict[str, np.ndarray], drive: dict[str, float], M: float, m: float, dt: float,
+                    beta: float) -> tuple[np.ndarray, np.ndarray]:
+    """The balancing run's cart positions by output error: target ``HP(x - X0)`` and regressor ``HP(X1)``.
+
+    ``(M + m) xdd = a u_eff - (D' + b) xd + mL d^2(sin phi)/dt^2`` (sim.plant): with
+    ``lam = (D' + b) / (M + m)`` its solution is ``x = X0 + mL X1``, ``X0`` the drive's response
+    to the duty (:func:`host.studies.identify_cart.cart_sim`, mass ``M + m``, the cart-only
+    stage's timing) and ``X1 = (sin phi - LP_lam(sin phi)) / (M + m)`` -- no derivative of a
+    measurement.  Both through one zero-phase high-pass (:data:`HP_HZ`).
+    """
+    from host.studies.identify_cart import cart_sim
+
+    du = s["duty_raw"]
+    X0 = cart_sim(du, np.ones(len(du), dtype=bool), drive["a"], drive["D"], drive["b"], M + m, dt,
+                  f=drive["f"], deadband=drive["deadband"])
+    sn = np.sin(s["phi_raw"] - beta)
+    lam = (drive["D"] + drive["b"]) / (M + m)
+    e = math.exp(-lam * dt)
+    src = np.empty_like(sn)
+    src[0] = sn[0]
+    src[1:] = 0.5 * (sn[1:] + sn[:-1])  # the tilt over each tick (its mean)
+    lp, _ = signal.lfilter([1.0 - e], [1.0, -e], src, zi=[e * sn[0]])
+    X1 = (sn - lp) / (M + m)
+    hp = signal.butter(2, HP_HZ, btype="highpass", fs=1.0 / dt, output="sos")
+    return signal.sosfiltfilt(hp, s["x_raw"] - X0), signal.sosfiltfilt(hp, X1)
+
+
 def _solve(A: np.ndarray, y: np.ndarray, cols: Sequence[int]) -> np.ndarray:
     th = np.zeros(A.shape[1])
     sol, *_ = np.linalg.lstsq(A[:, cols], y, rcond=None)
@@ -125,7 +193,7 @@ def _solve(A: np.ndarray, y: np.ndarray, cols: Sequence[int]) -> np.ndarray:
 
 
 def _fit(blocks: list[tuple[RunLog, dict[str, np.ndarray]]], M: float, m: float, g: float, b: float,
-         drive: tuple[float, float] | None) -> dict[str, Any]:
+         drive: tuple[float, float] | None, full: dict[str, float] | None = None, dt: float = 0.0) -> dict[str, Any]:
     # pendulum first (beta, Leq), then the cart with phi corrected by beta
     P = [_rows(lg, s, M, m, g, 0.0, b)[2:] for lg, s in blocks if not lg.cart_only]
     if P:
@@ -138,13 +206,21 @@ def _fit(blocks: list[tuple[RunLog, dict[str, np.ndarray]]], M: float, m: float,
     bb = 0.0 if math.isnan(b) else b
     B = [_rows(lg, s, M, m, g, beta, bb)[:2] for lg, s in blocks if not lg.cart_only]
     Ab, yb = np.vstack([r[0] for r in B]), np.concatenate([r[1] for r in B])
-    if drive is not None:
-        # two stages: the drive (a, D') from the open-loop cart (cart_fit), then the
-        # pendulum's reaction kappa from the balancing rows (in closed loop duty, speed and
-        # tilt are nearly collinear: a free fit of all three there is ill-conditioned)
-        th = np.array([drive[0], drive[1], 0.0])
-        yk = yb - Ab[:, :2] @ th[:2]
-        th[2] = _solve(Ab, yk, [2])[2]
+    if full is not None:
+        # two stages: the drive from the open-loop cart (identify_cart), then m*L from the
+        # balancing run's positions by output error (_reaction_terms; the equation error of
+        # the cart's force balance subtracts two large, nearly equal terms, a u and D' xd,
+        # and is at the mercy of the drive's timing)
+        num = den = 0.0
+        n_ = 0
+        for lg, s_ in blocks:
+            v = s_["valid"]
+            y_, x1 = (s_["react_y"], s_["react_x"]) if "react_y" in s_ else _reaction_terms(s_, full, M, m, dt, beta)
+            num += float(y_[v] @ x1[v])
+            den += float(x1[v] @ x1[v])
+            n_ += int(v.sum())
+        mL = num / den if den > 0 else math.nan
+        th = np.array([drive[0], drive[1], mL / Leq])
         res = yb - Ab @ th
     else:
         th = _solve(Ab, yb, [0, 1, 2])
@@ -153,86 +229,19 @@ def _fit(blocks: list[tuple[RunLog, dict[str, np.ndarray]]], M: float, m: float,
             "Leq": Leq, "beta": beta, "sse": float(res @ res), "n": len(res)}
 
 
-def _derive(f: dict[str, Any], params: RobotParams, d: int, dt: float) -> dict[str, float]:
+def _derive(f: dict[str, Any], params: RobotParams, d: int, dt: float,
+            mL_known: float | None = None) -> dict[str, float]:
     # physical parameters from the regression coefficients and the known constants
     v = params.values
     n, gear, r, R, V = (v["motor.n_motors"], v["motor.gear"], v["motor.r_wheel"], v["motor.R"], v["motor.V_supply"])
     kt = f["a"] * DUTY_MAX * R * r / (n * gear * V)
     ke = f["D"] * R * r**2 / (n * gear**2 * kt) if kt else math.nan
-    mL = f["mL"]
+    mL = f["mL"] if mL_known is None else mL_known
     J = f["Leq"] * mL
     I = J - mL**2 / params.m  # noqa: E741 - the model's symbol
     cpr = float(ssens.adc_counts_per_rad(params))
     return {"I": I, "mL": mL, "b": f["b"], "kt": kt, "ke": ke, "delay": d * dt,
             "pot_offset": v["sensors.pot_offset"] + f["beta"] * cpr}
-
-
-def cart_sim(duty: np.ndarray, driven: np.ndarray, a: float, D: float, b: float, M: float, dt: float) -> np.ndarray:
-    """Positions of the cart alone (start at rest, x = 0), exact per tick with the duty held.
-
-    ``M xdd = a duty - (D + b) xd`` on the ``driven`` ticks, ``M xdd = -b xd`` on the others.
-    """
-    lam = np.where(driven, D + b, b) / M
-    lam = np.maximum(lam, 1e-9)
-    e = np.exp(-lam * dt)
-    vinf = np.where(driven, a * duty, 0.0) / (lam * M)
-    n = len(duty)
-    v = np.empty(n + 1)
-    v[0] = 0.0
-    # v[k+1] = vinf[k] + (v[k] - vinf[k]) e[k]: a first-order filter per driven/coast segment
-    cuts = [0, *(np.flatnonzero(np.diff(driven.astype(np.int8))) + 1).tolist(), n]
-    for i0, i1 in zip(cuts[:-1], cuts[1:]):
-        if i1 <= i0:
-            continue
-        ee = e[i0]
-        y, _ = signal.lfilter([1.0 - ee], [1.0, -ee], vinf[i0:i1], zi=[ee * v[i0]])
-        v[i0 + 1:i1 + 1] = y
-    dx = vinf * dt + (v[:-1] - vinf) * (1.0 - e) / lam
-    return np.concatenate([[0.0], np.cumsum(dx)])[:n]
-
-
-def cart_fit(logs: Sequence[RunLog], M: float, dt: float, d: int) -> dict[str, Any]:
-    """Output-error fit of the cart-only runs: ``a``, ``D'``, ``b`` (and one offset per log).
-
-    The measured ``x[k + d]`` against :func:`cart_sim` at ``k``; nonlinear least squares
-    (``scipy.optimize.least_squares``), the covariance from its Jacobian.
-    """
-    from scipy.optimize import least_squares
-
-    data = []
-    for lg in logs:
-        n = len(lg.x) - d
-        data.append((lg.duty[:n], ~lg.coast[:n], lg.x[d:d + n]))
-    has_coast = any((~dr).any() for _, dr, _ in data)
-
-    def res(th: np.ndarray) -> np.ndarray:
-        a, D = th[0] * 1e-3, th[1] * 10.0
-        b = th[2] if has_coast else 0.0
-        out = []
-        for du, dr, xm in data:
-            r = xm - cart_sim(du, dr, a, D, b, M, dt)
-            out.append(r - r.mean())
-        return np.concatenate(out)
-
-    x0 = np.array([2.0, 4.0, 0.1])
-    sol = least_squares(res, x0, bounds=([1e-6, 1e-3, 0.0], [1e3, 1e3, 1e3]), x_scale="jac")
-    r = sol.fun
-    dof = max(1, len(r) - 3)
-    s2 = float(r @ r) / dof
-    J = sol.jac
-    # neighbouring residuals are correlated (quantisation, model error): the variance
-    # inflated by 1 + 2 sum of the residual autocorrelation over 100 lags (clipped at 1)
-    rr = r - r.mean()
-    den = float(rr @ rr) or 1.0
-    rho = [float(rr[:-k] @ rr[k:]) / den for k in range(1, min(100, len(rr) // 4))]
-    infl = max(1.0, 1.0 + 2.0 * sum(rho))
-    sc = np.array([1e-3, 10.0, 1.0])
-    cov = infl * s2 * np.linalg.pinv(J.T @ J) * np.outer(sc, sc)
-    th = sol.x * sc
-    if not has_coast:
-        cov[2, :] = cov[:, 2] = 0.0
-    return {"a": th[0], "D": th[1], "b": th[2] if has_coast else math.nan, "cov": cov,
-            "sse": float(r @ r) / len(r), "n": len(r)}
 
 
 def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float = 10.0, max_delay: float = 0.03,
@@ -281,26 +290,68 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float = 10.0, m
     dmax = int(round(max_delay / dt))
     carts = [lg for lg in logs if lg.cart_only]
     bals = [lg for lg in logs if not lg.cart_only]
+    for lg in bals:
+        check_balancing_log(lg, params.rate, fc)
     has_coast = any(lg.coast.any() for lg in carts)
-    sse, fits = [], []
-    for d in range(dmax + 1):
-        cf = cart_fit(carts, M, dt, d) if carts else None
-        blocks = [(lg, _prep(lg, d, sos, dt, edge)) for lg in bals]
-        f = _fit(blocks, M, m, g, cf["b"] if cf else math.nan, (cf["a"], cf["D"]) if cf else None)
-        # the delay from the cart-only fit where there is one (open loop, the sharper test)
-        sse.append(cf["sse"] if cf else f["sse"] / f["n"])
-        fits.append((f, blocks, cf))
-    d = int(np.argmin(sse))
-    f, blocks, cf = fits[d]
-    if cf:
+    cres = None
+    fl, db = 0.0, 0.0
+    if carts:
+        # the first stage (identify_cart): the drive, the friction, the delay and the latency,
+        # open loop; the balancing rows then see the same timing and deadband
+        cres = identify_cart(carts, params, max_delay=max_delay)
+        cf = cres["fit"]
+        d, fl, db = int(cres["fit_delay"]), float(cf["f"]), float(cf["deadband"])
+        sse = list(cres["delay_sse"])
+        blocks = [(lg, _prep(lg, d, sos, dt, edge, fl, db)) for lg in bals]
+        full = {k: float(cf[k]) for k in ("a", "D", "b", "f", "deadband")}
+        f = _fit(blocks, M, m, g, cf["b"], (cf["a"], cf["D"]), full, dt)
         f.update(a=cf["a"], D=cf["D"], b=cf["b"])
+    else:
+        cf = None
+        sse, fits = [], []
+        for dd in range(dmax + 1):
+            blocks = [(lg, _prep(lg, dd, sos, dt, edge)) for lg in bals]
+            ff = _fit(blocks, M, m, g, math.nan, None)
+            sse.append(ff["sse"] / ff["n"])
+            fits.append((ff, blocks))
+        d = int(np.argmin(sse))
+        f, blocks = fits[d]
     est = _derive(f, params, d, dt)
-    notes = []
-    if not has_coast:
-        notes.append("no cart-only run with a coast-down: b not measured (NaN), ke includes the friction")
+    if cres is not None:
+        ce = cres["estimates"]
+        est.update(kt=ce["kt"], ke=ce["ke"], b=ce["b"], delay=ce["delay"])
+        est["latency"] = ce["latency"]
+        est["deadband"] = ce["deadband"]
+    notes = list(cres["notes"]) if cres is not None else []
+    sources = {k: "logs" for k in PARAM_NAMES}
+    if carts and not has_coast:
+        pass  # said by identify_cart
     if not carts:
         notes.append("no cart-only run: the drive (kt, ke) fitted in closed loop only -- ill-conditioned, "
                      "record a cart-only run (upright board excite --cart-only)")
+        notes.append("no cart-only run with a coast-down: b not measured (NaN), ke includes the friction")
+    mLk: float | None = None
+    mv = 0.0
+    if cf is not None:
+        # the method's bias in m*L: the read-to-drive latency of a balancing tick is not the
+        # cart-only run's (a longer computation), and m*L follows it closely -- refitted at
+        # +-LAT_SPREAD ticks; beyond ML_REL (or not positive) the logs do not resolve m*L
+        # (_reaction_terms: the cart's strong back-EMF damping leaves the pendulum's reaction
+        # a fraction of an encoder count) and the robot file's geometry gives it (the
+        # pendulum's masses and centre of mass: weighed and measured); the pivot inertia then
+        # comes from the pendulum's Leq = J / (m L) alone
+        for df in (-LAT_SPREAD, LAT_SPREAD):
+            fl2 = max(0.0, fl + df)
+            bl2 = [(lg, _prep(lg, d, sos, dt, edge, fl2, db)) for lg in bals]
+            f2 = _fit(bl2, M, m, g, cf["b"], (cf["a"], cf["D"]), dict(full, f=fl2), dt)
+            mv = max(mv, abs(f2["mL"] - f["mL"]))
+        if not (math.isfinite(est["mL"]) and est["mL"] > 0 and mv <= ML_REL * est["mL"]):
+            mLk = float(params.m * params.L)
+            notes.append(f"m*L from --params ({mLk:.4g} kg m: the pendulum's masses and centre of mass), the logs "
+                         f"do not resolve it (from the cart's positions {est['mL']:.3g} kg m, +-{mv:.2g} with the "
+                         f"latency +-{LAT_SPREAD:g} tick); I from the pendulum's Leq with it")
+            sources["mL"] = "params"
+            est.update({k: v for k, v in _derive(f, params, d, dt, mLk).items() if k in ("I", "mL")})
     # intervals: moving-block bootstrap over the balancing rows (the delay held at its
     # estimate), the drive's (a, D', b) drawn from the cart fit's Jacobian covariance
     ci: dict[str, list[float]] = {}
@@ -308,31 +359,53 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float = 10.0, m
         rng = np.random.default_rng(seed)
         L = max(1, int(round(block_s / dt)))
         draws: dict[str, list[float]] = {k: [] for k in PARAM_NAMES}
+        boots: list[dict[str, Any]] = []
         for _ in range(n_boot):
+            drive, bd, fd = None, math.nan, None
+            if cf:
+                a_, D_, b_ = rng.multivariate_normal([cf["a"], cf["D"], 0.0 if math.isnan(cf["b"]) else cf["b"]],
+                                                     cf["cov"])
+                drive, bd = (a_, D_), (b_ if has_coast else math.nan)
+                fd = dict(full, a=a_, D=D_, b=b_ if has_coast else 0.0)
             bb = []
             for lg, s in blocks:
                 n = len(s["valid"])
                 starts = rng.integers(0, max(1, n - L), max(1, n // L))
                 idx = np.concatenate([np.arange(a, min(n, a + L)) for a in starts])
-                bb.append((lg, {k: v[idx] for k, v in s.items()}))
-            drive, bd = None, math.nan
-            if cf:
-                a_, D_, b_ = rng.multivariate_normal([cf["a"], cf["D"], 0.0 if math.isnan(cf["b"]) else cf["b"]],
-                                                     cf["cov"])
-                drive, bd = (a_, D_), (b_ if has_coast else math.nan)
-            fb = _fit(bb, M, m, g, bd, drive)
+                s2 = dict(s)
+                if fd is not None:
+                    # the reaction terms on the whole run (a time series), then resampled
+                    s2["react_y"], s2["react_x"] = _reaction_terms(s, fd, M, m, dt, f["beta"])
+                bb.append((lg, {k: v[idx] for k, v in s2.items()}))
+            fb = _fit(bb, M, m, g, bd, drive, fd, dt)
             if cf:
                 fb.update(a=drive[0], D=drive[1], b=bd)
+            boots.append(fb)
             e = _derive(fb, params, d, dt)
             for k in PARAM_NAMES:
                 draws[k].append(e[k])
+        if mLk is not None:
+            draws["I"] = [_derive(fb, params, d, dt, mLk)["I"] for fb in boots]
+            draws["mL"] = [mLk]
+        elif mv > 0:
+            draws["mL"] = list(draws["mL"]) + [est["mL"] - mv, est["mL"] + mv]
         for k in PARAM_NAMES:
             arr = np.asarray(draws[k], dtype=float)
             arr = arr[np.isfinite(arr)]
             ci[k] = [float(np.percentile(arr, 2.5)), float(np.percentile(arr, 97.5))] if len(arr) else [math.nan] * 2
+            if k in BIAS_FLOOR and len(arr) and math.isfinite(est[k]):
+                # the method's bias (measured in the validation) on top of the noise, in quadrature
+                lo, hi = ci[k]
+                w = BIAS_FLOOR[k] * abs(est[k])
+                ci[k] = [est[k] - math.hypot(est[k] - lo, w), est[k] + math.hypot(hi - est[k], w)]
         ci["delay"] = [max(0.0, (d - 1) * dt), (d + 1) * dt]  # the grid: whole samples
+    if cres is not None:
+        # the first stage's intervals (noise, split-half bias and its floor) for what it estimates
+        for k in ("b", "kt", "ke", "delay", "latency", "deadband"):
+            ci[k] = list(cres["ci"][k])
+        d = int(cres["delay_samples"])
     return {"estimates": {k: float(v) for k, v in est.items()}, "ci": ci, "units": UNITS, "delay_samples": d,
-            "delay_sse": [float(v) for v in sse], "rows": int(f["n"]), "fc_hz": fc,
+            "delay_sse": [float(v) for v in sse], "rows": int(f["n"]), "fc_hz": fc, "sources": sources,
             "logs": [{"file": lg.name, "kind": "cart-only" if lg.cart_only else "balancing", "rows": len(lg.x)}
                      for lg in logs], "notes": notes}
 
@@ -348,14 +421,25 @@ def identified_params(result: dict[str, Any], params: RobotParams) -> RobotParam
 
     ``motor.kt`` takes the force constant (the model has one constant for both), the delay is
     rounded to whole control ticks, the pot offset to whole counts; ``pendulum.L_cm`` and
-    ``pendulum.I`` are set explicitly (``L_cm = mL / m``).
+    ``pendulum.I`` are set explicitly (``L_cm = mL / m``).  A first-stage result
+    (:func:`identify_cart`: no ``I``, ``mL``, pot offset) sets only the drive, the friction and
+    the delay; a deadband fitted (two amplitudes) goes to ``motor.deadband``.
     """
     e = result["estimates"]
-    ch: dict[str, float] = {"pendulum.I": e["I"], "pendulum.L_cm": e["mL"] / params.m, "motor.kt": e["kt"],
-                            "sensors.delay": round(e["delay"] * params.rate) / params.rate,
-                            "sensors.pot_offset": int(round(e["pot_offset"]))}
-    if math.isfinite(e["b"]):
+    ch: dict[str, float] = {}
+    if "I" in e and "mL" in e:
+        ch.update({"pendulum.I": e["I"], "pendulum.L_cm": e["mL"] / params.m})
+    if "pot_offset" in e:
+        ch["sensors.pot_offset"] = int(round(e["pot_offset"]))
+    if math.isfinite(e.get("kt", math.nan)):
+        ch["motor.kt"] = e["kt"]
+    if "delay" in e:
+        ch["sensors.delay"] = round(e["delay"] * params.rate) / params.rate
+    if math.isfinite(e.get("b", math.nan)):
         ch["cart.b"] = max(0.0, e["b"])
+    if not any("deadband held" in n for n in result.get("notes", ())) and math.isfinite(e.get("deadband", math.nan)) \
+            and "motor.deadband" in params.values:
+        ch["motor.deadband"] = max(0.0, e["deadband"])
     return params.replace(**ch)
 
 

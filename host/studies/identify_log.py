@@ -17,6 +17,9 @@ import numpy as np
 __all__ = ["LogError", "RunLog", "read_log", "REQUIRED"]
 
 REQUIRED = ("x", "phi", "duty")
+LEAD_ROWS = 25
+"""Rows dropped at the start of a balancing run's excitation (50 ms at 500 Hz: the rows that
+may still carry the estimate)."""
 
 
 class LogError(ValueError):
@@ -122,6 +125,15 @@ def read_log(path: str | Path, cart_only: bool | None = None, min_rows: int = 50
     idx = np.flatnonzero(keep)
     if len(idx) and np.any(np.diff(idx) != 1):
         idx = idx[: int(np.flatnonzero(np.diff(idx) != 1)[0]) + 1]  # the first contiguous run
+    if exc is not None and len(idx):
+        # the first rows after the board's ACK may still carry the estimate, not the sensors
+        # (a jump of x to the encoder's reading): a cart-only run starts at its first PRBS duty
+        # (the cart at rest, as the fit assumes), a balancing run LEAD_ROWS in
+        du = np.abs(cols["duty"][idx])
+        if cart_only and np.all(np.isfinite(du)) and du.max() > 0:
+            idx = idx[int(np.argmax(du >= 0.5 * du.max())):]
+        else:
+            idx = idx[min(LEAD_ROWS, len(idx)):]
     for c in REQUIRED:
         v = cols[c][idx]
         if not np.all(np.isfinite(v)):

@@ -136,12 +136,16 @@ def balancing_log(plant: RobotParams, design: RobotParams, *, seconds: float = 2
 
 
 def cart_log(plant: RobotParams, design: RobotParams, *, seconds: float = 8.0, coast_s: float = 4.0,
-             amp: float = 1.2, div: int = 4, seed: int = 2) -> dict[str, np.ndarray]:
+             amp: float = 1.2, div: int = 4, seed: int = 2, latency: float = 0.0, brake: float = 0.0,
+             substeps: int = 16) -> dict[str, np.ndarray]:
     """A cart-only run: PRBS of ``amp`` N open loop (mode 2), then ``coast_s`` with the driver off.
 
     The cart alone (mass ``M``): ``M xdd = F - b xd``, ``F = a duty - c_emf xd`` while driven,
-    ``F = 0`` while coasting; exact per tick (the duty is held); encoder counts delayed by
-    the plant's delay, then the telemetry's 1e-4 m steps.
+    ``F = 0`` while coasting; the encoder counts delayed by the plant's delay, then the
+    telemetry's 1e-4 m steps.  ``latency`` (ticks, 0..1): each tick's duty is applied that
+    much after the tick's reading, as on a board (its computation); ``brake`` (ticks): the
+    bridge stays enabled at duty 0 that long after the disarm's duty (the enable's delay).
+    Without them each tick is exact (the duty held); with them ``substeps`` exact sub-steps.
     """
     rate = design.rate
     Ts = 1.0 / rate
@@ -157,14 +161,23 @@ def cart_log(plant: RobotParams, design: RobotParams, *, seconds: float = 8.0, c
     M, b = plant.M, plant.b
     x = np.zeros(n + 1)
     v = 0.0
+    S = int(substeps) if (latency or brake) else 1
+    h = Ts / S
+    t_off = nd + latency + brake  # the enable's edge (ticks)
     for k in range(n):
-        lam = (b + (ce if k < nd else 0.0)) / M
-        F = a_d * duty[k] / M if k < nd else 0.0
-        e = math.exp(-lam * Ts)
-        vinf = F / lam
-        # exact: v -> vinf + (v - vinf) e; x += vinf Ts + (v - vinf)(1 - e)/lam
-        x[k + 1] = x[k] + vinf * Ts + (v - vinf) * (1.0 - e) / lam
-        v = vinf + (v - vinf) * e
+        xk = x[k]
+        for j in range(S):
+            t = k + j / S
+            u = duty[k] if t >= k + latency else (duty[k - 1] if k else 0.0)
+            on = t < t_off
+            lam = (b + (ce if on else 0.0)) / M
+            F = a_d * u / M if on else 0.0
+            e = math.exp(-lam * h)
+            vinf = F / lam
+            # exact: v -> vinf + (v - vinf) e; x += vinf h + (v - vinf)(1 - e)/lam
+            xk += vinf * h + (v - vinf) * (1.0 - e) / lam
+            v = vinf + (v - vinf) * e
+        x[k + 1] = xk
     d = int(round(plant.delay * rate))
     xd = np.concatenate([np.zeros(d), x[:n - d]]) if d else x[:n]
     enc = np.rint(xd * float(ssens.enc_counts_per_m(plant)))
