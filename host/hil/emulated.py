@@ -71,7 +71,9 @@ from sim.scenario import Scenario
 __all__ = ["EmulatedHil", "PinDrive", "run_emulated", "duty_over", "BoardError"]
 
 EDGE_US = 0.25
-"""Shortest spacing of two generated encoder edges (us; 31 cycles, several PIO sampling passes)."""
+"""Shortest spacing of two generated encoder edges (us; 31 cycles, several PIO sampling passes).
+The harness keeps its edges at least this far apart whatever it is asked (``ENC_GAP_NS`` in
+``host/boards/rp2040/harness.mjs``: a larger jump goes on into the following runs)."""
 _ARM_TILT_MAX = next(p[4] for p in T.PARAMS if p[0] == T.P_ARM_TILT)
 WARMUP_PERIODS = int(getattr(_fwapp, "_WARMUP", 16))
 """On-time loop periods ``App.run`` measures before ARMED may balance (``firmware/app.py``)."""

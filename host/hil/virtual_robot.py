@@ -215,7 +215,8 @@ class VirtualRobot:
         from firmware import board as fb
 
         self.board = board
-        self.pins = PinDrive(board, enc_within_us=min(40.0, self.tick_us / 4), lazy=True)
+        if self.pins is None or self.pins.board is not board:
+            self.pins = PinDrive(board, enc_within_us=min(40.0, self.tick_us / 4), lazy=True)
         if int(getattr(fb, "VSUP_ADC_PIN", -1)) >= 26:
             board.set_supply_mv(1000.0 * float(self.params.V_supply))
 
@@ -260,7 +261,10 @@ class VirtualRobot:
             done(answer())
 
     def power_cycled(self) -> None:
-        """The board was powered up again: its pins start from scratch."""
+        """The board was powered up again: its pins start from scratch -- its encoder counter at
+        0, followed from there by the cart's travel since the reset (:meth:`PinDrive.rebase`; a
+        fresh :class:`PinDrive` would take the plant's whole 16-bit reading as one jump, a burst
+        of up to 32767 edges that the firmware, already reading, latches as ``enc_jump``)."""
         assert self.pins is not None
         self.pins.rebase()
         self.attach(self.board)

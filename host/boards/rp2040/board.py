@@ -551,8 +551,11 @@ class EmulatedBoard:
         """Quadrature position to reach during the next :meth:`run` (x4 counts, A=GP2, B=GP3).
 
         The edges are spread evenly over that interval (over its first ``within_us`` when
-        given); a count going up makes B lead A (the firmware's PIO decoder counts up).  The
-        position starts at 0 at reset.
+        given), one Gray-code step at a time and never closer than 0.25 us (``ENC_GAP_NS`` in
+        ``harness.mjs``: several PIO sampling passes) -- a jump with more edges than fit goes on
+        into the following runs; edges still pending when this is called again are planned anew
+        from where the pins are, never applied at once.  A count going up makes B lead A (the
+        firmware's PIO decoder counts up).  The position starts at 0 at reset.
         """
         req: dict[str, Any] = {"cmd": "encoder", "count": int(count)}
         if within_us:

@@ -9,7 +9,9 @@
 //                                           pin floats there (pad pulls then win, see below)
 //   {"cmd":"encoder","count":N,"within_us":W}  quadrature position target (x4 counts, A=GP2
 //                                           B=GP3): reached by edges spread evenly over the next
-//                                           "run" (or over its first W us when given)
+//                                           "run" (or over its first W us when given),
+//                                           never closer than 0.25 us (ENC_GAP_NS: a larger
+//                                           jump goes on into the following runs)
 //   {"cmd":"uart","data":"<hex>"}           bytes onto UART0 RX, one after another at the line's
 //                                           byte time (start + data + parity + stop bits at the
 //                                           baud rate the firmware configured)
@@ -539,6 +541,7 @@ function encApply(pos) {
   if (mcu.gpio[cfg.encA].rawInputValue !== a) mcu.gpio[cfg.encA].setInputValue(a);
   if (mcu.gpio[cfg.encB].rawInputValue !== b) mcu.gpio[cfg.encB].setInputValue(b);
 }
+const ENC_GAP_NS = 250; // shortest spacing of two edges: 31 cycles, several PIO sampling passes
 const encAlarm = clock.createAlarm(() => {
   encPos += encStep;
   encApply(encPos);
@@ -546,11 +549,12 @@ const encAlarm = clock.createAlarm(() => {
   if (encEdges.length) encAlarm.schedule(encEdges[0] - clock.nanos);
 });
 function encPlan(intervalNanos) {
-  // flush edges still pending from an earlier interval
-  while (encEdges.length) {
-    encEdges.shift();
-    encPos += encStep;
-  }
+  // edges still pending from an earlier interval are planned again from where the pins are (one
+  // edge at a time: applying them at once would jump the Gray code by several states, which the
+  // decoder reads as no count or as a count the wrong way), then spread over this interval's first
+  // encWithin -- never closer than ENC_GAP_NS: a jump too large for the interval goes on into the
+  // next ones, as a fast real encoder's edges would
+  encEdges.length = 0;
   encAlarm.cancel();
   encApply(encPos);
   const n = Math.abs(encTarget - encPos);
@@ -558,7 +562,8 @@ function encPlan(intervalNanos) {
   encStep = encTarget > encPos ? 1 : -1;
   const t0 = clock.nanos;
   const span = encWithin > 0 && encWithin < intervalNanos ? encWithin : intervalNanos;
-  for (let k = 0; k < n; k++) encEdges.push(t0 + ((k + 0.5) * span) / n);
+  const gap = Math.max(span / n, ENC_GAP_NS);
+  for (let k = 0; k < n; k++) encEdges.push(t0 + (k + 0.5) * gap);
   encAlarm.schedule(encEdges[0] - t0);
 }
 encApply(0);
