@@ -180,13 +180,18 @@ def test_commission_a_realistic_cart_refuses_or_verifies(tmp_path) -> None:
     data, err, after, lines = _commission(plant, tmp_path / "c")
     st = json.loads((tmp_path / "c" / "commission.json").read_text())
     assert not any(t["fell"] for t in data.get("balance", {}).get("tries", []))
-    if err is None:
-        if not all(v["pass"] for v in after) and all(v.get("pass") for v in data["verify"].values()):
-            # seen at integration (the staged identification merged): the verification from telemetry
-            # passed while the plant's truth fails -- |xdd| 7.2 m/s^2 (backlash impacts the 10 Hz
-            # low-passed telemetry acceleration does not see) and a limit cycle that never settles in
-            # the 2 % band. The commissioning's verification on a robot with dry friction and backlash
-            # is not yet a judge of the truth (issue 24, open): an expected failure, with its figures
+    if err is None and not all(v.get("pass", True) for v in data["verify"].values()):
+        # the commissioning ran to its end and its own verification says FAIL (the CLI exits 1 with
+        # "verification FAIL"): a refusal at the last stage, in the robot's own telemetry. Seen at
+        # integration: the step settles in 4.66 s by telemetry (truth: never inside the 2 % band, a
+        # limit cycle) and |xdd| reads 2.6 m/s^2 where the truth peaks at 7.2 (backlash impacts the
+        # 10 Hz low-passed telemetry acceleration does not see)
+        assert set(data["verify"]) == {"ref_step_20cm", "push_0p2N_5s"}, data["verify"]
+    elif err is None:
+        if not all(v["pass"] for v in after):
+            # the verification from telemetry passing while the plant's truth fails: the telemetry's
+            # acceleration reads low on a cart with backlash (above), so the commissioning's
+            # verification is not yet a judge of the truth there (issue 24, open): an expected failure
             pytest.xfail(f"verified from telemetry, fails in truth on the realistic cart: {after}")
         assert all(v["pass"] for v in after), after
     else:
