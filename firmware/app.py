@@ -499,17 +499,13 @@ class App:
                     self._wdt_window(_SAVE_WDT_MS, locked)
                     self.service_save(locked)
                     self._wdt_window(self.wdt_ms, locked)
-                    self.sample_heap()
-                    self.timing.restart()
-                    self.sensors.follow(self._read_enc())
+                    self._paused()
                     deadline = ticks()
                     first = True
                 elif self._heap_due and (sup.state == DISARMED or sup.state == FAULT):
                     # heap statistics asked for (fill_stats) with the motor off: sampled
                     # between ticks (a heap walk, ~18 ms on a Pico), pacing restarts
-                    self.sample_heap()
-                    self.timing.restart()
-                    self.sensors.follow(self._read_enc())
+                    self._paused()
                     deadline = ticks()
                     first = True
                 deadline = add(deadline, self.period_us)
@@ -831,6 +827,14 @@ class App:
         # VERSION fields the app knows (the dispatcher adds version and table hashes)
         arr[3] = self.gains_crc
         arr[4] = self.reset_cause
+
+    def _paused(self):
+        # after a pause of the loop between ticks (a save, a heap walk; motor off): the heap
+        # sampled, the pause not timed as a period, the encoder's counts of the pause followed
+        # (a rolling cart is not an encoder jump)
+        self.sample_heap()
+        self.timing.restart()
+        self.sensors.follow(self._read_enc())
 
     def sample_heap(self):
         # the heap statistics STATS_LOOP reports (outside the control tick only: see __init__)

@@ -59,8 +59,8 @@ _HB_US = const(400)
 _FRAME_US = const(1200)
 _HEAVY_US = const(1600)
 _SCAN_US = const(500)
-_FORCE = const(8)
-_USER_MARGIN = const(100)  # us a user hook leaves before the next step is due  # ticks a backlog waits at most before one frame goes whatever the time
+_FORCE = const(8)  # ticks a backlog waits at most before one frame goes whatever the time
+_USER_MARGIN = const(100)  # us a user hook leaves before the next step is due
 _U16 = const(65535)
 _CMAX = const(0x3FFFFFFF)  # frame counter wrap (framing.SerialTx.n_sent)
 
