@@ -625,14 +625,19 @@ class App:
     def attach_store(self, store):
         # start-up: the newest valid saved copy replaces the defaults; copies there but none
         # valid -> defaults, F_CONFIG (arming refused until a table is uploaded).  -> status
-        from .store import CORRUPT, LOADED
+        # A copy an older firmware saved with another gain-table layout keeps its parameters
+        # (the calibration): its table converted (MIGRATED) or dropped for ours (PARAMS_ONLY).
+        from .store import CORRUPT, LOADED, MIGRATED, PARAMS_ONLY, upgrade
         self.store = store
         store.n_params = T.N_PARAMS
         store.n_table = self.ctrl.length
-        st, params, table = store.load(self._config_check)
+        n = self.ctrl.length
+        st, params, table = store.load(self._config_check, lambda t: upgrade(t, self.version, n),
+                                       self._params_check)
         self.cfg_status = st
-        if st == LOADED:
-            self._install_table(table, len(table))
+        if st == LOADED or st == MIGRATED or st == PARAMS_ONLY:
+            if table is not None:
+                self._install_table(table, len(table))
             p = self.params
             for i in range(T.N_PARAMS):
                 p[i] = params[i]
@@ -643,13 +648,17 @@ class App:
             self.sup.state = FAULT
         return st
 
-    def _config_check(self, params, table):
-        # a saved copy's content: every parameter in range, the table passes the check
+    def _params_check(self, params):
+        # every saved parameter in range
         for q in T.PARAMS:
             v = params[q[0]]
             if v < q[3] or v > q[4]:
                 return False
-        return self.ctrl.validate(table, len(table), self.version) == T.OK
+        return True
+
+    def _config_check(self, params, table):
+        # a saved copy's content: every parameter in range, the table passes the check
+        return self._params_check(params) and self.ctrl.validate(table, len(table), self.version) == T.OK
 
     def cmd_save(self, disp, seq):
         # SAVE_CONFIG: queue a save of the parameters and the active table; disp.reply()

@@ -410,7 +410,9 @@ STATUS = (
      "(the link's per-tick budget was spent) since start (saturates at 65535)"),
     (S_LINK_WAIT_MAX, "link_wait_max", "tick", "longest time a host frame waited in the receive buffer, in ticks"),
     (S_CFG_STATUS, "cfg_status", "", "saved configuration at start-up: 0 loaded, 1 empty (none saved), 2 corrupt "
-     "(copies there, none valid: defaults, F_CONFIG), 3 no storage"),
+     "(copies there, none valid: defaults, F_CONFIG), 3 no storage, 4 migrated (a copy of an older gain-table "
+     "layout: parameters kept, table converted), 5 params only (a copy of another table layout: parameters kept, "
+     "the firmware's own table)"),
     (S_CFG_SLOT, "cfg_slot", "", "the saved copy in force: 0 (cfg_a.bin), 1 (cfg_b.bin), -1 none (defaults)"),
     (S_CFG_SEQ, "cfg_seq", "", "sequence number of the saved copy in force (0: none); each save writes newest + 1"),
     (S_STARTS, "starts", "", "control-loop starts since the board started: 1, +1 after each MODE switch back to "

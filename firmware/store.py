@@ -22,6 +22,11 @@
 #   store = ConfigStore(root)             root: "" (board: the filesystem root) or a directory
 #   st, params, table = store.load(check) st: LOADED, EMPTY (no copy at all: first start) or
 #                                         CORRUPT (copies there, none valid)
+#   store.load(check, migrate, params_ok) also keeps what a firmware update left readable: a
+#                                         copy whose table has another layout (an older gain-table
+#                                         version) gives MIGRATED (its table converted by
+#                                         migrate(table), see upgrade()) or PARAMS_ONLY (the
+#                                         parameters, table None: the caller keeps its own)
 #   store.save(params, table)             -> the new sequence number; OSError on a write error
 # Never called from the control tick (it allocates and may wait for flash erases): the app
 # runs a requested save between ticks, only while the motor is off (firmware/app.py).
@@ -40,7 +45,15 @@ from . import crc16
 LOADED = const(0)
 EMPTY = const(1)
 CORRUPT = const(2)
-STATUS_NAMES = ("loaded", "empty", "corrupt")
+# 3 is the app's "no storage" (msgtable S_CFG_STATUS)
+MIGRATED = const(4)
+PARAMS_ONLY = const(5)
+STATUS_NAMES = ("loaded", "empty", "corrupt", "no storage", "migrated", "params only")
+
+# Gain-table layouts an update can convert (upgrade()): (old version, old length, where the
+# new ints go, the ints).  Version 1 -> 2 appended EST (issue 27: 0, the full estimator the
+# version-1 firmware ran); tests/test_store_migration.py checks this against firmware/gains.py.
+UPGRADES = ((1, 114, 114, (0,)),)
 
 MAGIC = b"UPCF"
 _FORMAT = const(1)
@@ -78,13 +91,36 @@ def encode(seq, params, table, crc_table=None):
     return buf
 
 
+def upgrade(table, version, length):
+    # a saved table of an older layout converted to (version, length) by UPGRADES (the
+    # header's version and length rewritten), or None when no step converts it
+    t = list(table)
+    steps = 0
+    while steps < len(UPGRADES) + 1:
+        if len(t) == length and t[0] == version and t[2] == length:
+            return t
+        for u in UPGRADES:
+            if t[0] == u[0] and len(t) == u[1] and t[2] == u[1]:
+                t = t[:u[2]] + list(u[3]) + t[u[2]:]
+                t[0] = u[0] + 1
+                t[2] = len(t)
+                break
+        else:
+            return None
+        steps += 1
+    return None
+
+
 def decode(data, n_params, n_table, crc_table=None):
-    # (seq, params, table) of a copy, or None if it is not a complete, intact copy of this shape
-    if data is None or len(data) != _HEAD + 4 * (n_params + n_table) + 2:
-        return None
-    if data[0:4] != MAGIC:
+    # (seq, params, table) of a copy, or None if it is not a complete, intact copy of this
+    # shape (n_table < 0: any table length, the one its header gives)
+    if data is None or len(data) < _HEAD + 2 or data[0:4] != MAGIC:
         return None
     fmt, n, m, seq = struct.unpack_from("<BBHI", data, 4)
+    if n_table < 0:
+        n_table = m
+    if len(data) != _HEAD + 4 * (n_params + n_table) + 2:
+        return None
     if fmt != _FORMAT or n != n_params or m != n_table:
         return None
     if crc16.compute(crc_table if crc_table is not None else crc16.make_table(), data, 0, len(data)) != 0:
@@ -124,9 +160,28 @@ class ConfigStore:
         except OSError:
             return None
 
-    def load(self, check=None):
+    def _older(self, rec, check, migrate, params_ok):
+        # (status, table) of an intact copy whose table has another layout than ours (a
+        # firmware update), or None: converted by migrate(table) and passing check -> MIGRATED;
+        # else its parameters alone if params_ok(params) -> PARAMS_ONLY (table None)
+        # A table of our length is dropped only when converted from an older version: our
+        # length with content failing the check (a bad version included) stays CORRUPT.
+        params, table = rec[1], rec[2]
+        if params_ok is None or not params_ok(params):
+            return None
+        t = migrate(table) if migrate is not None else None
+        if t is not None and t != table and len(t) == self.n_table and (check is None or check(params, t)):
+            return MIGRATED, t
+        if len(table) == self.n_table:
+            return None
+        return PARAMS_ONLY, None
+
+    def load(self, check=None, migrate=None, params_ok=None):
         # -> (status, params, table): the newest valid copy, or (EMPTY/CORRUPT, None, None).
-        # check(params, table) -> True: the caller's content check (ranges, table check)
+        # check(params, table) -> True: the caller's content check (ranges, table check);
+        # migrate(table) -> the table converted to our layout (or None), params_ok(params) ->
+        # True: with both, an intact copy of another table layout is MIGRATED / PARAMS_ONLY
+        # (the newest usable copy wins, whatever its status)
         best = None
         found = 0
         self.valid = 0
@@ -136,11 +191,17 @@ class ConfigStore:
                 continue
             found += 1
             rec = decode(data, self.n_params, self.n_table, self.crc)
+            st = LOADED
             if rec is None or (check is not None and not check(rec[1], rec[2])):
-                continue
+                rec = decode(data, self.n_params, -1, self.crc)
+                old = None if rec is None else self._older(rec, check, migrate, params_ok)
+                if old is None:
+                    continue
+                st = old[0]
+                rec = (rec[0], rec[1], old[1])
             self.valid += 1
             if best is None or newer(rec[0], best[0]):
-                best = (rec[0], rec[1], rec[2], slot)
+                best = (rec[0], rec[1], rec[2], slot, st)
         if best is None:
             self.seq = 0
             self.slot = -1
@@ -148,8 +209,8 @@ class ConfigStore:
             return self.status, None, None
         self.seq = best[0]
         self.slot = best[3]
-        self.status = LOADED
-        return LOADED, best[1], best[2]
+        self.status = best[4]
+        return best[4], best[1], best[2]
 
     def save(self, params, table):
         # write a new copy into the slot not holding the newest valid one; -> its seq
