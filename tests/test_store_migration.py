@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from firmware import gains as G
 from firmware import msgtable as T
 from firmware.app import App
@@ -146,3 +148,35 @@ def test_unix_port_boots_a_v1_copy_with_its_calibration(tmp_path: Path) -> None:
     assert lines["boot"][:2] == [str(MIGRATED), str(MIGRATED)], out
     assert int(lines["boot"][2]) & F_CONFIG == 0, out
     assert lines["params"] == ["1"] and lines["table"] == ["1", "0"], out
+
+
+# ---------------------------------------------------------------- the emulated RP2040
+@pytest.mark.slow
+@pytest.mark.rp2040
+def test_emulated_board_boots_a_v1_copy_with_its_calibration(tmp_path: Path) -> None:
+    """The flashed firmware (main.py, HalPico, LittleFS) powering up on a flash whose
+    configuration the version-1 firmware saved: the calibration is there, read over the link."""
+    from host.boards.rp2040.board import EmulatedBoard, build_bundle
+    from host.hil.emulated import EmulatedHil
+    from host.link import messages as M
+
+    p = [q[5] for q in T.PARAMS]
+    p[T.P_TILT_LIMIT] = 321
+    p[T.P_POT_OFFSET] = 2100
+    p[T.P_ADC_SIGN] = -1
+    p[T.P_MOTOR_SIGN] = -1
+    blob = bytes(encode(3, p, v1_table()))
+    with EmulatedBoard(build_bundle(tmp_path / "bundle"), main=True, files={NAMES[0]: blob}) as b:
+        b.set_adc(2100)
+        h = EmulatedHil(board=b).open()
+        h._idle(20_000.0)
+
+        def get(i: int) -> int:
+            return int(h.request(M.ParamGet(index=i)).value)
+
+        st = [get(T.STATUS_BASE + k) for k in (T.S_CFG_STATUS, T.S_CFG_SLOT, T.S_CFG_SEQ)]
+        got = [get(q[0]) for q in T.PARAMS]
+        faults = int(h.request(M.Request(msg_id=T.HEARTBEAT)).faults)
+    assert st == [MIGRATED, 0, 3], st
+    assert got == p, got
+    assert faults & F_CONFIG == 0, faults
