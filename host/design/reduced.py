@@ -46,7 +46,8 @@ from sim.params import RobotParams
 from sim.plant import linear_model
 
 __all__ = ["MEASURED", "UNMEASURED", "REDUCED_POLES_DEFAULT", "ReducedObserver", "reduced_observer",
-           "discrete_reduced_observer", "ReducedOrderController", "reduced_controller", "reduced_for"]
+           "discrete_reduced_observer", "ReducedOrderController", "reduced_controller", "reduced_for",
+           "back_emf_gain", "noise_response"]
 
 REDUCED_POLES_DEFAULT = (-4.0, -5.0)
 """Continuous observer poles (rad/s) of the exported reduced-order table (``upright export
@@ -56,8 +57,13 @@ sensors' noise and counts into the speed estimates -- the report's uniform 5 mm 
 then breaks the 5 m/s^2 acceleration limit (peak 3.5 m/s^2 at -4/-5, 4.2 at -5/-6, 4.8 at -6/-7,
 5.5 at -7/-8) -- and at -5/-6 the kick's tilt settles in a one-count limit cycle past the band
 (3.12 s); -4/-5 meets every constraint the full estimator meets there except under the report's
-white noise.  No poles keep the pendulum up under that noise (0.07 rad rms on the angle per tick,
-fed straight into the force): it needs the full estimator's filtering."""
+white noise.  No poles meet that noise (0.07 rad rms on the angle, 71 mm on the position, per
+tick): :func:`noise_response` of the linear loop (which agrees with the float simulator within
+1-8 %) gives 20.9 N rms of force at -4/-5 and at best 4.85 N over a sweep of pole pairs from -0.5
+to -80 rad/s (4.62 N with all four entries of ``Lr`` optimised), against the 2.88 N clamp and the
+full estimator's 0.68 N: the measured ``x, phi`` go straight into ``-K x`` and the differentiated
+position into the speed estimate, which the back-EMF compensation multiplies by
+:func:`back_emf_gain` (44 N s/m).  It needs the full estimator's filtering."""
 
 MEASURED = (0, 2)
 """State indices the sensors give: x, phi."""
@@ -292,3 +298,92 @@ def reduced_for(params: RobotParams, ctrl: DiscreteController,
     """
     pl = REDUCED_POLES_DEFAULT if poles is None else poles
     return reduced_controller(params, ctrl.K[0], pl, 1.0 / ctrl.Ts, ctrl.delay_steps * ctrl.Ts, u_max=ctrl.u_max)
+
+
+def back_emf_gain(params: RobotParams) -> float:
+    """Force per cart speed (N s/m) of the drive's back-EMF: ``n g^2 kt^2 / (R r^2)``.
+
+    The firmware (and :func:`sim.motor.duty_from_force`) compensates it with the *estimated*
+    cart speed, so an error ``e`` of that estimate becomes a force error ``b e`` on the cart --
+    44 N per m/s for the report's robot, against a force clamp of 2.9 N.
+    """
+    from sim.motor import motor_constants
+
+    c = motor_constants(params)
+    return float(c["n_motors"] * c["gear"] ** 2 * c["kt"] ** 2 / (c["R"] * c["r_wheel"] ** 2))
+
+
+def noise_response(params: RobotParams, ctrl: DiscreteController, sigma_meas: Sequence[float], *,
+                   back_emf: bool = True, sigma_force: float | None = None,
+                   sigma_acc: Sequence[float] | None = None) -> dict[str, float]:
+    """Steady-state standard deviations of the linear closed loop under white sensor noise.
+
+    The delayed plant (``Ad, Bd``, ``delay_steps`` ticks on both outputs), the controller
+    ``ctrl`` (any :class:`~host.design.discrete.DiscreteController`: the full estimator or a
+    :class:`ReducedOrderController`), white measurement noise ``sigma_meas`` (x in m, phi in rad,
+    per tick) and the Kalman design's process noise (:data:`host.design.discrete.SIGMA_FORCE`,
+    ``SIGMA_ACC``).  With ``back_emf`` the force the cart gets is the command plus
+    :func:`back_emf_gain` times the error of the controller's speed estimate (the firmware's
+    compensation with the estimated speed); the controller stores the command.  No saturation:
+    a force figure near the clamp means the loop spends its time saturated.
+
+    Returns
+    -------
+    dict
+        ``force`` (N, the force on the cart), ``command`` (N), ``speed_error`` (m/s, of the
+        estimate the compensation uses), ``phi`` (rad), ``x`` (m).
+    """
+    import scipy.linalg as sl
+
+    from host.design.discrete import SIGMA_ACC, SIGMA_FORCE
+
+    sf = SIGMA_FORCE if sigma_force is None else float(sigma_force)
+    sa = SIGMA_ACC if sigma_acc is None else tuple(sigma_acc)
+    Ad, Bd, C, Ts, d = ctrl.Ad, ctrl.Bd, ctrl.C, ctrl.Ts, ctrl.delay_steps
+    if d < 1:
+        raise ValueError("noise_response needs a controller with a measurement delay of at least one tick")
+    nc = ctrl.Ac.shape[0]
+    N = 4 + 2 * d + nc  # plant, delay line q_i = C x[k-1-i], controller
+    iz = slice(4 + 2 * d, N)
+    A = np.zeros((N, N))
+    W = np.zeros((N, 6))  # 4 process, 2 measurement noises
+    Sy = np.zeros((2, N))
+    Sy[:, 4 + 2 * (d - 1):4 + 2 * d] = np.eye(2)
+    Dv = np.zeros((2, 6))
+    Dv[:, 4:] = np.diag(np.asarray(sigma_meas, float))
+    # command u_c = Cc zc + Dc y
+    Kc = np.zeros((1, N))
+    Kc[:, iz] = ctrl.Cc
+    Kc += ctrl.Dc[:, :2] @ Sy
+    Kcv = ctrl.Dc[:, :2] @ Dv
+    # the controller's estimate xh = Ez zc + Ev y (x_ref 0)
+    n = ctrl.n
+    Ez = np.column_stack([ctrl.estimate(np.eye(n)[i], np.zeros(3)) for i in range(n)])
+    Ev = np.column_stack([ctrl.estimate(np.zeros(n), np.eye(3)[i]) for i in range(3)])[:, :2]
+    e_sp = np.zeros((1, N))
+    e_sp[0, iz] = Ez[1]
+    e_sp += Ev[1:2] @ Sy
+    e_sp[0, 1] -= 1.0
+    e_spv = Ev[1:2] @ Dv
+    b = back_emf_gain(params) if back_emf else 0.0
+    Ku, Kuv = Kc + b * e_sp, Kcv + b * e_spv
+    A[:4, :4] = Ad
+    A[:4] += Bd @ Ku
+    W[:4] += Bd @ Kuv
+    Qn = sf**2 * (Bd @ Bd.T) + np.diag([0.0, (sa[0] * Ts) ** 2, 0.0, (sa[1] * Ts) ** 2])
+    W[:4, :4] = np.linalg.cholesky(Qn + 1e-18 * np.eye(4))
+    A[4:6, :4] = C
+    for i in range(1, d):
+        A[4 + 2 * i:6 + 2 * i, 4 + 2 * (i - 1):4 + 2 * i] = np.eye(2)
+    A[iz, iz] = ctrl.Ac
+    A[iz] += ctrl.Bc[:, :2] @ Sy + ctrl.Bu @ Kc
+    W[iz] += ctrl.Bc[:, :2] @ Dv + ctrl.Bu @ Kcv
+    if np.max(np.abs(np.linalg.eigvals(A))) >= 1.0:
+        raise ValueError("the closed loop is unstable")
+    X = sl.solve_discrete_lyapunov(A, W @ W.T)
+
+    def sd(row: np.ndarray, rowv: np.ndarray) -> float:
+        return float(np.sqrt((row @ X @ row.T + rowv @ rowv.T)[0, 0]))
+
+    return {"force": sd(Ku, Kuv), "command": sd(Kc, Kcv), "speed_error": sd(e_sp, e_spv),
+            "phi": float(np.sqrt(X[2, 2])), "x": float(np.sqrt(X[0, 0]))}
