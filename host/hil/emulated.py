@@ -178,6 +178,15 @@ class PinDrive:
         if not self.lazy or d:
             self.board.set_encoder(self.enc_total, within_us=max(self.enc_within_us, abs(d) * EDGE_US))
 
+    def sync(self, r: StepResult) -> None:
+        """Take the motor pins' state at the end of run ``r`` (runs not read through
+        :meth:`duty`, e.g. the set-up between two scenarios: otherwise the next scenario's first
+        tick starts from the last duty the previous one read, whatever the board did since)."""
+        m = self.motor
+        m["compare"], m["top"], m["enabled"] = r.pwm_compare, r.pwm_top, r.pwm_enabled
+        m["dir"], m["en"] = r.dir or 0, r.en or 0
+        m.pop("en_frac", None)
+
     def duty(self, r: StepResult, c0: int, c1: int) -> float:
         """The average duty the H-bridge applied over cycles ``[c0, c1)`` of run ``r``
         (:attr:`en_fraction`: the part of it the bridge was enabled)."""
@@ -499,6 +508,9 @@ class EmulatedHil:
         self.host.send(M.BY_NAME["arm"](epoch=epoch))  # type: ignore[union-attr]
         self._iters.clear()
         r, _ = self._run((start - b.cycles) / CYCLES_PER_US, sink)
+        # the pins as the set-up left them (disarmed since the last scenario: duty 0, EN low)
+        assert self.pins is not None
+        self.pins.sync(r)
         # the scenario, one plant tick at a time
         n = sim.n_ticks
         fw_state = np.full(n, -1, dtype=np.int64)
