@@ -121,7 +121,7 @@ class _Store:
         self.n_table = 0
         self.saved = 0
 
-    def load(self, check=None):
+    def load(self, check=None, migrate=None, params_ok=None):
         return self.status, None, None
 
     def save(self, params, table) -> int:
