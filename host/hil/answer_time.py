@@ -6,6 +6,11 @@ at 0.05-0.4x real time on a loaded machine, and the same answer then takes 3-20 
 the wall.  :func:`board_speed` measures the board's clock against the host's (two heartbeats'
 ``uptime_ms`` one wall second apart) and :func:`answer_time` scales the wait by it, so
 ``upright hil --port`` works unchanged against either (``--timeout`` fixes it instead).
+
+The board tools (:class:`host.operate.board.Board`: ``upright board status``, ``log``, ``excite``,
+``calibrate``, ``gains upload``, ``upright commission --port``) use the same measurement for
+their own waits: :func:`request_time` per request attempt (:data:`REQUEST_S` at full speed) and
+:func:`wall_time` for any wait stated in board seconds.
 """
 
 from __future__ import annotations
@@ -16,13 +21,18 @@ from host.hil.errors import HilError
 from host.link import messages as M
 from host.link.clients import Link, LinkTimeout
 
-__all__ = ["BASE_S", "MAX_S", "first_answer", "board_speed", "answer_time", "describe"]
+__all__ = ["BASE_S", "MAX_S", "REQUEST_S", "REQUEST_MAX_S", "first_answer", "board_speed", "answer_time",
+           "request_time", "wall_time", "describe"]
 
 #: seconds of wall time per answer for a board at full speed
 BASE_S = 2.0
 #: the longest automatic answer time (a board at 1/50 of real time)
 MAX_S = 100.0
 _MIN_SPEED = BASE_S / MAX_S
+#: seconds of wall time per request attempt of the board tools, for a board at full speed
+REQUEST_S = 0.3
+#: the longest automatic request attempt (a board at 1/33 of real time and slower)
+REQUEST_MAX_S = 10.0
 _REQUEST = M.BY_NAME["request"]
 
 
@@ -83,6 +93,21 @@ def _retry(link: Link, timeout: float) -> tuple[int, float]:
 def answer_time(speed: float) -> float:
     """Seconds of wall time to wait for one answer of a board running at ``speed``."""
     return min(MAX_S, BASE_S / max(_MIN_SPEED, min(1.0, float(speed))))
+
+
+def _clip(speed: float) -> float:
+    return max(_MIN_SPEED, min(1.0, float(speed)))
+
+
+def request_time(speed: float, base: float = REQUEST_S) -> float:
+    """Seconds of wall time per request attempt to a board running at ``speed`` (``base`` at full
+    speed, at most :data:`REQUEST_MAX_S`)."""
+    return min(max(REQUEST_MAX_S, base), base / _clip(speed))
+
+
+def wall_time(board_s: float, speed: float) -> float:
+    """Wall seconds in which a board running at ``speed`` lives ``board_s`` seconds of its own clock."""
+    return float(board_s) / _clip(speed)
 
 
 def describe(speed: float, timeout: float) -> str:

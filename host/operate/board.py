@@ -229,13 +229,20 @@ class Board:
         self._keepalive = Keepalive(self.send)
         self._closed = False
         self.listeners: list[Callable[[Any, int | None, float], None]] = []
+        #: board seconds per wall second (:meth:`measure_speed`; 1 until measured)
+        self.speed = 1.0
+        self._first: tuple[int, float] | None = None
 
     # ---- opening ----
     @classmethod
     def open(cls, port: str, *, link: str = "serial", baudrate: int | None = None, node: int = 1,
-             can_interface: str = "slcan", timeout: float = 0.3, retries: int = 3,
-             answer_timeout: float = 3.0, check_identity: bool = True) -> "Board":
+             can_interface: str = "slcan", timeout: float | None = None, retries: int = 3,
+             answer_timeout: float = 10.0, check_identity: bool = True) -> "Board":
         """Open ``port``, wait for the board to answer and check who it is.
+
+        ``timeout`` (s per request attempt): ``None`` measures the board's speed once it answers
+        (:meth:`measure_speed`, half a second) and scales the full-speed 0.3 s by it
+        (:func:`host.hil.answer_time.request_time`: an emulated board at 0.15x gets 2 s).
 
         Raises
         ------
@@ -243,6 +250,8 @@ class Board:
             Port cannot be opened, no answer within ``answer_timeout`` s, or a board whose
             message table differs from this host's (:class:`IdentityMismatch`).
         """
+        from host.hil.answer_time import REQUEST_S, request_time
+
         if baudrate is None:
             from firmware.board import UART_BAUD
 
@@ -252,9 +261,11 @@ class Board:
             lk = open_link(spec, node_id=node, baudrate=baudrate)
         except (LinkError, ValueError) as exc:
             raise BoardError(str(exc).splitlines()[0]) from exc
-        b = cls(lk, port=port, timeout=timeout, retries=retries)
+        b = cls(lk, port=port, timeout=REQUEST_S if timeout is None else timeout, retries=retries)
         try:
             b.connect(answer_timeout=answer_timeout, check_identity=check_identity)
+            if timeout is None:
+                b.timeout = request_time(b.measure_speed())
         except BaseException:
             b.close(disarm=False)
             raise
@@ -265,7 +276,8 @@ class Board:
         deadline = time.monotonic() + answer_timeout
         while True:
             try:
-                self.query("heartbeat", timeout=min(self.timeout, answer_timeout), retries=0)
+                hb = self.query("heartbeat", timeout=min(self.timeout, answer_timeout), retries=0)
+                self._first = (int(hb.uptime_ms), time.monotonic())
                 break
             except BoardError as exc:
                 if not isinstance(exc.__cause__, LinkTimeout) or time.monotonic() >= deadline:
@@ -309,6 +321,31 @@ class Board:
                     f"{ident['host_table_hash']:#06x}: flash this checkout's firmware (make firmware && make flash)")
         self.identity = ident
         return ident
+
+    # ---- the board's clock ----
+    def measure_speed(self, wall_s: float = 0.5) -> float:
+        """Measure :attr:`speed` (board seconds per wall second, at most 1) from two heartbeats
+        ``wall_s`` apart (:func:`host.hil.answer_time.board_speed`, as ``upright hil --port``);
+        the first is the one :meth:`connect` got, when there is one."""
+        from host.hil.answer_time import board_speed
+        from host.hil.errors import HilError
+
+        first = self._first
+        if first is None:
+            hb = self.query("heartbeat")
+            first = (int(hb.uptime_ms), time.monotonic())
+        try:
+            self.speed = board_speed(self.link, first, wall_s=wall_s, timeout=max(10.0, 10 * self.timeout))
+        except HilError as exc:
+            raise BoardError(f"{self.port}: {exc}") from None
+        self._first = None
+        return self.speed
+
+    def wall(self, board_s: float) -> float:
+        """Wall seconds in which the board lives ``board_s`` seconds at its measured :attr:`speed`."""
+        from host.hil.answer_time import wall_time
+
+        return wall_time(board_s, self.speed)
 
     # ---- receiving ----
     def _observe(self, msg: Any, seq: int | None, t: float) -> None:
@@ -515,7 +552,7 @@ class Board:
             The firmware refuses it as unknown.
         """
         cls = M.BY_NAME["save_config"]
-        self.request(cls(), timeout=max(self.timeout, 1.0))
+        self.request(cls(), timeout=max(self.timeout, self.wall(1.0)))
         return cls.NAME
 
     def upload_gains(self, blob: bytes) -> dict[str, Any]:

@@ -54,8 +54,9 @@ class PortRobot:
     ----------
     port : str
     baudrate : int, optional
-    timeout : float
-        Seconds per request attempt (an emulated board under load needs more than a real one's 0.3).
+    timeout : float, optional
+        Seconds per request attempt (default: 0.3 s scaled by the board's measured speed,
+        :meth:`host.operate.board.Board.measure_speed`).
     hands : str
         ``auto`` (the virtual robot's hands if one listens on the port), ``person``, or a socket path.
     say : callable
@@ -67,11 +68,11 @@ class PortRobot:
     kind = "port"
     can_push = False
 
-    def __init__(self, port: str, *, baudrate: int | None = None, hands: str = "auto", timeout: float = 1.0,
+    def __init__(self, port: str, *, baudrate: int | None = None, hands: str = "auto", timeout: float | None = None,
                  say: Callable[[str], None] = print, ask: Callable[..., str] | None = None) -> None:
         self.port = port
         self.baudrate = baudrate
-        self.timeout = float(timeout)
+        self.timeout = timeout
         self.hands_choice = hands
         self.say = say
         self.ask = ask or (lambda prompt, idle=None: input(prompt + " [Enter] "))
@@ -85,24 +86,14 @@ class PortRobot:
         """Open the board (identity checked) and find the hands."""
         from host.operate.calibrate import robot_hands
 
-        self.board = Board.open(self.port, baudrate=self.baudrate, timeout=self.timeout, answer_timeout=10.0)
+        # timeout None: the request time scaled by the board's measured speed (Board.measure_speed)
+        self.board = Board.open(self.port, baudrate=self.baudrate, timeout=self.timeout)
         self.hands = robot_hands(self.hands_choice, self.port)
-        self.speed = self._speed()
+        self.speed = self.board.speed
         if self.speed < 0.9:
-            self.say(f"  the board runs at {self.speed:.2f}x real time (emulated): the runs last longer")
+            self.say(f"  the board runs at {self.speed:.2f}x real time (emulated): {self.board.timeout:.1f} s per "
+                     "request attempt, the runs counted in its own ticks")
         return self
-
-    def _speed(self, wall: float = 2.0) -> float:
-        # board seconds per wall second, from its uptime (an emulated board runs 0.1-0.4x):
-        # the tools' --seconds are wall seconds, the identification needs board ticks
-        b = self._b()
-        u0, t0 = b.status_values().get("uptime_ms"), time.monotonic()
-        if u0 is None:
-            return 1.0
-        while time.monotonic() - t0 < wall:
-            b.poll(0.05)
-        u1, t1 = b.status_values().get("uptime_ms"), time.monotonic()
-        return min(1.0, max(0.02, (u1 - u0) / 1000.0 / (t1 - t0))) if u1 is not None else 1.0
 
     def close(self) -> None:
         """Disarm if armed here, close the link and the hands."""
@@ -187,8 +178,9 @@ class PortRobot:
 
         stopped = False
         try:
-            run_excite(b, path, seconds=seconds / self.speed, amplitude_n=amp_n, div=div, cart_only=(mode == 2),
-                       coast_s=coast_s / self.speed,
+            # durations in the board's own ticks: the same log whatever the board's speed
+            run_excite(b, path, seconds=seconds, board_seconds=seconds, amplitude_n=amp_n, div=div,
+                       cart_only=(mode == 2), coast_s=coast_s, board_coast_s=coast_s,
                        progress=progress if mode == 1 else None)
         except BoardError as exc:
             if not isinstance(exc.__cause__, _Stop):
@@ -231,7 +223,7 @@ class PortRobot:
                 b.clear_faults()
             b.set_reference(0.0)
             b.arm()
-            if wait_state(b, ("balancing",), 5.0) != "balancing":
+            if wait_state(b, ("balancing",), b.wall(5.0)) != "balancing":
                 raise BoardError(f"{self.port}: the board did not start balancing")
             n_ticks = int(round(scenario.duration * float(p.rate)))
             t_ref = scenario.reference
