@@ -416,8 +416,25 @@ class Board:
     # ---- the host heartbeat ----
     def keepalive(self) -> bool:
         """Feed the board's link watchdog (:class:`host.link.clients.Keepalive`: the host
-        heartbeat) if its period passed since the last feed.  Returns True if it was sent."""
+        heartbeat) if its period passed since the last feed.  Returns True if it was sent.
+
+        While this host has the board armed the link's own heartbeat thread feeds it
+        (:meth:`arm`): then this sends nothing."""
+        if getattr(self.link, "heartbeat_running", False):
+            return False
         return self._keepalive.tick()
+
+    def _beat(self, on: bool) -> None:
+        # the host heartbeat from the link's thread while armed: a request waiting out its (board-
+        # scaled) attempts, a disk write or the hands' socket in the tool's loop must not starve the
+        # board's link watchdog, which counts the board's time (250 ms: 1.7 s of wall at 0.15x)
+        try:
+            if on:
+                self.link.start_heartbeat(board_period=0)
+            else:
+                self.link.stop_heartbeat()
+        except (AttributeError, LinkError, OSError, ValueError):
+            pass
 
     # ---- state ----
     def state(self, fresh: bool = True) -> dict[str, Any]:
@@ -504,11 +521,13 @@ class Board:
                     raise
         self.armed_by_us = True
         self._keepalive.fed()
+        self._beat(True)
 
     def disarm(self) -> None:
         """Disarm (always accepted)."""
         self.request(M.BY_NAME["disarm"]())
         self.armed_by_us = False
+        self._beat(False)
 
     def clear_faults(self) -> None:
         """Clear latched faults (refused while armed)."""

@@ -29,6 +29,14 @@ from sim.params import RobotParams
 __all__ = ["PortRobot"]
 
 
+CART_DIV = 16
+"""Control ticks per PRBS bit of the cart-only run: 32 ms at 500 Hz, about three time constants of
+the drive (the cart's mass against its back-EMF damping, ~30 ms), so the cart reaches speed within
+a bit and is moving at the disarm -- the coast-down's start speed is what the friction is measured
+from. At 4 ticks (8 ms) the cart only dithered at a few mm/s on the virtual robot, stopped within a
+count after the disarm, and the first stage read b 8.0 N s/m for 0.5."""
+
+
 class _Stop(BoardError):
     """The recorded tilt left the bound: the excitation is stopped."""
 
@@ -157,9 +165,14 @@ class PortRobot:
             b.save()
         self.fw_params = fw_params
 
-    def excite(self, mode: int, amp_n: float, *, seconds: float, div: int = 4, coast_s: float = 3.0,
+    def excite(self, mode: int, amp_n: float, *, seconds: float, div: int | None = None, coast_s: float = 3.0,
                phi_stop: float = math.inf) -> Any:
-        """One excitation run recorded (:func:`host.operate.excite.run_excite`); see the lockstep robot's."""
+        """One excitation run recorded (:func:`host.operate.excite.run_excite`); see the lockstep robot's.
+
+        ``div`` (control ticks per PRBS bit): default :data:`CART_DIV` for the cart-only run, else 4.
+        """
+        if div is None:
+            div = CART_DIV if mode == 2 else 4
         from host.operate.commission_lockstep import ExciteRun
         from host.operate.excite import run_excite
 
