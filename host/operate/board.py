@@ -204,6 +204,10 @@ def gains_blob_from_design(params: str | Path | None = None) -> tuple[bytes, str
 
 
 # ------------------------------------------------------------------ the board
+_DRAIN_S = 0.05
+"""Seconds :meth:`Board.poll` goes on draining queued messages past its deadline."""
+
+
 class Board:
     """An open link to a board with the state the host keeps about it.
 
@@ -232,6 +236,11 @@ class Board:
         #: board seconds per wall second (:meth:`measure_speed`; 1 until measured)
         self.speed = 1.0
         self._first: tuple[int, float] | None = None
+        from host.hil.answer_time import ClockTrack
+
+        self._clock = ClockTrack()
+        self._clock_measured = False  # speed followed from the heartbeats once measure_speed ran
+        self._feeder: Any = None
 
     # ---- opening ----
     @classmethod
@@ -339,7 +348,20 @@ class Board:
         except HilError as exc:
             raise BoardError(f"{self.port}: {exc}") from None
         self._first = None
+        self._clock = type(self._clock)(speed=self.speed)
+        self._clock_measured = True
+        from host.hil.answer_time import keepalive_period
+
+        self._keepalive.period = keepalive_period(self.speed)
         return self.speed
+
+    def _clock_seen(self, uptime_ms: int, t: float) -> None:
+        from host.hil.answer_time import keepalive_period
+
+        sp = self._clock.observe(uptime_ms, t)
+        if self._clock_measured:
+            self.speed = sp
+        self._keepalive.period = keepalive_period(sp)
 
     def wall(self, board_s: float) -> float:
         """Wall seconds in which the board lives ``board_s`` seconds at its measured :attr:`speed`."""
@@ -352,6 +374,8 @@ class Board:
         if msg.NAME == "heartbeat":
             self.heartbeat = msg
             self.hb_times.append(t)
+            if seq is not None:  # a periodic one (a reply's time is the request's)
+                self._clock_seen(int(msg.uptime_ms), t)
         for fn in self.listeners:
             fn(msg, seq, t)
 
@@ -376,7 +400,12 @@ class Board:
                 self._observe(*item)
                 out.append(item)
                 if not left:
-                    # drain what is queued, then return
+                    # drain what is queued, then return -- but only for _DRAIN_S past the deadline: a
+                    # host slower than the board's stream (starved by the machine's load) would else
+                    # drain forever and its caller's keepalive never run (the board's watchdog
+                    # latched so); what stays queued is read on the next call
+                    if t - deadline > _DRAIN_S:
+                        break
                     continue
         except LinkError as exc:
             raise _link_error(self.port, exc) from exc
@@ -418,23 +447,36 @@ class Board:
         """Feed the board's link watchdog (:class:`host.link.clients.Keepalive`: the host
         heartbeat) if its period passed since the last feed.  Returns True if it was sent.
 
-        While this host has the board armed the link's own heartbeat thread feeds it
-        (:meth:`arm`): then this sends nothing."""
-        if getattr(self.link, "heartbeat_running", False):
-            return False
+        The period is in the board's time (:func:`host.hil.answer_time.keepalive_period` of the
+        speed followed from its heartbeats): a board slower than real time is not flooded."""
         return self._keepalive.tick()
 
-    def _beat(self, on: bool) -> None:
-        # the host heartbeat from the link's thread while armed: a request waiting out its (board-
-        # scaled) attempts, a disk write or the hands' socket in the tool's loop must not starve the
-        # board's link watchdog, which counts the board's time (250 ms: 1.7 s of wall at 0.15x)
-        try:
-            if on:
-                self.link.start_heartbeat(board_period=0)
-            else:
-                self.link.stop_heartbeat()
-        except (AttributeError, LinkError, OSError, ValueError):
-            pass
+    def _feed(self, on: bool) -> None:
+        # while this host has the board armed, a thread ticks the same keepalive: a request waiting
+        # for its answer (the board's link budget can hold a frame for many ticks; the attempts scale
+        # with the board's clock) must not starve the board's watchdog (seen: an EXCITE's ACK awaited
+        # 1.3 s of wall, 190 ms of board time, the watchdog latched at 250)
+        import threading
+
+        if on and self._feeder is None:
+            stop = threading.Event()
+
+            def run() -> None:
+                while not stop.wait(0.01):
+                    try:
+                        self._keepalive.tick()
+                    except (BoardError, LinkError, OSError, ValueError):
+                        return
+
+            t = threading.Thread(target=run, daemon=True, name="upright-board-keepalive")
+            self._feeder = (t, stop)
+            t.start()
+        elif not on and self._feeder is not None:
+            t, stop = self._feeder
+            self._feeder = None
+            stop.set()
+            if t is not threading.current_thread():
+                t.join(timeout=1.0)
 
     # ---- state ----
     def state(self, fresh: bool = True) -> dict[str, Any]:
@@ -521,13 +563,13 @@ class Board:
                     raise
         self.armed_by_us = True
         self._keepalive.fed()
-        self._beat(True)
+        self._feed(True)
 
     def disarm(self) -> None:
         """Disarm (always accepted)."""
         self.request(M.BY_NAME["disarm"]())
         self.armed_by_us = False
-        self._beat(False)
+        self._feed(False)
 
     def clear_faults(self) -> None:
         """Clear latched faults (refused while armed)."""
@@ -633,6 +675,7 @@ class Board:
         if disarm or (disarm is None and self.armed_by_us):
             self.safe_disarm()
         self._closed = True
+        self._feed(False)
         try:
             self.link.close()
         except (LinkError, OSError):
