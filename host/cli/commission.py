@@ -5,10 +5,14 @@ balancing run with a growing excitation, identification, the design with margin,
 the report's 20 cm step and 0.2 N push on the robot, save) are those of
 :mod:`host.operate.commission`; each one done is recorded in ``DIR/commission.json`` and
 ``--resume`` goes on after the last (``--until STAGE`` stops after STAGE: one stage per
-command).  ``--virtual --plant FILE`` commissions a simulated robot instead: the firmware under the MicroPython unix port in lockstep HIL with the robot file's plant
-(:mod:`host.operate.commission_lockstep`).  Examples::
+command).  ``--virtual --plant FILE`` commissions a simulated robot instead: the firmware under
+the MicroPython unix port in lockstep HIL with the robot file's plant
+(:mod:`host.operate.commission_lockstep`).  On a board every wait and run follows the board's
+own clock (measured when it answers): the virtual robot of ``upright emulate rp2040 --pty``,
+slower than real time, commissions like a real robot, only later.  Examples::
 
     upright commission --port /dev/ttyUSB0 --out out/commission
+    upright commission --port /dev/ttyUSB0 --out out/commission --until calibrate   # then --resume
     upright commission --virtual --plant realistic_cart --out out/commission_sim
 
 Exit status: 0 commissioned and verified; 1 a stage refused or the verification failed (the

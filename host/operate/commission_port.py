@@ -9,6 +9,12 @@ The person's steps (hold upright, take the pendulum off, put it back) are done b
 robot's hands (``upright emulate rp2040 --pty``; :func:`host.operate.calibrate.robot_hands`) or
 asked on the terminal.
 
+Time is the board's: the excitation runs are counted in its ticks (``run_excite``'s
+``board_seconds``), the verification in its telemetry rows, and every wait and request attempt
+is scaled by its clock (:meth:`host.operate.board.Board.measure_speed`), so the virtual robot at
+0.05-0.3x real time records the same logs as a real robot, only later; the host heartbeat keeps to
+the board's clock too (a slow board flooded with wall-time heartbeats latched its watchdog).
+
 The host cannot push a real cart with 0.2 N: :attr:`PortRobot.can_push` is false, and the
 commissioning verifies the 20 cm step only on a board (the push is verified in lockstep HIL).
 """
