@@ -12,7 +12,10 @@ the test asks the robot's hands (:mod:`host.hil.virtual_robot`), as the person w
 
 Extra flags (the reason next to each in :data:`EXTRA`) only shorten or bound what serves until
 Ctrl-C, and give the identification runs enough board time: the emulator runs at 0.1-0.4x real
-time and the tools' ``--seconds`` are wall seconds.  Wall time of the module: 4.5-6 minutes on
+time and the tools' ``--seconds`` are wall seconds.  No timeout flags: every tool measures the
+board's clock and scales its waits by it.  The section's first step, ``upright commission``, runs
+last (test_9, on the same robot), one stage per command (``--until STAGE``, then ``--resume``),
+with ``--fast``.  Wall time of the module: 4.5-6 minutes on
 this 2-core machine with a load average of 8-11 (eight runs: 189-362 s, the last three 189, 209, 209 s), most of
 it the identification runs, whose wall time follows the emulator's speed.  Known problems are
 expected failures with their reason: issue 23 (``deadline`` latched while a tool talks to a
