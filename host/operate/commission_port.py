@@ -246,8 +246,12 @@ class PortRobot:
                 raise BoardError(f"{self.port}: the board did not start balancing")
             n_ticks = int(round(scenario.duration * float(p.rate)))
             t_ref = scenario.reference
-            rec.rows  # noqa: B018 - rows counted from here on
-            n0 = rec.rows
+            # what the link queued while the arm was awaited (telemetry and heartbeats of before it)
+            # is recorded first, then a fresh heartbeat labels the rows that follow: balancing
+            b.poll(0.0)
+            if b.state(fresh=True)["state_name"] != "balancing":
+                raise BoardError(f"{self.port}: the board stopped balancing before the scenario started")
+            n0 = rec.rows  # the scenario's first row
             ref = 0.0
             while rec.rows - n0 < n_ticks:
                 # the scenario's reference on the board's clock (its ticks as recorded)
@@ -261,7 +265,10 @@ class PortRobot:
             b.safe_disarm()
             rec.close()
             b.param_set("telem_div", old)
-        cols = _read_csv(path)
+        # the scenario's rows only: those recorded before (disarmed, arming: labelled with the
+        # heartbeat of before the arm) and after it (the disarm) are no part of it -- kept, they read
+        # as a fall (state != balancing) in the verdict
+        cols = {k: v[n0:n0 + n_ticks] for k, v in _read_csv(path).items()}
         n = len(cols["x"])
         return {"t": np.arange(n) / float(p.rate), "x": cols["x"] - cols["x"][0], "phi": cols["phi"],
                 "x_ref": cols["ref"] - cols["x"][0], "duty": cols["duty"], "state": cols["state"], "faults": cols["faults"]}
