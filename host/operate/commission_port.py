@@ -29,6 +29,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from host.link import messages as M
 from host.operate.board import Board, BoardError, wait_state
 from sim.params import RobotParams
 
@@ -246,11 +247,17 @@ class PortRobot:
                 raise BoardError(f"{self.port}: the board did not start balancing")
             n_ticks = int(round(scenario.duration * float(p.rate)))
             t_ref = scenario.reference
-            # what the link queued while the arm was awaited (telemetry and heartbeats of before it)
-            # is recorded first, then a fresh heartbeat labels the rows that follow: balancing
-            b.poll(0.0)
-            if b.state(fresh=True)["state_name"] != "balancing":
-                raise BoardError(f"{self.port}: the board stopped balancing before the scenario started")
+            # what the link queued while the arm was awaited (telemetry and heartbeats of before it,
+            # labelled disarmed) is recorded first: the scenario starts after the first periodic
+            # heartbeat that says balancing (the stream is in order: every row after it is later)
+            t_end = time.monotonic() + b.wall(2.0)
+            seen = False
+            while not seen:
+                if time.monotonic() > t_end:
+                    raise BoardError(f"{self.port}: no heartbeat says balancing within 2 s of the board's time")
+                b.keepalive()
+                seen = any(m.NAME == "heartbeat" and sq is not None and M.STATES.get(m.state) == "balancing"
+                           for m, sq, _ in b.poll(0.02))
             n0 = rec.rows  # the scenario's first row
             ref = 0.0
             while rec.rows - n0 < n_ticks:
