@@ -191,7 +191,12 @@ def test_unplugged_mid_log_keeps_rows(relay, tmp_path):
     out = tmp_path / "cut.csv"
     proc = subprocess.Popen([*UPRIGHT, "board", "--port", relay.port, "log", "--seconds", "20", "--out", str(out)],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(3.0)
+    # unplug once rows are on disk (the tool's start-up -- imports, the board's clock measured -- varies
+    # with the load: a fixed sleep sometimes cut it before 20 rows)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and (not out.exists() or len(out.read_text().splitlines()) < 30):
+        time.sleep(0.2)
+    time.sleep(0.5)
     relay.unplug()
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 1, err

@@ -53,10 +53,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--node", type=A.int_range(0, 63), default=1, help="CAN node id (default 1)")
     parser.add_argument("--can-interface", type=A.can_interface, default="slcan", metavar="NAME",
                         help="python-can interface with --link can (default slcan)")
-    parser.add_argument("--timeout", type=A.in_range(0.01, 60), default=0.3,
-                        help="seconds per request attempt (default 0.3; 3 retries)")
-    parser.add_argument("--answer-timeout", type=A.in_range(0.1, 600), default=3.0,
-                        help="seconds for the board to answer at all (default 3)")
+    parser.add_argument("--timeout", type=A.in_range(0.01, 60), default=None, metavar="S",
+                        help="seconds per request attempt (3 retries; default 0.3 scaled by the board's clock, "
+                             "measured against the wall's once it answers: an emulated board at 0.15x gets 2 s)")
+    parser.add_argument("--answer-timeout", type=A.in_range(0.1, 600), default=10.0, metavar="S",
+                        help="seconds for the board to answer at all (default 10)")
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
 
     sp = sub.add_parser("status", help="identity, state, fault flags, heartbeat rate, link statistics")
@@ -173,6 +174,10 @@ def _open(args: argparse.Namespace) -> Any:
 
     b = Board.open(args.port, link=args.link, baudrate=args.baudrate, node=args.node,
                    can_interface=args.can_interface, timeout=args.timeout, answer_timeout=args.answer_timeout)
+    if args.timeout is None and b.speed < 0.9:
+        # a board slower than real time (the emulated Pico): every wait scaled by its clock
+        _err(f"upright board: board clock at {b.speed:.2f}x the wall's: {b.timeout:.1f} s per request attempt "
+             "(--timeout fixes it)")
     if getattr(b.link, "via_hub", False):
         who = "; ".join(f"PID {pid} ({cmd})" for pid, cmd in b.link.hub_owner) or "another upright tool"
         _err(f"upright board: {args.port} is held by {who}: sharing the board through its hub")

@@ -204,6 +204,10 @@ def gains_blob_from_design(params: str | Path | None = None) -> tuple[bytes, str
 
 
 # ------------------------------------------------------------------ the board
+_DRAIN_S = 0.05
+"""Seconds :meth:`Board.poll` goes on draining queued messages past its deadline."""
+
+
 class Board:
     """An open link to a board with the state the host keeps about it.
 
@@ -229,13 +233,25 @@ class Board:
         self._keepalive = Keepalive(self.send)
         self._closed = False
         self.listeners: list[Callable[[Any, int | None, float], None]] = []
+        #: board seconds per wall second (:meth:`measure_speed`; 1 until measured)
+        self.speed = 1.0
+        self._first: tuple[int, float] | None = None
+        from host.hil.answer_time import ClockTrack
+
+        self._clock = ClockTrack()
+        self._clock_measured = False  # speed followed from the heartbeats once measure_speed ran
+        self._feeder: Any = None
 
     # ---- opening ----
     @classmethod
     def open(cls, port: str, *, link: str = "serial", baudrate: int | None = None, node: int = 1,
-             can_interface: str = "slcan", timeout: float = 0.3, retries: int = 3,
-             answer_timeout: float = 3.0, check_identity: bool = True) -> "Board":
+             can_interface: str = "slcan", timeout: float | None = None, retries: int = 3,
+             answer_timeout: float = 10.0, check_identity: bool = True) -> "Board":
         """Open ``port``, wait for the board to answer and check who it is.
+
+        ``timeout`` (s per request attempt): ``None`` measures the board's speed once it answers
+        (:meth:`measure_speed`, half a second) and scales the full-speed 0.3 s by it
+        (:func:`host.hil.answer_time.request_time`: an emulated board at 0.15x gets 2 s).
 
         Raises
         ------
@@ -243,6 +259,8 @@ class Board:
             Port cannot be opened, no answer within ``answer_timeout`` s, or a board whose
             message table differs from this host's (:class:`IdentityMismatch`).
         """
+        from host.hil.answer_time import REQUEST_S, request_time
+
         if baudrate is None:
             from firmware.board import UART_BAUD
 
@@ -252,9 +270,11 @@ class Board:
             lk = open_link(spec, node_id=node, baudrate=baudrate)
         except (LinkError, ValueError) as exc:
             raise BoardError(str(exc).splitlines()[0]) from exc
-        b = cls(lk, port=port, timeout=timeout, retries=retries)
+        b = cls(lk, port=port, timeout=REQUEST_S if timeout is None else timeout, retries=retries)
         try:
             b.connect(answer_timeout=answer_timeout, check_identity=check_identity)
+            if timeout is None:
+                b.timeout = request_time(b.measure_speed())
         except BaseException:
             b.close(disarm=False)
             raise
@@ -265,7 +285,8 @@ class Board:
         deadline = time.monotonic() + answer_timeout
         while True:
             try:
-                self.query("heartbeat", timeout=min(self.timeout, answer_timeout), retries=0)
+                hb = self.query("heartbeat", timeout=min(self.timeout, answer_timeout), retries=0)
+                self._first = (int(hb.uptime_ms), time.monotonic())
                 break
             except BoardError as exc:
                 if not isinstance(exc.__cause__, LinkTimeout) or time.monotonic() >= deadline:
@@ -310,11 +331,51 @@ class Board:
         self.identity = ident
         return ident
 
+    # ---- the board's clock ----
+    def measure_speed(self, wall_s: float = 0.5) -> float:
+        """Measure :attr:`speed` (board seconds per wall second, at most 1) from two heartbeats
+        ``wall_s`` apart (:func:`host.hil.answer_time.board_speed`, as ``upright hil --port``);
+        the first is the one :meth:`connect` got, when there is one."""
+        from host.hil.answer_time import board_speed
+        from host.hil.errors import HilError
+
+        first = self._first
+        if first is None:
+            hb = self.query("heartbeat")
+            first = (int(hb.uptime_ms), time.monotonic())
+        try:
+            self.speed = board_speed(self.link, first, wall_s=wall_s, timeout=max(10.0, 10 * self.timeout))
+        except HilError as exc:
+            raise BoardError(f"{self.port}: {exc}") from None
+        self._first = None
+        self._clock = type(self._clock)(speed=self.speed)
+        self._clock_measured = True
+        from host.hil.answer_time import keepalive_period
+
+        self._keepalive.period = keepalive_period(self.speed)
+        return self.speed
+
+    def _clock_seen(self, uptime_ms: int, t: float) -> None:
+        from host.hil.answer_time import keepalive_period
+
+        sp = self._clock.observe(uptime_ms, t)
+        if self._clock_measured:
+            self.speed = sp
+        self._keepalive.period = keepalive_period(sp)
+
+    def wall(self, board_s: float) -> float:
+        """Wall seconds in which the board lives ``board_s`` seconds at its measured :attr:`speed`."""
+        from host.hil.answer_time import wall_time
+
+        return wall_time(board_s, self.speed)
+
     # ---- receiving ----
     def _observe(self, msg: Any, seq: int | None, t: float) -> None:
         if msg.NAME == "heartbeat":
             self.heartbeat = msg
             self.hb_times.append(t)
+            if seq is not None:  # a periodic one (a reply's time is the request's)
+                self._clock_seen(int(msg.uptime_ms), t)
         for fn in self.listeners:
             fn(msg, seq, t)
 
@@ -339,7 +400,12 @@ class Board:
                 self._observe(*item)
                 out.append(item)
                 if not left:
-                    # drain what is queued, then return
+                    # drain what is queued, then return -- but only for _DRAIN_S past the deadline: a
+                    # host slower than the board's stream (starved by the machine's load) would else
+                    # drain forever and its caller's keepalive never run (the board's watchdog
+                    # latched so); what stays queued is read on the next call
+                    if t - deadline > _DRAIN_S:
+                        break
                     continue
         except LinkError as exc:
             raise _link_error(self.port, exc) from exc
@@ -379,8 +445,38 @@ class Board:
     # ---- the host heartbeat ----
     def keepalive(self) -> bool:
         """Feed the board's link watchdog (:class:`host.link.clients.Keepalive`: the host
-        heartbeat) if its period passed since the last feed.  Returns True if it was sent."""
+        heartbeat) if its period passed since the last feed.  Returns True if it was sent.
+
+        The period is in the board's time (:func:`host.hil.answer_time.keepalive_period` of the
+        speed followed from its heartbeats): a board slower than real time is not flooded."""
         return self._keepalive.tick()
+
+    def _feed(self, on: bool) -> None:
+        # while this host has the board armed, a thread ticks the same keepalive: a request waiting
+        # for its answer (the board's link budget can hold a frame for many ticks; the attempts scale
+        # with the board's clock) must not starve the board's watchdog (seen: an EXCITE's ACK awaited
+        # 1.3 s of wall, 190 ms of board time, the watchdog latched at 250)
+        import threading
+
+        if on and self._feeder is None:
+            stop = threading.Event()
+
+            def run() -> None:
+                while not stop.wait(0.01):
+                    try:
+                        self._keepalive.tick()
+                    except (BoardError, LinkError, OSError, ValueError):
+                        return
+
+            t = threading.Thread(target=run, daemon=True, name="upright-board-keepalive")
+            self._feeder = (t, stop)
+            t.start()
+        elif not on and self._feeder is not None:
+            t, stop = self._feeder
+            self._feeder = None
+            stop.set()
+            if t is not threading.current_thread():
+                t.join(timeout=1.0)
 
     # ---- state ----
     def state(self, fresh: bool = True) -> dict[str, Any]:
@@ -467,11 +563,13 @@ class Board:
                     raise
         self.armed_by_us = True
         self._keepalive.fed()
+        self._feed(True)
 
     def disarm(self) -> None:
         """Disarm (always accepted)."""
         self.request(M.BY_NAME["disarm"]())
         self.armed_by_us = False
+        self._feed(False)
 
     def clear_faults(self) -> None:
         """Clear latched faults (refused while armed)."""
@@ -515,7 +613,7 @@ class Board:
             The firmware refuses it as unknown.
         """
         cls = M.BY_NAME["save_config"]
-        self.request(cls(), timeout=max(self.timeout, 1.0))
+        self.request(cls(), timeout=max(self.timeout, self.wall(1.0)))
         return cls.NAME
 
     def upload_gains(self, blob: bytes) -> dict[str, Any]:
@@ -577,6 +675,7 @@ class Board:
         if disarm or (disarm is None and self.armed_by_us):
             self.safe_disarm()
         self._closed = True
+        self._feed(False)
         try:
             self.link.close()
         except (LinkError, OSError):

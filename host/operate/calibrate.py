@@ -41,6 +41,9 @@ from host.operate.board import Board, BoardError, NotSupported, param_table
 MOTOR_TILT_RAD = 0.05
 """Step 4 with a robot's hands: the forward tilt (rad) held while the wheels turn."""
 
+WHEELS_STILL_S = 30.0
+"""Board seconds to wait for the lifted wheels to stop after the motor step, before the save."""
+
 __all__ = ["CalibrationError", "sample", "robot_toml", "run_calibration", "robot_hands", "ROBOT_HELP"]
 
 ROBOT_HELP = ("who does the steps that need a person: auto (default) -- the virtual robot of `upright emulate "
@@ -229,7 +232,11 @@ def run_calibration(board: Board, ask: Ask, say: Callable[[str], None], *, robot
     res["board_params"] = on_board
     res["saved"] = None
     if motor_check:
-        _wait_wheels_still(board, say)
+        if robot is not None:
+            # the person stops the lifted wheels by hand (the virtual robot's lifted wheels carry the
+            # cart's mass and coast for many board seconds)
+            step("Step 4/4: stop the wheels by hand", "hold", phi=0.0, cart="still")
+        _wait_wheels_still(board, say, timeout=board.wall(WHEELS_STILL_S))
     if save:
         try:
             res["saved"] = board.save()
@@ -257,7 +264,8 @@ def run_calibration(board: Board, ask: Ask, say: Callable[[str], None], *, robot
 
 
 def _wait_wheels_still(board: Board, say: Callable[[str], None], timeout: float = 30.0) -> None:
-    """Wait (up to ``timeout`` wall seconds) until the lifted wheels stop after the motor step.
+    """Wait (up to ``timeout`` wall seconds: :data:`WHEELS_STILL_S` of the board's clock) until the
+    lifted wheels stop after the motor step.
 
     A save pauses the board's loop for a flash write (some 20 ms): wheels still coasting then turn
     more counts between two reads than the cart can move in one tick, and the board latches
@@ -272,7 +280,7 @@ def _wait_wheels_still(board: Board, say: Callable[[str], None], timeout: float 
             return
         last = e
         time.sleep(0.05)
-    say(f"  the wheels still turn after {timeout:g} s: saving anyway (stop them by hand if `enc_jump` latches)")
+    say(f"  the wheels still turn after {timeout:.0f} s: saving anyway (stop them by hand if `enc_jump` latches)")
 
 
 def _motor_sign(board: Board, ask: Ask, say: Callable[[str], None], res: dict[str, Any], test_duty: int,

@@ -9,6 +9,12 @@ The person's steps (hold upright, take the pendulum off, put it back) are done b
 robot's hands (``upright emulate rp2040 --pty``; :func:`host.operate.calibrate.robot_hands`) or
 asked on the terminal.
 
+Time is the board's: the excitation runs are counted in its ticks (``run_excite``'s
+``board_seconds``), the verification in its telemetry rows, and every wait and request attempt
+is scaled by its clock (:meth:`host.operate.board.Board.measure_speed`), so the virtual robot at
+0.05-0.3x real time records the same logs as a real robot, only later; the host heartbeat keeps to
+the board's clock too (a slow board flooded with wall-time heartbeats latched its watchdog).
+
 The host cannot push a real cart with 0.2 N: :attr:`PortRobot.can_push` is false, and the
 commissioning verifies the 20 cm step only on a board (the push is verified in lockstep HIL).
 """
@@ -23,10 +29,19 @@ from typing import Any, Callable
 
 import numpy as np
 
+from host.link import messages as M
 from host.operate.board import Board, BoardError, wait_state
 from sim.params import RobotParams
 
 __all__ = ["PortRobot"]
+
+
+CART_DIV = 16
+"""Control ticks per PRBS bit of the cart-only run: 32 ms at 500 Hz, about three time constants of
+the drive (the cart's mass against its back-EMF damping, ~30 ms), so the cart reaches speed within
+a bit and is moving at the disarm -- the coast-down's start speed is what the friction is measured
+from. At 4 ticks (8 ms) the cart only dithered at a few mm/s on the virtual robot, stopped within a
+count after the disarm, and the first stage read b 8.0 N s/m for 0.5."""
 
 
 class _Stop(BoardError):
@@ -54,8 +69,9 @@ class PortRobot:
     ----------
     port : str
     baudrate : int, optional
-    timeout : float
-        Seconds per request attempt (an emulated board under load needs more than a real one's 0.3).
+    timeout : float, optional
+        Seconds per request attempt (default: 0.3 s scaled by the board's measured speed,
+        :meth:`host.operate.board.Board.measure_speed`).
     hands : str
         ``auto`` (the virtual robot's hands if one listens on the port), ``person``, or a socket path.
     say : callable
@@ -67,11 +83,11 @@ class PortRobot:
     kind = "port"
     can_push = False
 
-    def __init__(self, port: str, *, baudrate: int | None = None, hands: str = "auto", timeout: float = 1.0,
+    def __init__(self, port: str, *, baudrate: int | None = None, hands: str = "auto", timeout: float | None = None,
                  say: Callable[[str], None] = print, ask: Callable[..., str] | None = None) -> None:
         self.port = port
         self.baudrate = baudrate
-        self.timeout = float(timeout)
+        self.timeout = timeout
         self.hands_choice = hands
         self.say = say
         self.ask = ask or (lambda prompt, idle=None: input(prompt + " [Enter] "))
@@ -85,24 +101,14 @@ class PortRobot:
         """Open the board (identity checked) and find the hands."""
         from host.operate.calibrate import robot_hands
 
-        self.board = Board.open(self.port, baudrate=self.baudrate, timeout=self.timeout, answer_timeout=10.0)
+        # timeout None: the request time scaled by the board's measured speed (Board.measure_speed)
+        self.board = Board.open(self.port, baudrate=self.baudrate, timeout=self.timeout)
         self.hands = robot_hands(self.hands_choice, self.port)
-        self.speed = self._speed()
+        self.speed = self.board.speed
         if self.speed < 0.9:
-            self.say(f"  the board runs at {self.speed:.2f}x real time (emulated): the runs last longer")
+            self.say(f"  the board runs at {self.speed:.2f}x real time (emulated): {self.board.timeout:.1f} s per "
+                     "request attempt, the runs counted in its own ticks")
         return self
-
-    def _speed(self, wall: float = 2.0) -> float:
-        # board seconds per wall second, from its uptime (an emulated board runs 0.1-0.4x):
-        # the tools' --seconds are wall seconds, the identification needs board ticks
-        b = self._b()
-        u0, t0 = b.status_values().get("uptime_ms"), time.monotonic()
-        if u0 is None:
-            return 1.0
-        while time.monotonic() - t0 < wall:
-            b.poll(0.05)
-        u1, t1 = b.status_values().get("uptime_ms"), time.monotonic()
-        return min(1.0, max(0.02, (u1 - u0) / 1000.0 / (t1 - t0))) if u1 is not None else 1.0
 
     def close(self) -> None:
         """Disarm if armed here, close the link and the hands."""
@@ -166,9 +172,14 @@ class PortRobot:
             b.save()
         self.fw_params = fw_params
 
-    def excite(self, mode: int, amp_n: float, *, seconds: float, div: int = 4, coast_s: float = 3.0,
+    def excite(self, mode: int, amp_n: float, *, seconds: float, div: int | None = None, coast_s: float = 3.0,
                phi_stop: float = math.inf) -> Any:
-        """One excitation run recorded (:func:`host.operate.excite.run_excite`); see the lockstep robot's."""
+        """One excitation run recorded (:func:`host.operate.excite.run_excite`); see the lockstep robot's.
+
+        ``div`` (control ticks per PRBS bit): default :data:`CART_DIV` for the cart-only run, else 4.
+        """
+        if div is None:
+            div = CART_DIV if mode == 2 else 4
         from host.operate.commission_lockstep import ExciteRun
         from host.operate.excite import run_excite
 
@@ -187,8 +198,9 @@ class PortRobot:
 
         stopped = False
         try:
-            run_excite(b, path, seconds=seconds / self.speed, amplitude_n=amp_n, div=div, cart_only=(mode == 2),
-                       coast_s=coast_s / self.speed,
+            # durations in the board's own ticks: the same log whatever the board's speed
+            run_excite(b, path, seconds=seconds, board_seconds=seconds, amplitude_n=amp_n, div=div,
+                       cart_only=(mode == 2), coast_s=coast_s, board_coast_s=coast_s,
                        progress=progress if mode == 1 else None)
         except BoardError as exc:
             if not isinstance(exc.__cause__, _Stop):
@@ -231,12 +243,22 @@ class PortRobot:
                 b.clear_faults()
             b.set_reference(0.0)
             b.arm()
-            if wait_state(b, ("balancing",), 5.0) != "balancing":
+            if wait_state(b, ("balancing",), b.wall(5.0)) != "balancing":
                 raise BoardError(f"{self.port}: the board did not start balancing")
             n_ticks = int(round(scenario.duration * float(p.rate)))
             t_ref = scenario.reference
-            rec.rows  # noqa: B018 - rows counted from here on
-            n0 = rec.rows
+            # what the link queued while the arm was awaited (telemetry and heartbeats of before it,
+            # labelled disarmed) is recorded first: the scenario starts after the first periodic
+            # heartbeat that says balancing (the stream is in order: every row after it is later)
+            t_end = time.monotonic() + b.wall(2.0)
+            seen = False
+            while not seen:
+                if time.monotonic() > t_end:
+                    raise BoardError(f"{self.port}: no heartbeat says balancing within 2 s of the board's time")
+                b.keepalive()
+                seen = any(m.NAME == "heartbeat" and sq is not None and M.STATES.get(m.state) == "balancing"
+                           for m, sq, _ in b.poll(0.02))
+            n0 = rec.rows  # the scenario's first row
             ref = 0.0
             while rec.rows - n0 < n_ticks:
                 # the scenario's reference on the board's clock (its ticks as recorded)
@@ -250,7 +272,10 @@ class PortRobot:
             b.safe_disarm()
             rec.close()
             b.param_set("telem_div", old)
-        cols = _read_csv(path)
+        # the scenario's rows only: those recorded before (disarmed, arming: labelled with the
+        # heartbeat of before the arm) and after it (the disarm) are no part of it -- kept, they read
+        # as a fall (state != balancing) in the verdict
+        cols = {k: v[n0:n0 + n_ticks] for k, v in _read_csv(path).items()}
         n = len(cols["x"])
         return {"t": np.arange(n) / float(p.rate), "x": cols["x"] - cols["x"][0], "phi": cols["phi"],
                 "x_ref": cols["ref"] - cols["x"][0], "duty": cols["duty"], "state": cols["state"], "faults": cols["faults"]}

@@ -35,12 +35,14 @@ from host.link import messages as M
 from host.operate.board import Board, BoardError, fault_names, wait_state
 from host.operate.record import Recorder
 
-__all__ = ["EXTRA_COLUMNS", "MODES", "run_excite", "STALL_WALL_S"]
+__all__ = ["EXTRA_COLUMNS", "MODES", "run_excite", "STALL_WALL_S", "STALL_BOARD_S"]
 
 MODES = {"off": 0, "balancing": 1, "cart-only": 2}
 EXTRA_COLUMNS = ("excite", "exc_amp_n", "exc_div")
 STALL_WALL_S = 20.0
-"""Wall seconds without a telemetry row after which a run in board time gives up."""
+"""Wall seconds without a telemetry row after which a run in board time gives up ..."""
+STALL_BOARD_S = 3.0
+"""... or this many board seconds at the board's measured speed (:meth:`Board.wall`), if longer."""
 
 
 def _excite_msg(mode: int, amplitude_n: float, div: int) -> Any:
@@ -129,7 +131,7 @@ def run_excite(b: Board, out: str | Path, *, seconds: float, amplitude_n: float,
                 b.clear_faults()
             b.arm()
             armed_here = True
-        st = wait_state(b, ("balancing",), 5.0)
+        st = wait_state(b, ("balancing",), b.wall(5.0))
         if st != "balancing":
             raise BoardError(f"{b.port}: the board is {st}, not balancing: the excitation starts only while "
                              "balancing (pendulum upright, or locked upright for a cart-only run)")
@@ -146,6 +148,7 @@ def run_excite(b: Board, out: str | Path, *, seconds: float, amplitude_n: float,
             return rec.rows + rec.seqs.lost // 2 - ticks0
 
         ticks0 = ticks()
+        stall_s = max(STALL_WALL_S, b.wall(STALL_BOARD_S))
         t0 = time.monotonic()
         last = -1.0
         disarmed = False
@@ -158,8 +161,8 @@ def run_excite(b: Board, out: str | Path, *, seconds: float, amplitude_n: float,
             n = ticks()
             if n != seen:
                 seen, seen_t = n, now
-            elif board_time and now - seen_t > STALL_WALL_S:
-                raise BoardError(f"{b.port}: no telemetry for {STALL_WALL_S:g} s of wall time "
+            elif board_time and now - seen_t > stall_s:
+                raise BoardError(f"{b.port}: no telemetry for {stall_s:.0f} s of wall time "
                                  f"({n / rate:.2f} board s recorded)")
             if fault:
                 raise BoardError(f"{b.port}: the board faulted during the excitation "
