@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from firmware import msgtable as T
-from host.dashboard.hub import Hub, SharedLink
+from host.dashboard.hub import Hub
 from host.hil.accounting import SeqAccount
 from host.link import messages as M
 from host.link.clients import Keepalive, Link
@@ -41,7 +41,7 @@ def test_every_tool_names_the_faults_of_the_protocol_table(tmp_path: Path) -> No
     every = sum(bit for bit, _, _ in T.FAULTS)
     assert fault_names(every) == [name for _, name, _ in sorted(T.FAULTS)]
     assert fault_names(1 << 20) == ["bit20"]
-    hub = Hub(SharedLink(_Sent()), {"mode": "test"}, tmp_path)
+    hub = Hub(_Sent(), {"mode": "test"}, tmp_path)
     try:
         assert hub.hello("p")["faults"] == [[b, n, d] for b, n, d in sorted(T.FAULTS)]
         hub.heartbeat = {"state": 3, "faults": 64 | 256}
