@@ -267,12 +267,14 @@ class PlantSim:
                 x, xd, ph, phd = self._apply_impulse([x, xd, ph, phd], self._diracs.pop(0)[1])
             x, xd, ph, phd = _rk4(acc, x, xd, ph, phd, t, h)
             if self.ground_stop and abs(ph) >= _HALF_PI:
-                # lying on the ground: stopped there unless already rising again
-                ph = math.copysign(_HALF_PI, ph)
-                if phd * ph > 0:
-                    phd = 0.0
-                self.fallen = True
+                ph, phd = self._on_ground(ph, phd)
         self._x = [x, xd, ph, phd]
+
+    def _on_ground(self, ph: float, phd: float) -> tuple[float, float]:
+        # lying on the ground: stopped there unless already rising again
+        self.fallen = True
+        ph = math.copysign(_HALF_PI, ph)
+        return ph, (0.0 if phd * ph > 0 else phd)
 
     def _integrate_real(self, duty: float, t0: float) -> None:
         # RK4 with plant realism (docs/parameters.md, "Plant realism"), the same scheme as
@@ -336,10 +338,7 @@ class PlantSim:
                 d = self._delta + h * v0 - (x - x_old)
                 self._delta = hp if d > hp else (-hp if d < -hp else d)
             if self.ground_stop and abs(ph) >= _HALF_PI:
-                ph = math.copysign(_HALF_PI, ph)
-                if phd * ph > 0:
-                    phd = 0.0
-                self.fallen = True
+                ph, phd = self._on_ground(ph, phd)
         self._x = [x, xd, ph, phd]
 
     def _measure(self) -> tuple[int, int]:
