@@ -8,7 +8,8 @@ every vertex of the box and at seeded random points inside it (:meth:`Uncertaint
 A **candidate** (:class:`Candidate`) is what the firmware's gain table carries: LQR weights
 ``Q`` (diagonal) and ``R``, the estimator (the Kalman filter's measurement noise divided by an
 ``observer`` speed factor) and the force clamp (``a_cmd``: the cart acceleration the clamp
-allows from upright, :func:`host.design.discrete.force_clamp`).  The design model is always
+allows from upright, :func:`host.design.discrete.force_clamp`) and, for the margin design of
+:mod:`host.design.margin`, the integral gain ``ki`` (one type for both).  The design model is always
 the nominal robot: the firmware does not know where in the box the real robot is.
 
 **Scoring** (:func:`evaluate`) uses the report's scenarios on the nonlinear plant with the
