@@ -320,19 +320,18 @@ class _NoiseStream:
         self.rngs = [np.random.default_rng(int(s)) for s in seeds] if model.kind != "none" else []
         self.pos = 0
 
-    def take(self, ticks: int) -> np.ndarray:
+    def _raw(self, ticks: int) -> np.ndarray | None:
+        # the next ``ticks`` ticks' draws, one per hold period, run-major (n, draws, 2) and
+        # scaled; None when there is no noise
         if self.model.kind == "none" or ticks == 0:
-            self.pos += ticks
-            return np.zeros((ticks, 2, self.n))
+            return None
         if self.pos % self.hold:
             raise BatchError("noise blocks must start on a hold boundary")
-        draws = -(-ticks // self.hold)
-        raw = np.empty((self.n, draws, 2))
-        m = self.model
+        raw = np.empty((self.n, -(-ticks // self.hold), 2))
         # fill each run's block in place with the generator's own fill loops; the values
         # are bit-identical to ``standard_normal(shape) * std`` and ``uniform(lo, hi, shape)``
         # (numpy computes uniform as ``lo + (hi - lo) * next_double``)
-        if m.kind == "white":
+        if self.model.kind == "white":
             for i, g in enumerate(self.rngs):
                 g.standard_normal(out=raw[i])
             raw *= self.scale
@@ -340,34 +339,26 @@ class _NoiseStream:
             for i, g in enumerate(self.rngs):
                 g.random(out=raw[i])
             raw = self.off + self.scale * raw
-        out = np.ascontiguousarray(raw.transpose(1, 2, 0)) * self.mask
-        if self.hold > 1:
-            out = np.repeat(out, self.hold, axis=0)[:ticks]
+        return raw
+
+    def take(self, ticks: int) -> np.ndarray:
+        """The next ``ticks`` ticks' noise, tick-major: shape ``(ticks, 2, N)``."""
+        raw = self._raw(ticks)
         self.pos += ticks
-        return out
+        if raw is None:
+            return np.zeros((ticks, 2, self.n))
+        out = np.ascontiguousarray(raw.transpose(1, 2, 0)) * self.mask
+        return np.repeat(out, self.hold, axis=0)[:ticks] if self.hold > 1 else out
 
     def take_runs(self, ticks: int) -> np.ndarray:
         """Like :meth:`take` (the same values), run-major: shape ``(N, ticks, 2)``."""
-        if self.model.kind == "none" or ticks == 0:
-            self.pos += ticks
+        raw = self._raw(ticks)
+        self.pos += ticks
+        if raw is None:
             return np.zeros((self.n, ticks, 2))
-        if self.pos % self.hold:
-            raise BatchError("noise blocks must start on a hold boundary")
-        draws = -(-ticks // self.hold)
-        raw = np.empty((self.n, draws, 2))
-        m = self.model
-        if m.kind == "white":
-            for i, g in enumerate(self.rngs):
-                g.standard_normal(out=raw[i])
-            raw *= self.scale
-        else:
-            for i, g in enumerate(self.rngs):
-                g.random(out=raw[i])
-            raw = self.off + self.scale * raw
         out = raw * self.mask[:, 0]
         if self.hold > 1:
             out = np.repeat(out, self.hold, axis=1)[:, :ticks]
-        self.pos += ticks
         return np.ascontiguousarray(out)
 
 

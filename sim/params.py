@@ -19,14 +19,14 @@ import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 from . import robot_file as _robot_file
 
 DEFAULT_PATH = Path(__file__).with_name("robot.toml")
 
 __all__ = ["ParamError", "Spec", "SCHEMA", "REALISM_KEYS", "RobotParams", "load_params", "params_from_dict",
-           "plant_params", "DEFAULT_PATH"]
+           "plant_params", "DEFAULT_PATH", "read_toml"]
 
 
 class ParamError(ValueError):
@@ -279,16 +279,26 @@ def load_params(path: str | Path | None = None) -> RobotParams:
         If the file cannot be read or parsed, or a key is missing, unknown or out of range.
     """
     p = Path(path) if path is not None else DEFAULT_PATH
+    data = read_toml(p, "parameter file", lambda msg: ParamError("", msg))
+    _robot_file.note_old_keys(data, str(p))
+    return params_from_dict(data, source=str(p))
+
+
+def read_toml(path: str | Path, what: str, error: Callable[[str], Exception]) -> dict[str, Any]:
+    """The parsed TOML file ``path``, every failure one line: ``error(message)`` is raised.
+
+    The one reader of the house's TOML inputs (robot files, uncertainty sets, sweep ranges);
+    ``what`` names the file's kind in the message (``"parameter file"``).
+    """
+    p = Path(path)
     try:
         text = p.read_text()
     except OSError as exc:
-        raise ParamError("", f"cannot read parameter file {p}: {exc.strerror}") from exc
+        raise error(f"cannot read {what} {p}: {exc.strerror or exc}") from exc
     try:
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ParamError("", f"{p}: not valid TOML: {exc}") from exc
-    _robot_file.note_old_keys(data, str(p))
-    return params_from_dict(data, source=str(p))
+        raise error(f"{p}: not valid TOML: {exc}") from exc
 
 
 _DESIGN_ONLY = ("loop.track", "loop.a_max", "loop.phi_max", "loop.t_settle")

@@ -9,12 +9,23 @@ dropped (full sin/cos and the centripetal term)::
 
     (M + m) xdd + b xd - m L cos(phi) phidd + m L phid^2 sin(phi) = F
     (I + m L^2) phidd - m g L sin(phi) = m L cos(phi) xdd
+
+This module is the one place they are written: :func:`accelerations` solves them for
+``(xdd, phidd)`` on scalars or arrays, and every simulator takes them from here -- the
+scenario simulator (:class:`sim.plantsim.PlantSim`), the numpy batch reference
+(:func:`sim.batch._loop_numpy`, through :func:`dynamics`), the catch study
+(:mod:`host.design.catch`: the first equation split at the force, :func:`xddot_affine` and
+:func:`force_for_xddot`, the second solved for the tilt, :func:`phiddot_given_xddot`); the
+compiled batch kernel (:mod:`sim.batch_kernel`) is a specialised copy for speed, held
+bit-identical to the numpy reference by ``tests/test_batch_kernel.py`` and to
+:func:`accelerations` by ``tests/test_plant_equations.py``.  The expression trees here are
+the ones those copies evaluate (IEEE arithmetic is not associative): change them together.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Callable, Mapping
+from typing import Any, Callable, Mapping
 
 import control as ct
 import numpy as np
@@ -23,6 +34,11 @@ from .params import RobotParams
 
 __all__ = [
     "STATES",
+    "accelerations",
+    "pivot_fixed_phiddot",
+    "xddot_affine",
+    "force_for_xddot",
+    "phiddot_given_xddot",
     "dynamics",
     "make_nlsys",
     "linear_model",
@@ -38,6 +54,59 @@ STATES = ("x", "xdot", "phi", "phidot")
 def _phys(params: RobotParams | Mapping[str, float]) -> tuple[float, ...]:
     p = params.physical if isinstance(params, RobotParams) else params
     return p["M"], p["m"], p["L"], p["I"], p["b"], p["g"]
+
+
+def accelerations(F: Any, xd: Any, phid: Any, s: Any, c: Any, Mt: Any, mL: Any, J: Any, b: Any,
+                  mLg: Any) -> tuple[Any, Any]:
+    """The equations of motion solved for the accelerations (scalars or arrays alike).
+
+    Parameters
+    ----------
+    F : float or ndarray
+        Force on the cart (N), friction other than ``b`` already in it.
+    xd, phid : float or ndarray
+        Cart speed (m/s) and tilt rate (rad/s).
+    s, c : float or ndarray
+        ``sin(phi)``, ``cos(phi)``.
+    Mt, mL, J, b, mLg : float or ndarray
+        ``M + m``, ``m L``, ``I + m L^2``, the cart friction ``b`` and ``m L g``.
+
+    Returns
+    -------
+    (xddot, phiddot)
+    """
+    rhs1 = F - b * xd - mL * phid * phid * s
+    rhs2 = mLg * s
+    mc = mL * c
+    det = Mt * J - mc * mc
+    return (J * rhs1 + mc * rhs2) / det, (mc * rhs1 + Mt * rhs2) / det
+
+
+def pivot_fixed_phiddot(s: Any, mLg: Any, J: Any) -> Any:
+    """``phiddot`` of the pendulum while the cart stands still (stuck by static friction)."""
+    return mLg * s / J
+
+
+def xddot_affine(xd: Any, phid: Any, s: Any, c: Any, Mt: Any, mL: Any, J: Any, b: Any, g: Any) -> tuple[Any, Any]:
+    """The cart acceleration as an affine function of the force: ``xddot = a0 + gain F``.
+
+    :func:`accelerations`' first row split at ``F`` (the catch study's drive limits).
+    Returns ``(a0, gain)``.
+    """
+    det = Mt * J - (mL * c) ** 2
+    return (J * (-b * xd - mL * phid * phid * s) + mL * c * mL * g * s) / det, J / det
+
+
+def force_for_xddot(xdd: Any, xd: Any, phid: Any, s: Any, c: Any, Mt: Any, mL: Any, J: Any, b: Any, g: Any) -> Any:
+    """The force on the cart that gives the cart acceleration ``xdd`` (:func:`xddot_affine` inverted)."""
+    det = Mt * J - (mL * c) ** 2
+    return (xdd * det - mL * c * mL * g * s) / J + b * xd + mL * phid * phid * s
+
+
+def phiddot_given_xddot(xdd: Any, s: Any, c: Any, mL: Any, J: Any, g: Any) -> Any:
+    """The second equation solved for the tilt: ``J phidd = m g L sin + m L cos xdd`` (the cart's
+    acceleration as the input)."""
+    return (mL * g * s + mL * c * xdd) / J
 
 
 def dynamics(t: float, x: np.ndarray, u: np.ndarray, params: RobotParams | Mapping[str, float]) -> np.ndarray:
@@ -62,14 +131,8 @@ def dynamics(t: float, x: np.ndarray, u: np.ndarray, params: RobotParams | Mappi
     M, m, L, I, b, g = _phys(params)
     _, xd, phi, phid = x[0], x[1], x[2], x[3]
     F = np.reshape(u, -1)[0] if np.ndim(x) == 1 else np.asarray(u)
-    s, c = np.sin(phi), np.cos(phi)
-    J = I + m * L * L
     mL = m * L
-    rhs1 = F - b * xd - mL * phid * phid * s
-    rhs2 = mL * g * s
-    det = (M + m) * J - (mL * c) ** 2
-    xdd = (J * rhs1 + mL * c * rhs2) / det
-    phidd = (mL * c * rhs1 + (M + m) * rhs2) / det
+    xdd, phidd = accelerations(F, xd, phid, np.sin(phi), np.cos(phi), M + m, mL, I + m * L * L, b, mL * g)
     return np.array([xd, xdd, phid, phidd])
 
 

@@ -45,7 +45,7 @@ import numpy as np
 
 from . import motor, sensors
 from .params import RobotParams
-from .plant import impulse_jump
+from .plant import accelerations, impulse_jump, pivot_fixed_phiddot
 from .scenario import Scenario
 
 __all__ = ["LOG_COLUMNS", "PlantSim", "run_scenario_float", "write_csv", "read_csv"]
@@ -70,6 +70,21 @@ LOG_COLUMNS: dict[str, str] = {
 }
 """Columns of a run log (one row per control tick) with their units."""
 
+
+
+def _rk4(acc: Callable[[float, float, float, float], tuple[float, float]], x: float, xd: float, ph: float,
+         phd: float, t: float, h: float) -> tuple[float, float, float, float]:
+    # one classical RK4 step of [x, xd, ph, phd] on scalars; acc(xd, ph, phd, t) -> (xdd, phdd)
+    h2, h6 = 0.5 * h, h / 6.0
+    a1, b1 = acc(xd, ph, phd, t)
+    v2, w2 = xd + h2 * a1, phd + h2 * b1
+    a2, b2 = acc(v2, ph + h2 * phd, w2, t + h2)
+    v3, w3 = xd + h2 * a2, phd + h2 * b2
+    a3, b3 = acc(v3, ph + h2 * w2, w3, t + h2)
+    v4, w4 = xd + h * a3, phd + h * b3
+    a4, b4 = acc(v4, ph + h * w3, w4, t + h)
+    return (x + h6 * (xd + 2.0 * v2 + 2.0 * v3 + v4), xd + h6 * (a1 + 2.0 * a2 + 2.0 * a3 + a4),
+            ph + h6 * (phd + 2.0 * w2 + 2.0 * w3 + w4), phd + h6 * (b1 + 2.0 * b2 + 2.0 * b3 + b4))
 
 class PlantSim:
     """The simulated robot, advanced one control tick at a time.
@@ -213,31 +228,28 @@ class PlantSim:
     def _rhs(self, x: list[float], duty: float, t: float) -> tuple[float, float, float, float]:
         # sim.plant.dynamics for one state, with the motor force evaluated at this speed
         xd, phi, phid = x[1], x[2], x[3]
+        mL, J = self._mL, self._J
         if self._real:
             if self._stuck:
-                return 0.0, 0.0, phid, self._mL * self._g * math.sin(phi) / self._J
+                return 0.0, 0.0, phid, pivot_fixed_phiddot(math.sin(phi), mL * self._g, J)
             F = self._drive_force(duty, xd) + self._dist(t) - (self._fc * self._dir if self._fric else 0.0)
         else:
             F = self._a_duty * duty - self._c_emf * xd + self._dist(t)
-        s, c = math.sin(phi), math.cos(phi)
-        mL, J = self._mL, self._J
-        rhs1 = F - self._b * xd - mL * phid * phid * s
-        rhs2 = mL * self._g * s
-        det = (self._M + self._m) * J - (mL * c) ** 2
-        return xd, (J * rhs1 + mL * c * rhs2) / det, phid, (mL * c * rhs1 + (self._M + self._m) * rhs2) / det
+        xdd, phidd = accelerations(F, xd, phid, math.sin(phi), math.cos(phi), self._M + self._m, mL, J, self._b,
+                                   mL * self._g)
+        return xd, xdd, phid, phidd
 
     def _apply_impulse(self, x: list[float], imp: float) -> list[float]:
         dxd, dphid = impulse_jump(x[2], imp, self._M + self._m, self._mL, self._J)
         return [x[0], x[1] + dxd, x[2], x[3] + dphid]
 
     def _integrate(self, duty: float, t0: float) -> None:
-        # classical RK4, unrolled on scalars (the same equations as _rhs / sim.plant.dynamics)
+        # classical RK4 on scalars (_rk4), the equations sim.plant.accelerations
         if self._real:
             self._integrate_real(duty, t0)
             return
         x, xd, ph, phd = self._x
         h = self.h
-        h2, h6 = 0.5 * h, h / 6.0
         Mt, mL, J, b, g = self._M + self._m, self._mL, self._J, self._b, self._g
         mLg = mL * g
         fu = self._a_duty * duty
@@ -247,35 +259,22 @@ class PlantSim:
 
         def acc(v: float, p: float, w: float, t: float) -> tuple[float, float]:
             F = fu - ce * v + (dist(t) if dist is not None else 0.0)
-            s, c = sin(p), cos(p)
-            r1 = F - b * v - mL * w * w * s
-            r2 = mLg * s
-            mc = mL * c
-            det = Mt * J - mc * mc
-            return (J * r1 + mc * r2) / det, (mc * r1 + Mt * r2) / det
+            return accelerations(F, v, w, sin(p), cos(p), Mt, mL, J, b, mLg)
 
         for i in range(self.substeps):
             t = t0 + i * h
             while self._diracs and self._diracs[0][0] < t + h - 1e-12:
                 x, xd, ph, phd = self._apply_impulse([x, xd, ph, phd], self._diracs.pop(0)[1])
-            a1, b1 = acc(xd, ph, phd, t)
-            v2, w2 = xd + h2 * a1, phd + h2 * b1
-            a2, b2 = acc(v2, ph + h2 * phd, w2, t + h2)
-            v3, w3 = xd + h2 * a2, phd + h2 * b2
-            a3, b3 = acc(v3, ph + h2 * w2, w3, t + h2)
-            v4, w4 = xd + h * a3, phd + h * b3
-            a4, b4 = acc(v4, ph + h * w3, w4, t + h)
-            x += h6 * (xd + 2.0 * v2 + 2.0 * v3 + v4)
-            ph += h6 * (phd + 2.0 * w2 + 2.0 * w3 + w4)
-            xd += h6 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-            phd += h6 * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
+            x, xd, ph, phd = _rk4(acc, x, xd, ph, phd, t, h)
             if self.ground_stop and abs(ph) >= _HALF_PI:
-                # lying on the ground: stopped there unless already rising again
-                ph = math.copysign(_HALF_PI, ph)
-                if phd * ph > 0:
-                    phd = 0.0
-                self.fallen = True
+                ph, phd = self._on_ground(ph, phd)
         self._x = [x, xd, ph, phd]
+
+    def _on_ground(self, ph: float, phd: float) -> tuple[float, float]:
+        # lying on the ground: stopped there unless already rising again
+        self.fallen = True
+        ph = math.copysign(_HALF_PI, ph)
+        return ph, (0.0 if phd * ph > 0 else phd)
 
     def _integrate_real(self, duty: float, t0: float) -> None:
         # RK4 with plant realism (docs/parameters.md, "Plant realism"), the same scheme as
@@ -290,7 +289,6 @@ class PlantSim:
         #          motor), delta += h*v0 - dx, clamped to the play; it pushes only while in contact.
         x, xd, ph, phd = self._x
         h = self.h
-        h2, h6 = 0.5 * h, h / 6.0
         Mt, mL, J, b, g = self._M + self._m, self._mL, self._J, self._b, self._g
         mLg = mL * g
         fu = self._a_duty * self._duty_eff(duty)
@@ -327,27 +325,12 @@ class PlantSim:
             def acc(v: float, p: float, w: float, tt: float) -> tuple[float, float]:
                 s = sin(p)
                 if stuck:
-                    return 0.0, mLg * s / J
+                    return 0.0, pivot_fixed_phiddot(s, mLg, J)
                 F = gate(fu - ce * v, eng) + (dist(tt) if dist is not None else 0.0) - ff
-                c = cos(p)
-                r1 = F - b * v - mL * w * w * s
-                r2 = mLg * s
-                mc = mL * c
-                det = Mt * J - mc * mc
-                return (J * r1 + mc * r2) / det, (mc * r1 + Mt * r2) / det
+                return accelerations(F, v, w, s, cos(p), Mt, mL, J, b, mLg)
 
             x_old = x
-            a1, b1 = acc(xd, ph, phd, t)
-            v2, w2 = xd + h2 * a1, phd + h2 * b1
-            a2, b2 = acc(v2, ph + h2 * phd, w2, t + h2)
-            v3, w3 = xd + h2 * a2, phd + h2 * b2
-            a3, b3 = acc(v3, ph + h2 * w2, w3, t + h2)
-            v4, w4 = xd + h * a3, phd + h * b3
-            a4, b4 = acc(v4, ph + h * w3, w4, t + h)
-            x += h6 * (xd + 2.0 * v2 + 2.0 * v3 + v4)
-            ph += h6 * (phd + 2.0 * w2 + 2.0 * w3 + w4)
-            xd += h6 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-            phd += h6 * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
+            x, xd, ph, phd = _rk4(acc, x, xd, ph, phd, t, h)
             if fric and not stuck and xd * self._dir <= 0.0:
                 xd = 0.0  # the sliding cart stopped during the sub-step: static friction holds it
                 self._stuck = True
@@ -355,10 +338,7 @@ class PlantSim:
                 d = self._delta + h * v0 - (x - x_old)
                 self._delta = hp if d > hp else (-hp if d < -hp else d)
             if self.ground_stop and abs(ph) >= _HALF_PI:
-                ph = math.copysign(_HALF_PI, ph)
-                if phd * ph > 0:
-                    phd = 0.0
-                self.fallen = True
+                ph, phd = self._on_ground(ph, phd)
         self._x = [x, xd, ph, phd]
 
     def _measure(self) -> tuple[int, int]:

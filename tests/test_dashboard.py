@@ -30,7 +30,7 @@ from urllib.parse import urlsplit
 import pytest
 
 from host.dashboard import gains as G
-from host.dashboard.hub import COLUMNS, PAGE_TIMEOUT_S, Hub, SharedLink
+from host.dashboard.hub import COLUMNS, PAGE_TIMEOUT_S, Hub
 from host.dashboard.server import PAGE_HEADER, TOKEN_HEADER, split_url
 from host.link import messages as M
 from host.link.clients import Link
@@ -113,7 +113,7 @@ class _Board(Link):
 @pytest.mark.slow
 def test_host_heartbeat_only_while_a_live_page_asked_for_the_arm(tmp_path: Path) -> None:
     board = _Board()
-    hub = Hub(SharedLink(board), {"mode": "test"}, tmp_path)
+    hub = Hub(board, {"mode": "test"}, tmp_path)
     board.hub = hub
     try:
         # no page: nothing is fed, and the arm is refused to anyone but a live page
@@ -158,7 +158,7 @@ def test_host_heartbeat_only_while_a_live_page_asked_for_the_arm(tmp_path: Path)
 
 def test_a_closed_event_stream_disarms_at_once(tmp_path: Path) -> None:
     board = _Board()
-    hub = Hub(SharedLink(board), {"mode": "test"}, tmp_path)
+    hub = Hub(board, {"mode": "test"}, tmp_path)
     board.hub = hub
     try:
         page = hub.connect()
@@ -177,7 +177,7 @@ def test_a_closed_event_stream_disarms_at_once(tmp_path: Path) -> None:
 
 def test_telemetry_rows_pair_and_count_losses(tmp_path: Path) -> None:
     board = _Board()
-    hub = Hub(SharedLink(board), {"mode": "test"}, tmp_path)
+    hub = Hub(board, {"mode": "test"}, tmp_path)
     try:
         ts, tc = M.BY_NAME["telem_state"], M.BY_NAME["telem_ctrl"]
         hub.record_start()
@@ -201,7 +201,7 @@ def test_the_heartbeat_crc_byte_confirms_an_upload_and_flags_another_table(tmp_p
     # the heartbeat carries only the low 8 bits of the active table's CRC-16: a heartbeat after an
     # upload must confirm that table, not replace its CRC by one byte (CI caught 116 == 0xF574 & 0xFF)
     board = _Board()
-    hub = Hub(SharedLink(board), {"mode": "test"}, tmp_path)
+    hub = Hub(board, {"mode": "test"}, tmp_path)
     board.hub = hub
     try:
         hb = M.BY_NAME["heartbeat"]

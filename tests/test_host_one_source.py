@@ -1,17 +1,20 @@
-"""One of each on the host (issue 25 item 3): one fault table, one keepalive, one loss counter.
+"""One of each on the host (issue 25 item 3): one fault table, one keepalive, one loss counter, one link.
 
 The fault names of the CLI, ``upright board status`` and the dashboard are the protocol table's
 (``msgtable.FAULTS``); every tool that keeps a board armed sends its host heartbeat through
 :class:`host.link.clients.Keepalive`; HIL runs, the board recorder and the dashboard count lost
-frames with :class:`host.hil.accounting.SeqAccount`.
+frames with :class:`host.hil.accounting.SeqAccount`; board tools and the dashboard share one
+:class:`host.link.clients.Link` (a pump thread reads it, commands from other threads take what it delivers).
 """
 
 from __future__ import annotations
 
+import threading
+import time
 from pathlib import Path
 
 from firmware import msgtable as T
-from host.dashboard.hub import Hub, SharedLink
+from host.dashboard.hub import Hub
 from host.hil.accounting import SeqAccount
 from host.link import messages as M
 from host.link.clients import Keepalive, Link
@@ -41,7 +44,7 @@ def test_every_tool_names_the_faults_of_the_protocol_table(tmp_path: Path) -> No
     every = sum(bit for bit, _, _ in T.FAULTS)
     assert fault_names(every) == [name for _, name, _ in sorted(T.FAULTS)]
     assert fault_names(1 << 20) == ["bit20"]
-    hub = Hub(SharedLink(_Sent()), {"mode": "test"}, tmp_path)
+    hub = Hub(_Sent(), {"mode": "test"}, tmp_path)
     try:
         assert hub.hello("p")["faults"] == [[b, n, d] for b, n, d in sorted(T.FAULTS)]
         hub.heartbeat = {"state": 3, "faults": 64 | 256}
@@ -92,3 +95,71 @@ def test_the_recorder_counts_one_lost_frame_once(tmp_path: Path) -> None:
         on(ct, seq, seq * 0.02)
     rec.close()
     assert rec.rows == 6 and rec.lost == 1, rec.summary()
+
+
+class _Board(Link):
+    """A transport whose board answers every request after a while, seq for seq (one frame in flight)."""
+
+    def __init__(self) -> None:
+        super().__init__(check_identity=False)
+        self.wire: list[tuple[M.Message, int]] = []
+        self.cv = threading.Condition()
+
+    def _send(self, msg: M.Message, seq: int) -> None:
+        with self.cv:
+            if msg.NAME == "param_get":
+                self.wire.append((M.BY_NAME["param_value"](index=msg.index, value=40 + msg.index), seq))
+            self.wire.append((TS(x=seq, xdot=0, phi=0, phidot=0), 200))  # periodic traffic in between
+            self.cv.notify_all()
+
+    def _recv_internal(self, timeout):
+        with self.cv:
+            if not self.wire:
+                self.cv.wait(timeout)
+            out, self.wire = self.wire, []
+        return out
+
+
+def test_one_link_is_shared_by_a_pump_thread_and_commands_from_others() -> None:
+    link = _Board()
+    link.share()
+    seen: list[tuple[str, int | None]] = []
+    stop = threading.Event()
+
+    def pump() -> None:  # the dashboard's pump: reads every frame, hands on all but telemetry
+        link.share(threading.current_thread())
+        while not stop.is_set():
+            m = link.recv(0.02)
+            if m is not None:
+                seen.append((m.NAME, link.last_seq))
+                if m.NAME != "telem_state":
+                    link.deliver(m, link.last_seq)
+
+    t = threading.Thread(target=pump, daemon=True)
+    t.start()
+    try:
+        # commands from two other threads, one at a time, each gets its own reply by seq
+        got = []
+        for idx in (1, 2):
+            th = threading.Thread(target=lambda i=idx: got.append(link.param_get(i, timeout=2.0, retries=0)))
+            th.start()
+            th.join(5)
+        assert sorted(got) == [41, 42]
+        deadline = time.monotonic() + 2
+        while len(seen) < 4 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        names = [n for n, _ in seen]
+        # the pump read every frame once (a delivered frame does not come back to it)
+        assert names.count("param_value") == 2 and names.count("telem_state") == 2
+        assert all(s == 200 for n, s in seen if n == "telem_state")  # its own last_seq, not a command's
+        # a request's seq is known as a reply's while shared (the loss counter skips it)
+        seq = link.send(M.BY_NAME["request"](msg_id=T.HEARTBEAT))
+        assert link.is_reply(seq) and not link.is_reply(seq)
+        # telemetry never reaches the commands' side: only delivered frames do
+        link.discard()
+        assert link.recv(0.2) is None
+    finally:
+        stop.set()
+        t.join(2)
+    link.unshare()
+    assert not link.shared

@@ -127,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from host.dashboard.hub import Hub, PlainPump, SharedLink
+    from host.dashboard.hub import Hub, PlainPump
     from host.dashboard.server import VENDOR, DashboardServer
     from host.link.clients import LinkError, open_link
 
@@ -146,8 +146,7 @@ def _serve(args: argparse.Namespace) -> int:
 
             print("upright dashboard: starting the virtual board...", file=sys.stderr, flush=True)
             plant = VirtualPlant()
-            shared = plant.open()
-            hub = Hub(shared, {"mode": "virtual", "port": plant.session.board.slave if plant.session.board else ""},
+            hub = Hub(plant.open(), {"mode": "virtual", "port": plant.session.board.slave if plant.session.board else ""},
                       record_dir, gains=plant.gains, virtual=plant, keepalive=False)
             plant.start(hub)
         else:
@@ -161,11 +160,10 @@ def _serve(args: argparse.Namespace) -> int:
                 link = open_link(port, node_id=args.node, baudrate=args.baudrate)
             except LinkError as exc:
                 raise A.RunFailed(str(exc)) from None
-            shared = SharedLink(link)
-            hub = Hub(shared, {"mode": mode, "port": port}, record_dir, keepalive=True)
+            hub = Hub(link, {"mode": mode, "port": port}, record_dir, keepalive=True)
             pump = PlainPump(hub).start()
             try:
-                hub.cmd.query("heartbeat", timeout=3.0 if args.emulate else 0.5, retries=2)
+                hub.link.query("heartbeat", timeout=3.0 if args.emulate else 0.5, retries=2)
             except LinkError as exc:
                 raise A.RunFailed(f"the board on {port} does not answer: {exc}") from None
         try:

@@ -2,8 +2,9 @@
 
 * :mod:`host.dashboard.hub` -- :class:`~host.dashboard.hub.Hub`: one thread owns the board's
   link and fans every message out (telemetry rows stamped with their receive time, heartbeats,
-  replies); commands from any thread go through :class:`~host.dashboard.hub.PumpedLink`, a
-  thread-safe :class:`~host.link.clients.Link`; the watchdog policy (the host heartbeat is fed
+  replies); commands from any thread go through that same :class:`~host.link.clients.Link`,
+  shared (:meth:`~host.link.clients.Link.share`: the pump reads, commands wait for what the hub
+  delivers); the watchdog policy (the host heartbeat is fed
   only while a live page asked for the arm; the last page gone -> disarm); recording to CSV;
 * :mod:`host.dashboard.plant` -- ``--virtual``: the firmware's HIL main on a pty
   (:class:`host.hil.session.HilSession`) closed around the simulated plant by THE lockstep loop

@@ -9,9 +9,11 @@ message it reads to :meth:`Hub.on_message` with the time it arrived.  The hub
   last minute, writes rows to the recording, and queues each row, JSON-encoded once, to every
   connected page (:class:`Client`, read by the Server-Sent Events handler);
 * keeps the last heartbeat (state, fault flags, boot, uptime) and link statistics;
-* gives commands from any thread a thread-safe :class:`PumpedLink` (a
-  :class:`~host.link.clients.Link`: ``arm``, ``upload_gains``, ``param_get``... with their
-  retries and refusals), whose replies the pump fans out to it;
+* shares the board's one :class:`~host.link.clients.Link` (:meth:`~host.link.clients.Link.share`):
+  the pump reads it, commands from any thread go through it (``arm``, ``upload_gains``,
+  ``param_get``... with their retries and refusals, by the board library
+  :class:`~host.operate.board.Board` on that same link), and the hub delivers every received
+  frame but telemetry to them (:meth:`~host.link.clients.Link.deliver`);
 * applies the watchdog policy: the host heartbeat (:class:`~host.link.clients.Keepalive`,
   every :data:`KEEPALIVE_S`) is sent only while at least one page is
   live (its event stream open and a ping within :data:`PAGE_TIMEOUT_S`) *and* the arm was
@@ -37,15 +39,13 @@ from typing import Any, Callable
 from firmware import msgtable as T
 from host.hil.accounting import SeqAccount
 from host.link import messages as M
-from host.link.clients import Keepalive, Link, LinkClosed, LinkError
+from host.link.clients import Keepalive, Link, LinkError
 from host.operate.board import Board, BoardError, fault_table
 
 __all__ = [
     "KEEPALIVE_S",
     "PAGE_TIMEOUT_S",
     "COLUMNS",
-    "SharedLink",
-    "PumpedLink",
     "Client",
     "Hub",
     "PlainPump",
@@ -69,84 +69,6 @@ _REQUEST = M.BY_NAME["request"]
 _SCALE = {f.name: f.scale for f in (*_TS.FIELDS, *_TC.FIELDS)}
 _PERIODIC = (_TS, _TC, _HB)
 _ARMED_STATES = {s[0] for s in T.STATES if s[1] in ("armed", "balancing")}
-
-
-class SharedLink:
-    """A link whose :meth:`send` may be called from any thread (one lock); everything else is
-    the wrapped link's, used by the one thread that owns the receive side."""
-
-    def __init__(self, link: Link) -> None:
-        self._link = link
-        self._lock = threading.Lock()
-        # seq -> time of the requests sent: their replies carry the request's seq, not the
-        # board's periodic counter, and must not count in the loss accounting
-        self.requests: dict[int, float] = {}
-
-    @property
-    def inner(self) -> Link:
-        return self._link
-
-    def send(self, msg: M.Message) -> int:
-        with self._lock:
-            seq = self._link.send(msg)
-            if msg.NAME == "request":
-                self.requests[seq] = time.monotonic()
-            return seq
-
-    def is_reply(self, seq: int) -> bool:
-        """True if ``seq`` is that of a request sent in the last second (then forgotten)."""
-        t = self.requests.pop(seq, None)
-        return t is not None and time.monotonic() - t < 1.0
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._link, name)
-
-
-class PumpedLink(Link):
-    """A thread-safe :class:`~host.link.clients.Link` on a link another thread reads.
-
-    Sends go out on the shared link (its real sequence numbers, so replies match); received
-    messages arrive through :meth:`put` from the pump.  Every ``Link`` command works from any
-    thread (``arm``, ``request``, ``upload_gains``...); one caller at a time per instance.
-    """
-
-    def __init__(self, shared: SharedLink, *, backlog: int = 512) -> None:
-        super().__init__(backlog=backlog)
-        self._shared = shared
-        self._in: collections.deque[tuple[M.Message, int | None]] = collections.deque(maxlen=backlog)
-        self._cv = threading.Condition()
-
-    def put(self, msg: M.Message, seq: int | None) -> None:
-        """Hand over one received message (the pump's thread)."""
-        with self._cv:
-            self._in.append((msg, seq))
-            self._cv.notify()
-
-    def discard(self) -> None:
-        """Forget what was received so far (a command then matches only fresh replies)."""
-        with self._cv:
-            self._in.clear()
-            self._queue.clear()
-
-    def send(self, msg: M.Message) -> int:
-        if self._closed:
-            raise LinkClosed("link is closed")
-        if not isinstance(msg, M.Message):
-            raise TypeError(f"expected a protocol message, got {type(msg).__name__}")
-        seq = self._shared.send(msg)
-        self.sent += 1
-        return seq
-
-    def _send(self, msg: M.Message, seq: int) -> None:  # pragma: no cover - send() is overridden
-        raise NotImplementedError
-
-    def _recv_internal(self, timeout: float | None) -> list[tuple[M.Message, int | None]]:
-        with self._cv:
-            if not self._in:
-                self._cv.wait(timeout)
-            out = list(self._in)
-            self._in.clear()
-        return out
 
 
 class Client:
@@ -186,8 +108,9 @@ class Hub:
 
     Parameters
     ----------
-    link : SharedLink
-        The board's link (sends from any thread).
+    link : Link
+        The board's link, shared from now on (:meth:`~host.link.clients.Link.share`: the pump
+        reads it, commands from any thread wait for what the hub delivers).
     info : dict
         What the page shows about the connection (``mode``, ``port``...).
     record_dir : Path
@@ -200,9 +123,10 @@ class Hub:
         Send the host heartbeat while feeding (False where something else feeds the watchdog).
     """
 
-    def __init__(self, link: SharedLink, info: dict[str, Any], record_dir: Path, *,
+    def __init__(self, link: Link, info: dict[str, Any], record_dir: Path, *,
                  gains: dict[str, Any] | None = None, virtual: Any = None, keepalive: bool = True) -> None:
         self.link = link
+        link.share()
         self.info = dict(info)
         self.record_dir = Path(record_dir)
         self.gains = dict(gains or {"crc": None, "label": "unknown (not uploaded by this dashboard)"})
@@ -225,11 +149,9 @@ class Hub:
         self.feeding = False
         self._keepalive = Keepalive(self.link.send, KEEPALIVE_S)
         self.events: collections.deque[dict[str, Any]] = collections.deque(maxlen=200)
-        self._listeners: list[PumpedLink] = []
-        self.cmd = self.listener()
-        # the commands go through the board library of `upright board` (arming epoch where the
-        # protocol has one, refusals as BoardError), on the thread-safe link
-        self.board = Board(self.cmd, port=str(self.info.get("port", "")), timeout=0.25, retries=3)
+        # the commands go through the board library of `upright board` (arming token, refusals
+        # as BoardError), on the shared link
+        self.board = Board(self.link, port=str(self.info.get("port", "")), timeout=0.25, retries=3)
         self._cmd_lock = threading.Lock()
         # recording
         self._rec_fh: Any = None
@@ -248,13 +170,6 @@ class Hub:
         self._policy.start()
 
     # ------------------------------------------------------------------ messages (pump thread)
-    def listener(self) -> PumpedLink:
-        """A new thread-safe link view that receives every message from now on."""
-        pl = PumpedLink(self.link)
-        with self._lock:
-            self._listeners.append(pl)
-        return pl
-
     def on_message(self, m: M.Message, seq: int | None, t_rx: float | None = None) -> None:
         """Take one received message (the pump's thread); ``t_rx`` = epoch seconds it arrived."""
         t_rx = time.time() if t_rx is None else t_rx
@@ -296,9 +211,8 @@ class Hub:
                 self._broadcast(_event("gains", self.gains))
             if changed:
                 self._broadcast(_event("hb", self._hb_payload()))
-        for pl in self._listeners:
-            if t is not _TS and t is not _TC:
-                pl.put(m, seq)
+        if t is not _TS and t is not _TC:
+            self.link.deliver(m, seq)
 
     @property
     def lost(self) -> int:
@@ -423,11 +337,11 @@ class Hub:
         self._broadcast(_event("note", ev))
 
     # ------------------------------------------------------------------ commands (any thread)
-    def _command(self, fn: Callable[[PumpedLink], Any], *, refresh: bool = False) -> Any:
+    def _command(self, fn: Callable[[Link], Any], *, refresh: bool = False) -> Any:
         with self._cmd_lock:
-            self.cmd.discard()
+            self.link.discard()
             try:
-                return fn(self.cmd)
+                return fn(self.link)
             finally:
                 if refresh:  # a heartbeat now: the pages see the new state at once
                     try:
@@ -575,10 +489,10 @@ class Hub:
                 "notes": list(self.events)[-20:]}
 
     def status(self) -> dict[str, Any]:
-        inner = self.link.inner
+        link = self.link
         return {"info": self.info, "heartbeat": self._hb_payload(), "heartbeats": self.hb_count,
                 "telemetry_rows": self.n, "telemetry_lost": self.lost + self.half_pairs,
-                "link": {"sent": inner.sent, "received": inner.received, "drops": inner.drops},
+                "link": {"sent": link.sent, "received": link.received, "drops": link.drops},
                 "pages": len(self.clients), "live_pages": len(self.live_pages()),
                 "arm_requested": self.arm_requested, "feeding": self.feeding, "keepalives": self.keepalives,
                 "gains": self.gains, "record": self.record_status(), "stats": self.stats(),
@@ -610,8 +524,7 @@ class Hub:
         self.stopping.set()
         self._stop_square()
         self.record_stop()
-        for pl in self._listeners:
-            pl.close()
+        self.link.unshare()
 
 
 class PlainPump:
@@ -629,12 +542,13 @@ class PlainPump:
         return self
 
     def _run(self) -> None:
-        hub, inner = self.hub, self.hub.link.inner
+        hub, link = self.hub, self.hub.link
+        link.share(threading.current_thread())  # this thread reads; commands wait for what the hub delivers
         try:
             while not self._stop.is_set():
-                m = inner.recv(0.02)
+                m = link.recv(0.02)
                 if m is not None:
-                    hub.on_message(m, inner.last_seq, time.time())
+                    hub.on_message(m, link.last_seq, time.time())
                 hub.tick_keepalive()
         except LinkError as exc:
             if not self._stop.is_set():

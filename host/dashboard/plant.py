@@ -21,12 +21,12 @@ import threading
 import time
 from typing import Any
 
-from host.dashboard.hub import Hub, SharedLink
+from host.dashboard.hub import Hub
 from host.hil.accounting import Sink
 from host.hil.errors import HilError
 from host.hil.lockstep import Lockstep
 from host.hil.session import HilSession
-from host.link.clients import LinkError
+from host.link.clients import Link, LinkError
 from sim.params import RobotParams, load_params
 from sim.plantsim import PlantSim
 from sim.scenario import scenario_from_dict
@@ -66,7 +66,6 @@ class VirtualPlant:
         self.scenario = scenario_from_dict({"name": "dashboard", "duration": float(chunk_s),
                                             "description": "live dashboard run"})
         self.session = HilSession(None, link="serial", mode="lockstep", rt_priority=None, timeout=timeout)
-        self.shared: SharedLink | None = None
         self.hub: Hub | None = None
         self.error: str | None = None
         self.ticks = 0
@@ -85,14 +84,12 @@ class VirtualPlant:
 
         return {"crc": int(G.CRC), "label": f"{self.session.gains} (firmware/gains.py)"}
 
-    def open(self) -> SharedLink:
-        """Start the virtual board and bring it to a disarmed start; returns the shared link."""
+    def open(self) -> Link:
+        """Start the virtual board and bring it to a disarmed start; returns its link (for the hub)."""
         self.session.open()
         sim = PlantSim(self.params, self.scenario, x0=self._state)
         self.session.prepare(sim, Sink(self.session.link, strict=False), arm=False)
-        self.shared = SharedLink(self.session.link)  # type: ignore[arg-type]
-        self.session.link = self.shared  # type: ignore[assignment]
-        return self.shared
+        return self.session.link  # type: ignore[return-value]
 
     def start(self, hub: Hub) -> "VirtualPlant":
         """Run the paced lockstep loop in a background thread, messages to ``hub``."""
@@ -112,7 +109,10 @@ class VirtualPlant:
     def _run(self) -> None:
         hub = self.hub
         assert hub is not None
-        sink = _HubSink(hub, self.shared)
+        link = self.session.link
+        assert link is not None
+        link.share(threading.current_thread())  # the loop reads; the hub's commands wait for what it delivers
+        sink = _HubSink(hub, link)
         Ts = 1.0 / self.params.rate
         clock = time.perf_counter
         t_start = clock()

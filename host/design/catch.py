@@ -43,6 +43,7 @@ from scipy.optimize import brentq
 from host.design.discrete import DiscreteController, force_clamp
 from sim.motor import back_emf_damping, no_load_speed, stall_force
 from sim.params import RobotParams
+from sim.plant import force_for_xddot, phiddot_given_xddot, xddot_affine
 
 __all__ = ["CatchDesign", "CATCH_DEFAULT", "catch_gain", "catch_rows", "catch_clamp", "design_summary", "physical_bound",
            "TRACK_FAULT", "DriveBound", "drive_bound", "max_effort", "direct_search"]
@@ -187,10 +188,7 @@ def _accel_range(k: _Cart, v: float, phi: float, w: float) -> tuple[float, float
     # The plant's xddot = (J (F - b v - mL w^2 sin) + mL cos m g L sin) / det rises with F
     if not k.drive:
         return -k.a_max, k.a_max
-    sn, c = math.sin(phi), math.cos(phi)
-    det = k.Mm * k.J - (k.mL * c) ** 2
-    a0 = (k.J * (-k.b * v - k.mL * w * w * sn) + k.mL * c * k.mL * k.g * sn) / det
-    gain = k.J / det
+    a0, gain = xddot_affine(v, w, math.sin(phi), math.cos(phi), k.Mm, k.mL, k.J, k.b, k.g)
     return max(a0 - gain * (k.f_stall + k.damping * v), -k.a_max), min(a0 + gain * (k.f_stall - k.damping * v), k.a_max)
 
 
@@ -208,7 +206,7 @@ def _rhs(k: _Cart, s: tuple[float, ...], mode: int, v_cap: float) -> tuple[float
     # the tilt sees only the cart's acceleration: J phiddot = m g L sin(phi) + m L cos(phi) xddot
     # (sim/plant.py's second equation), so the acceleration is the input here
     a = _accel(k, s, mode, v_cap)
-    return s[1], a, s[3], (k.mL * k.g * math.sin(s[2]) + k.mL * math.cos(s[2]) * a) / k.J
+    return s[1], a, s[3], phiddot_given_xddot(a, math.sin(s[2]), math.cos(s[2]), k.mL, k.J, k.g)
 
 
 def _rk4(k: _Cart, s: tuple[float, ...], mode: int, h: float, v_cap: float = math.inf) -> tuple[float, ...]:
@@ -485,9 +483,7 @@ def max_effort(params: RobotParams, phi0: float, *, a_max: float | None = None, 
     rows.append((t, *s, _accel(k, s, 0, v_cap)))
     R = np.array(rows)
     tt, x, v, phi, w, acc = R.T
-    sn, cs = np.sin(phi), np.cos(phi)
-    det = k.Mm * k.J - (k.mL * cs) ** 2
-    force = (acc * det - k.mL * cs * k.mL * k.g * sn) / k.J + k.b * v + k.mL * w * w * sn
+    force = force_for_xddot(acc, v, w, np.sin(phi), np.cos(phi), k.Mm, k.mL, k.J, k.b, k.g)
     duty = (force + k.damping * v) / k.f_stall if drive else np.full_like(force, np.nan)
     return {"t": tt, "x": x, "xdot": v, "phi": phi, "phidot": w, "xddot": acc, "force": force, "duty": duty,
             "t_brake": np.float64(c.t_brake), "t_stop": np.float64(c.t_stop), "x_stop": np.float64(c.x_stop),
@@ -500,15 +496,13 @@ def _rhs_batch(k: _Cart, s: np.ndarray, u: np.ndarray) -> np.ndarray:
     v, phi, w = s[1], s[2], s[3]
     sn, c = np.sin(phi), np.cos(phi)
     if k.drive:
-        det = k.Mm * k.J - (k.mL * c) ** 2
-        a0 = (k.J * (-k.b * v - k.mL * w * w * sn) + k.mL * c * k.mL * k.g * sn) / det
-        gain = k.J / det
+        a0, gain = xddot_affine(v, w, sn, c, k.Mm, k.mL, k.J, k.b, k.g)
         lo = np.maximum(a0 - gain * (k.f_stall + k.damping * v), -k.a_max)
         hi = np.minimum(a0 + gain * (k.f_stall - k.damping * v), k.a_max)
     else:
         lo, hi = np.full_like(v, -k.a_max), np.full_like(v, k.a_max)
     a = lo + 0.5 * (u + 1.0) * (hi - lo)
-    return np.array([v, a, w, (k.mL * k.g * sn + k.mL * c * a) / k.J])
+    return np.array([v, a, w, phiddot_given_xddot(a, sn, c, k.mL, k.J, k.g)])
 
 
 def _rollout(k: _Cart, P: np.ndarray, n: int, steps: int) -> tuple[np.ndarray, np.ndarray]:

@@ -8,7 +8,8 @@ every vertex of the box and at seeded random points inside it (:meth:`Uncertaint
 A **candidate** (:class:`Candidate`) is what the firmware's gain table carries: LQR weights
 ``Q`` (diagonal) and ``R``, the estimator (the Kalman filter's measurement noise divided by an
 ``observer`` speed factor) and the force clamp (``a_cmd``: the cart acceleration the clamp
-allows from upright, :func:`host.design.discrete.force_clamp`).  The design model is always
+allows from upright, :func:`host.design.discrete.force_clamp`) and, for the margin design of
+:mod:`host.design.margin`, the integral gain ``ki`` (one type for both).  The design model is always
 the nominal robot: the firmware does not know where in the box the real robot is.
 
 **Scoring** (:func:`evaluate`) uses the report's scenarios on the nonlinear plant with the
@@ -54,6 +55,7 @@ import numpy as np
 
 from sim.params import RobotParams
 
+from .integral import IntegralController
 from .uncertainty import (FACTORS, UNCERTAINTY_FILE, Point, UncertaintyError, UncertaintySet, load_uncertainty,
                           uncertainty_from_dict)
 
@@ -111,6 +113,10 @@ class Candidate:
         ``controller_ss``'s ``observer``).
     a_cmd : float
         Force clamp as the cart acceleration it allows from upright (m/s^2).
+    ki : float, optional
+        The firmware's integral gain on the cart position error (N/(m s); the margin design's,
+        :mod:`host.design.margin`).  ``None``: a design without the integral row (and no ``ki``
+        in :meth:`as_dict`); ``0``: the row present and zero.
     """
 
     name: str
@@ -118,13 +124,20 @@ class Candidate:
     R: float
     observer: float = 1.0
     a_cmd: float = 4.4
+    ki: float | None = None
 
-    def controller(self, params: RobotParams) -> Any:
-        """The :class:`host.design.discrete.DiscreteController` of this design for ``params``."""
+    def controller(self, params: RobotParams, *, integral: bool = True) -> Any:
+        """The controller the firmware runs for ``params``: the
+        :class:`host.design.discrete.DiscreteController` of the weights, inside an
+        :class:`~host.design.integral.IntegralController` when ``ki > 0`` (``integral=False``:
+        the state feedback and estimator alone, what the export's rows are made from)."""
         from host.design import discrete
 
-        return discrete.controller_ss(params, Q=self.Q, R=self.R, u_max=discrete.force_clamp(params, self.a_cmd),
-                                      observer=self.observer)
+        inner = discrete.controller_ss(params, Q=self.Q, R=self.R, u_max=discrete.force_clamp(params, self.a_cmd),
+                                       observer=self.observer)
+        if integral and self.ki is not None and self.ki > 0:
+            return IntegralController(inner, self.ki)
+        return inner
 
     def u_max(self, params: RobotParams) -> float:
         """The force clamp (N) for ``params``."""
@@ -138,7 +151,8 @@ class Candidate:
         return {"name": self.name, "Q": list(self.Q), "R": self.R, "observer": self.observer, "a_cmd": self.a_cmd,
                 "u_max": self.u_max(params),
                 "export": f"upright export --Q {q} --R {self.R:.6g} --observer {self.observer:.6g} "
-                          f"--u-max {self.u_max(params):.6g}"}
+                          f"--u-max {self.u_max(params):.6g}",
+                **({} if self.ki is None else {"ki": self.ki})}
 
 
 def shipped() -> Candidate:

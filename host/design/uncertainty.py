@@ -24,7 +24,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from sim.params import SCHEMA, RobotParams
+from sim.params import SCHEMA, RobotParams, read_toml
 
 __all__ = ["UNCERTAINTY_FILE", "FACTORS", "UncertaintyError", "Point", "UncertaintySet", "uncertainty_from_dict",
            "load_uncertainty", "REALISM", "UNCERTAINTY_REALISTIC"]
@@ -284,13 +284,5 @@ def load_uncertainty(path: str | Path | None = None) -> UncertaintySet:
     base = uncertainty_from_dict(base_data, str(UNCERTAINTY_FILE))
     if path is None:
         return base
-    p = Path(path)
-    try:
-        text = p.read_text()
-    except OSError as exc:
-        raise UncertaintyError("", f"cannot read uncertainty file {p}: {exc.strerror or exc}") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise UncertaintyError("", f"{p}: not valid TOML: {exc}") from None
-    return uncertainty_from_dict(data, str(p), base)
+    data = read_toml(path, "uncertainty file", lambda msg: UncertaintyError("", msg))
+    return uncertainty_from_dict(data, str(Path(path)), base)

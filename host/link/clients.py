@@ -13,7 +13,15 @@ Safety rules the base class keeps (``firmware/msgtable.py``, docs/protocol.md):
   disarm (or fault) is refused by the board instead of re-arming it;
 * liveness: only HOST_HEARTBEAT (and set-points) feed the board's link watchdog; a link
   that arms starts sending it (:meth:`Link.start_heartbeat`) and flags a board whose own
-  heartbeat is missing for 3 periods (:attr:`Link.board_silent`).  Backends are chosen by name from :data:`BACKENDS` and
+  heartbeat is missing for 3 periods (:attr:`Link.board_silent`).
+
+Threads: :meth:`Link.send` may be called from any thread.  The receive side is one thread's:
+the caller's, or, once the link is *shared* (:meth:`Link.share`: the dashboard's hub), one pump
+thread's that reads every frame and hands on, with :meth:`Link.deliver`, what commands wait for;
+:meth:`Link.recv` and every request (``arm``, ``param_get``, ``upload_gains``...) on any other
+thread then wait for those delivered frames.  Board tools and the dashboard use this one link.
+
+Backends are chosen by name from :data:`BACKENDS` and
 imported lazily.  Every pyserial / python-can error is re-raised as a
 :class:`LinkError` ``from`` the original.
 
@@ -212,7 +220,6 @@ class Link:
         self._queue: collections.deque[tuple[M.Message, int | None]] = collections.deque(maxlen=backlog)
         self._seq = 0
         self._closed = False
-        self.last_seq: int | None = None
         self.sent = 0
         self.received = 0
         # one writer at a time (the heartbeat thread writes too), one reader at a time
@@ -236,6 +243,16 @@ class Link:
         self._board_period: float | None = None
         #: the hub this link serves its port's other tools on (:mod:`host.link.porthub`)
         self._hub: Any = None
+        # shared (share()): the pump thread reads; other threads take what it delivers
+        self._shared = False
+        self._reader: threading.Thread | None = None
+        self._inbox: collections.deque[tuple[M.Message, int | None]] = collections.deque(maxlen=backlog)
+        self._inbox_cv = threading.Condition()
+        self._inbox_seq: int | None = None
+        self._last_seq: int | None = None
+        # seq -> time of the requests sent while shared: their replies carry the request's seq,
+        # not the board's periodic counter (is_reply)
+        self._requests: dict[int, float] = {}
 
     # ---- transport hooks ----
     def _send(self, msg: M.Message, seq: int) -> None:  # pragma: no cover - abstract
@@ -260,6 +277,73 @@ class Link:
         """Frames dropped by the receiver, by cause."""
         return {}
 
+    # ---- sharing between threads ----
+    def share(self, reader: threading.Thread | None = None) -> None:
+        """Let one pump thread own the receive side from now on (idempotent).
+
+        The pump reads with :meth:`recv` as any owner would and hands each frame that commands
+        may wait for to :meth:`deliver`; :meth:`recv`, :meth:`expect` and :meth:`request` called
+        on any other thread take delivered frames only.  ``reader``: the pump thread (it may
+        say so later, ``share(threading.current_thread())`` from the pump itself).
+        """
+        self._shared = True
+        if reader is not None:
+            self._reader = reader
+
+    def unshare(self) -> None:
+        """Back to one owner for everything: the calling thread reads again; undelivered frames dropped."""
+        self._shared = False
+        self._reader = None
+        self.discard()
+
+    @property
+    def shared(self) -> bool:
+        """True while a pump owns the receive side (:meth:`share`)."""
+        return self._shared
+
+    def deliver(self, msg: M.Message, seq: int | None) -> None:
+        """Hand one received frame to the threads that wait for replies (the pump's thread)."""
+        with self._inbox_cv:
+            self._inbox.append((msg, seq))
+            self._inbox_cv.notify_all()
+
+    def discard(self) -> None:
+        """Forget the frames delivered so far (a command then matches only fresh replies)."""
+        with self._inbox_cv:
+            self._inbox.clear()
+
+    def is_reply(self, seq: int) -> bool:
+        """True if ``seq`` is that of a request sent in the last second while shared (then forgotten)."""
+        t = self._requests.pop(seq, None)
+        return t is not None and time.monotonic() - t < 1.0
+
+    def _waits_for_pump(self) -> bool:
+        return self._shared and threading.current_thread() is not self._reader
+
+    def _take(self, timeout: float | None) -> None:
+        # a thread that is not the pump: wait for a delivered frame (the inbox is its queue)
+        with self._inbox_cv:
+            if not self._inbox:
+                self._inbox_cv.wait(timeout)
+
+    def _side(self) -> tuple[collections.deque[tuple[M.Message, int | None]], Callable[[float | None], None]]:
+        # the queue this thread reads and how it waits for more
+        if self._waits_for_pump():
+            return self._inbox, self._take
+        return self._queue, self._pull
+
+    @property
+    def last_seq(self) -> int | None:
+        """Serial sequence number of the last message this thread's :meth:`recv` / request took."""
+        return self._inbox_seq if self._waits_for_pump() else self._last_seq
+
+    @last_seq.setter
+    def last_seq(self, seq: int | None) -> None:
+        if self._waits_for_pump():
+            self._inbox_seq = seq
+        else:
+            self._last_seq = seq
+
     # ---- public API ----
     def send(self, msg: M.Message, *, _tag: Any = None) -> int:
         """Send one message; return the sequence number used (serial framing).
@@ -280,6 +364,11 @@ class Link:
             hub = self._hub
             if hub is not None:
                 hub.note_sent(msg, seq, _tag)
+            if self._shared and msg.NAME == "request":
+                now = time.monotonic()
+                if len(self._requests) > 64:  # replies that never came: forget the stale ones
+                    self._requests = {k: v for k, v in self._requests.items() if now - v < 1.0}
+                self._requests[seq] = now
             self._send(msg, seq)
             self.sent += 1
         return seq
@@ -311,13 +400,14 @@ class Link:
         """
         if self._closed:
             raise LinkClosed("link is closed")
+        q, pull = self._side()
         deadline = None if timeout is None else time.monotonic() + timeout
-        while not self._queue:
+        while not q:
             left = None if deadline is None else max(0.0, deadline - time.monotonic())
-            self._pull(left)
-            if not self._queue and deadline is not None and time.monotonic() >= deadline:
+            pull(left)
+            if not q and deadline is not None and time.monotonic() >= deadline:
                 return None
-        msg, self.last_seq = self._queue.popleft()
+        msg, self.last_seq = q.popleft()
         return msg
 
     def expect(self, kind: type[M.Message] | str, timeout: float = 1.0) -> M.Message:
@@ -331,12 +421,13 @@ class Link:
         return self._wait(lambda m, seq: isinstance(m, cls), timeout, f"no {cls.NAME} within {timeout} s")
 
     def _wait(self, match: Any, timeout: float, what: str) -> M.Message:
+        q, pull = self._side()
         deadline = time.monotonic() + timeout
         held: list[tuple[M.Message, int | None]] = []
         try:
             while True:
-                while self._queue:
-                    item = self._queue.popleft()
+                while q:
+                    item = q.popleft()
                     if match(*item):
                         self.last_seq = item[1]
                         return item[0]
@@ -344,9 +435,9 @@ class Link:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise LinkTimeout(what)
-                self._pull(left)
+                pull(left)
         finally:
-            self._queue.extendleft(reversed(held))
+            q.extendleft(reversed(held))
 
     def request(self, msg: M.Message, *, reply: type[M.Message] | str | None = None,
                 timeout: float = 0.25, retries: int = 3) -> M.Message:
@@ -409,7 +500,7 @@ class Link:
             return isinstance(m, cls)
 
         for attempt in range(retries + 1):
-            before.update(id(m) for m, _ in list(self._queue))
+            before.update(id(m) for m, _ in list(self._side()[0]))
             sent.add(self.send(msg))
             try:
                 m = self._wait(match, timeout, "")
@@ -492,8 +583,9 @@ class Link:
         while not self._hb_stop.wait(keep.period):
             try:
                 keep.beat()
-                # nobody reading: take what arrived (board heartbeats) into the queue
-                if self._background_reads and self._rx_lock.acquire(blocking=False):
+                # nobody reading: take what arrived (board heartbeats) into the queue (never
+                # while shared: the pump reads, and notes the board's heartbeats itself)
+                if self._background_reads and not self._shared and self._rx_lock.acquire(blocking=False):
                     try:
                         got = self._recv_internal(0)
                     finally:

@@ -16,10 +16,11 @@ keeps its default, an unknown key or a bad value is refused with the key named::
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any
+
+from sim.params import read_toml
 
 from .sweep import SweepError, Uncertainty
 
@@ -76,13 +77,5 @@ def load_ranges(path: str | Path, base: Uncertainty | None = None) -> Uncertaint
     RangesError
         Unreadable file, bad TOML, unknown key or bad value.
     """
-    p = Path(path)
-    try:
-        text = p.read_text()
-    except OSError as exc:
-        raise RangesError("", f"cannot read ranges file {p}: {exc.strerror or exc}") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise RangesError("", f"{p}: not valid TOML: {exc}") from None
-    return ranges_from_dict(data, str(p), base)
+    data = read_toml(path, "ranges file", lambda msg: RangesError("", msg))
+    return ranges_from_dict(data, str(Path(path)), base)
