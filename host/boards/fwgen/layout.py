@@ -1,0 +1,81 @@
+"""The per-tick state layout of the firmware's viper builds, declared once as data.
+
+``Controller.step`` keeps its state in the controller's int32 arrays and int attributes
+(:data:`CONTROLLER_ARRAYS`, :data:`CONTROLLER_SCALARS`); the viper build reads the arrays
+through ``ptr32``.  ``Sensors``, ``Supervisor``, ``Motor`` and ``Timing`` keep their per-tick
+attributes, in the viper build, as slots of one ``array('i')`` per object (:data:`TICK_PARTS`):
+an attribute load there costs ~2.5 us on a 125 MHz M0+, a ptr32 load a few cycles.  The
+generated classes (``SensorsV`` …) show the same attribute names to the cold paths through
+properties (the named accessors), and their per-tick methods call the generated viper
+functions on the slot array.  Slot kinds: ``"i"`` signed (loads sign-extended: a 64-bit
+port's ptr32 load is zero-extended), ``"u"`` never negative, ``"b"`` a flag (bool, 0/1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from host.boards.fwgen.viper import SlotObject
+
+__all__ = ["FIRMWARE", "CONTROLLER_ARRAYS", "CONTROLLER_SCALARS", "TickPart", "TICK_PARTS", "TICKS_DIFF"]
+
+FIRMWARE = Path(__file__).resolve().parents[3] / "firmware"
+
+# Controller.step: the int32 arrays (ptr32 locals in viper) and the int attributes it reads
+CONTROLLER_ARRAYS = ("p", "m", "lim", "sm", "rf", "xf", "kf", "kv", "b", "kb", "kvb", "ad", "bd", "sa", "ra")
+CONTROLLER_SCALARS = ("kr", "hk", "hkv", "d", "ki", "sk", "ulim", "uhi", "ulo", "ilim", "skv", "aw", "integ", "est")
+
+# fixmath.ticks_diff written out (a call costs more than this on a board): the same values for
+# a clock whose period is a multiple of 2**30
+TICKS_DIFF = "out = (a0 - a1) & _TICKS_MASK\nif out >= _TICKS_HALF:\n    out |= _TICKS_HIGH\n"
+
+
+@dataclass(frozen=True)
+class TickPart:
+    """One plain class whose per-tick methods get a viper build on a slot array.
+
+    Attributes
+    ----------
+    module : str
+        The firmware module holding the class (``"sensors"``).
+    cls : str
+        The plain class (``"Sensors"``); the generated one is ``cls + "V"``.
+    state : SlotObject
+        Its slot layout.
+    methods : tuple of (str, str)
+        Method name -> generated viper function name.
+    inline : tuple of (str, str)
+        ``self.<name>(...)`` calls expanded from a template (see :mod:`host.boards.fwgen.viper`).
+    """
+
+    module: str
+    cls: str
+    state: SlotObject
+    methods: tuple[tuple[str, str], ...]
+    inline: tuple[tuple[str, str], ...] = ()
+
+
+TICK_PARTS: tuple[TickPart, ...] = (
+    TickPart("sensors", "Sensors", SlotObject("SN", (
+        ("adc_max", "i"), ("pot_offset", "i"), ("adc_sign", "i"), ("counts", "i"), ("ylp", "i"), ("yp", "i"),
+        ("qp", "u"), ("primed", "b"), ("last", "u"), ("enc_sign", "i"), ("delta", "i"), ("encj", "i"),
+        ("jump", "b"), ("pos", "i"), ("ylx", "i"), ("yx", "i"), ("qx", "u"), ("rail", "b"))),
+        (("update", "sensors_update"),)),
+    # timing_ok stays an attribute: App.run reads it every tick, the update only when ARMED
+    TickPart("supervisor", "Supervisor", SlotObject("SU", (
+        ("state", "u"), ("faults", "u"), ("last", "u"), ("tilt_counts", "i"), ("arm_counts", "i"),
+        ("track_counts", "i"), ("wd_ticks", "i"), ("wd_count", "u"), ("stall_ticks", "i"), ("stall_duty", "i"),
+        ("stall_count", "u"), ("ready", "b"))),
+        (("update", "supervisor_update"),)),
+    TickPart("motor", "Motor", SlotObject("MO", (
+        ("backemf", "b"), ("max_duty", "i"), ("vscale", "i"), ("kdu", "i"), ("kdv", "i"), ("sd", "u"),
+        ("half", "i"), ("deadband", "i"))),
+        (("duty", "motor_duty"),)),
+    TickPart("timing", "Timing", SlotObject("TM", (
+        ("period_us", "i"), ("mean_us", "i"), ("worst", "i"), ("misses", "i"), ("step_max", "i"),
+        ("overruns", "u"), ("step_min", "i"), ("period_max", "i"), ("jitter_max", "i"), ("steps", "u"),
+        ("_sum", "u"), ("_n", "u"), ("last_us", "u"), ("_have_last", "b"))),
+        (("begin", "timing_begin"), ("end", "timing_end")),
+        (("_diff", TICKS_DIFF),)),
+)
