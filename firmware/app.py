@@ -73,15 +73,13 @@ except ImportError:  # CPython
     _mem_free = None
 
 from . import crc16
+from . import emitter
 from . import fixmath
 from . import msgtable as T
 from .controller import Controller
 from .excite import EXC_OPEN, Excite
-from .motor import Motor
-from .sensors import Sensors
-from .supervisor import ARMED, BALANCING, DISARMED, FAULT, F_ADC_OPEN, F_CONFIG, F_GAINS, F_LOOP, F_UNDERVOLT, Supervisor
+from .supervisor import ARMED, BALANCING, DISARMED, FAULT, F_ADC_OPEN, F_CONFIG, F_GAINS, F_LOOP, F_UNDERVOLT
 from .supervisor import F_DEADLINE, F_ESTOP, F_RESET
-from .timing import Timing
 
 STALL_MS = const(100)  # no-motion check (F_STALL) default: this long without a count
 STALL_DUTY = const(800)  # ... at |duty| at least this
@@ -133,30 +131,17 @@ class App:
         layout = gains.LAYOUT
         flat = gains.FLAT
         self.ctrl = Controller(layout, flat)
-        # the controller step: bytecode, or the native/viper builds of firmware/fastpath.py
-        em = cfg.get("emitter", "bytecode")
-        if em == "native":
-            from .fastpath import step_native as cstep
-        elif em == "viper":
-            from .fastpath import step_viper as cstep
-        else:
-            cstep = Controller.step
-        self._cstep = cstep
-        self.emitter = em  # also the host link's frame encoder (framing.Encoder)
+        # the code emitter of every hot part (firmware/emitter.py: the one place that chooses)
+        em = emitter.check(cfg.get("emitter", "bytecode"))
+        Sn, Mo, Su, Tm, self._cstep = emitter.parts(em)
+        self.emitter = em  # also the host link's (framing.Encoder, the pacer, the commands' CRC)
         off = self.ctrl.off
         self.off = off
         # telemetry scaling (fill_telemetry): the TEL offset, and viper's build of it
         self._tel_o = off["TEL"]
-        self._tel_fast = None
-        if em == "viper":
-            from .fastframe import telem_viper
-            self._tel_fast = telem_viper
+        self._tel_fast = emitter.telemetry(em)
         self.table = array("i", flat)
         self.rate = flat[off["RATE"]]
-        Sn, Mo, Su, Tm = Sensors, Motor, Supervisor, Timing
-        if em == "viper":
-            # their per-tick methods in viper too (firmware/fasttick.py: same attributes)
-            from .fasttick import MotorV as Mo, SensorsV as Sn, SupervisorV as Su, TimingV as Tm
         self.sensors = Sn(flat, off, cfg.get("adc_sign", 1), cfg.get("enc_sign", 1), cfg.get("pot_offset"))
         self.motor = Mo(flat, off, cfg.get("deadband"), cfg.get("backemf", True))
         self.sup = Su()
@@ -219,10 +204,8 @@ class App:
         self.vsup_min = cfg.get("vsup_min_mv", 0)
         self.vsup_mv = self.vsup_nom
         self._vsup_acc = -1
-        if em == "viper" and self._read_vsup is not None:
-            # _supply in viper (firmware/fasttick.py: a helper's bound method, same state)
-            from .fasttick import SupplyV
-            self._supply = SupplyV(self).update
+        if self._read_vsup is not None:
+            self._supply = emitter.supply(self)
         self._frames = -1
         self._has_frames = hasattr(hal, "n_sensor")
         # parameters: defaults from msgtable, then config overrides by name
@@ -258,11 +241,9 @@ class App:
             self.sup.faults |= F_RESET
             self.sup.state = FAULT
         # bound methods cached for the loop
+        # the step of the emitter (viper: fasttick.StepV, whose bound method then hides App.step)
         if em == "viper":
-            # the whole step in viper (firmware/fasttick.py StepV: the same statements on the
-            # slot arrays of the viper classes; this instance attribute hides App.step)
-            from .fasttick import StepV
-            self.step = StepV(self).step
+            self.step = emitter.step(self)
         self._step = self.step
         self._period_m = self._period
         self._read_adc = hal.read_angle_raw
