@@ -37,6 +37,7 @@ from .sensors import Sensors
 from .supervisor import Supervisor
 from .motor import Motor
 from .timing import Timing
+from .pacer import Pacer
 
 # the constants the functions below use, from their modules (private const()s)
 _ARMED = const(1)
@@ -67,7 +68,7 @@ _VS_ONE = const(4096)
 _WINDOW = const(1024)
 _WINDOW_BITS = const(10)
 CONSTS = {"ARMED": _ARMED, "BALANCING": _BALANCING, "FAULT": _FAULT, "F_ADC_OPEN": _F_ADC_OPEN, "F_ADC_RAIL": _F_ADC_RAIL, "F_ENC_JUMP": _F_ENC_JUMP, "F_ESTOP": _F_ESTOP, "F_GAINS": _F_GAINS, "F_STALL": _F_STALL, "F_TILT": _F_TILT, "F_TRACK": _F_TRACK, "F_UNDERVOLT": _F_UNDERVOLT, "F_WATCHDOG": _F_WATCHDOG}
-PARAMS = {"P_HEARTBEAT_MS": _P_HEARTBEAT_MS, "P_TELEM_DIV": _P_TELEM_DIV}
+PARAMS = {}
 
 # the slots of each part's _S (host/boards/fwgen/layout.py)
 _SN_ADC_MAX = const(0)
@@ -437,10 +438,69 @@ class TimingV(Timing):
         return timing_end(self._S, t0, t1)
 
 
+class PacerV(Pacer):
+    # Pacer.tick on the app's int32 params array (firmware/emitter.py builds it for a viper
+    # app with one: Pacer._p set)
+    @micropython.viper
+    def tick(self):
+        sb = 1
+        sb = sb << 31
+        msk = sb | (sb - 1)
+        app = self.app
+        p = ptr32(self._p)
+        div = (((p[_P_TELEM_DIV] + sb) & msk) - sb)
+        hb = (((p[_P_HEARTBEAT_MS] + sb) & msk) - sb)
+        sent = 0
+        if div > 0:
+            n = int(self._telem_left) - 1
+            if n <= 0:
+                n = div
+                q = (int(self.seq) + 1) & 255
+                self.seq = q
+                self.telemetry(q)
+                if div > 1:
+                    sent = 1
+                else:
+                    sent = 0
+            self._telem_left = n
+        if hb <= 0:
+            return
+        t = int(self._hb_us) + int(app.period_us)
+        if t < hb * 1000 or sent:
+            self._hb_us = t
+            return
+        self._hb_us = 0
+        q = (int(self.seq) + 1) & 255
+        self.seq = q
+        self.heartbeat(q)
+
+
+class SupplyV:
+    # App._supply in viper: a viper app with a HAL that measures the supply calls
+    # SupplyV(app).update in its place (the same state, kept on the app)
+    def __init__(self, app):
+        self.app = app
+
+    @micropython.viper
+    def update(self, st: int) -> int:
+        app = self.app
+        v = int(app._read_vsup())
+        a = int(app._vsup_acc)
+        if a < 0:
+            a = v << 3
+        else:
+            a += v - (a >> 3)
+        app._vsup_acc = a
+        v = a >> 3
+        if v != int(app.vsup_mv):
+            app.vsup_mv = v
+            app.motor.set_supply(v, int(app.vsup_nom))
+        if v < int(app.vsup_min) and (st == _ARMED or st == _BALANCING):
+            return _F_UNDERVOLT
+        return 0
+
+
 # ---- hand-written viper glue (host/boards/fwgen/fasttick_glue.py.in, copied verbatim) ----
-from .pacer import Pacer
-
-
 class StepV:
     # App.step for the viper emitter (App sets app.step = StepV(app).step): the same
     # statements in the same order as App.step, the sensors, supervisor, motor and timing
@@ -551,61 +611,3 @@ class StepV:
         ex = int(timing_end(tmo, t0, int(ticks())))
         app.step_us = ex
         return duty
-
-
-class PacerV(Pacer):
-    # Pacer.tick on the app's int32 params array (link_serial.SerialLink builds this for an
-    # app with the viper emitter and a params array: Pacer._p set)
-    @micropython.viper
-    def tick(self):
-        p = ptr32(self._p)
-        div = p[_P_TELEM_DIV]
-        hb = p[_P_HEARTBEAT_MS]
-        sent = 0
-        if div > 0:
-            n = int(self._telem_left) - 1
-            if n <= 0:
-                n = div
-                q = (int(self.seq) + 1) & 0xFF
-                self.seq = q
-                self.telemetry(q)
-                if div > 1:
-                    sent = 1
-            self._telem_left = n
-        if hb <= 0:
-            return
-        t = int(self._hb_us) + int(self.app.period_us)
-        if t < hb * 1000 or sent:
-            self._hb_us = t
-            return
-        self._hb_us = 0
-        q = (int(self.seq) + 1) & 0xFF
-        self.seq = q
-        self.heartbeat(q)
-
-
-class SupplyV:
-    # App._supply in viper: App(config={"emitter": "viper"}) with a HAL that measures the
-    # supply calls SupplyV(app).update in its place (the same state, kept on the app)
-    def __init__(self, app):
-        self.app = app
-        self.read = app._read_vsup
-        self.motor = app.motor
-
-    @micropython.viper
-    def update(self, st: int) -> int:
-        app = self.app
-        v = int(self.read())
-        a = int(app._vsup_acc)
-        if a < 0:
-            a = v << 3
-        else:
-            a += v - (a >> 3)
-        app._vsup_acc = a
-        v = a >> 3
-        if v != int(app.vsup_mv):
-            app.vsup_mv = v
-            self.motor.set_supply(v, app.vsup_nom)
-        if v < int(app.vsup_min) and (st == _ARMED or st == _BALANCING):
-            return _F_UNDERVOLT
-        return 0

@@ -17,8 +17,9 @@ import ast
 from pathlib import Path
 
 from firmware import msgtable
-from host.boards.fwgen.layout import FIRMWARE, TICK_PARTS, TickPart
-from host.boards.fwgen.viper import find_method, module_consts, referenced_names, slot_viper_function, unparse
+from host.boards.fwgen.layout import FIRMWARE, PACER, SUPPLY, TICK_PARTS, TickPart
+from host.boards.fwgen.viper import (find_method, method_viper, module_consts, referenced_names, slot_viper_function,
+                                     unparse)
 
 __all__ = ["render_fasttick", "GLUE"]
 
@@ -137,12 +138,52 @@ def _part(part: TickPart, pool: dict[str, int], want: set[str]) -> str:
     return "\n\n\n".join(out) + "\n\n\n" + cls
 
 
+def _msgtable_consts() -> dict[str, int]:
+    return {k: v for k, v in vars(msgtable).items() if k.isupper() and isinstance(v, int) and not isinstance(v, bool)}
+
+
+def _take(used: dict[str, int], pool: dict[str, int], want: set[str]) -> None:
+    for k, v in used.items():
+        if pool.setdefault(k, v) != v:
+            raise ValueError(f"constant {k} differs between the tick parts' modules")
+        want.add(k)
+
+
+def _pacer(pool: dict[str, int], want: set[str]) -> str:
+    fn, used = method_viper(find_method(FIRMWARE / "pacer.py", "Pacer", "tick"), PACER["ints"],
+                            arrays=PACER["arrays"], modules={"T": _msgtable_consts()},
+                            consts=module_consts(FIRMWARE / "pacer.py"))
+    _take(used, pool, want)
+    body = unparse(fn).replace("\n", "\n    ")
+    return ("class PacerV(Pacer):\n"
+            "    # Pacer.tick on the app's int32 params array (firmware/emitter.py builds it for a viper\n"
+            "    # app with one: Pacer._p set)\n"
+            f"    {body}\n")
+
+
+def _supply(pool: dict[str, int], want: set[str]) -> str:
+    consts = {**module_consts(FIRMWARE / "supervisor.py"), **module_consts(FIRMWARE / "app.py")}
+    fn, used = method_viper(find_method(FIRMWARE / "app.py", "App", "_supply"), SUPPLY["ints"], calls=SUPPLY["calls"],
+                            self_as=SUPPLY["self_as"], consts=consts)
+    fn.name = "update"
+    _take(used, pool, want)
+    body = unparse(fn).replace("\n", "\n    ")
+    return ("class SupplyV:\n"
+            "    # App._supply in viper: a viper app with a HAL that measures the supply calls\n"
+            "    # SupplyV(app).update in its place (the same state, kept on the app)\n"
+            "    def __init__(self, app):\n"
+            "        self.app = app\n\n"
+            f"    {body}\n")
+
+
 def render_fasttick() -> str:
     """Text of the generated ``firmware/fasttick.py``."""
     glue = GLUE.read_text()
     pool: dict[str, int] = {}
     want: set[str] = set()
     parts = [_part(p, pool, want) for p in TICK_PARTS]
+    parts.append(_pacer(pool, want))
+    parts.append(_supply(pool, want))
     # the glue's constants: supervisor states and flags, msgtable parameter indices, ticks
     sup = module_consts(FIRMWARE / "supervisor.py")
     fix = module_consts(FIRMWARE / "fixmath.py")
@@ -161,6 +202,7 @@ def render_fasttick() -> str:
         want.add(k)
     lines = [_HEADER]
     lines += [f"from .{p.module} import {p.cls}\n" for p in TICK_PARTS]
+    lines.append("from .pacer import Pacer\n")
     lines.append("\n# the constants the functions below use, from their modules (private const()s)\n")
     lines += [f"{k} = const({pool[k]})\n" for k in sorted(want)]
     # the supervisor's and msgtable's names as their modules spell them (the test compares them)

@@ -18,7 +18,8 @@ from pathlib import Path
 
 from host.boards.fwgen.viper import SlotObject
 
-__all__ = ["FIRMWARE", "CONTROLLER_ARRAYS", "CONTROLLER_SCALARS", "TickPart", "TICK_PARTS", "TICKS_DIFF"]
+__all__ = ["FIRMWARE", "CONTROLLER_ARRAYS", "CONTROLLER_SCALARS", "TickPart", "TICK_PARTS", "TICKS_DIFF", "PACER",
+           "SUPPLY"]
 
 FIRMWARE = Path(__file__).resolve().parents[3] / "firmware"
 
@@ -79,3 +80,12 @@ TICK_PARTS: tuple[TickPart, ...] = (
         (("begin", "timing_begin"), ("end", "timing_end")),
         (("_diff", TICKS_DIFF),)),
 )
+
+
+# Pacer.tick (firmware/pacer.py) -> fasttick.PacerV.tick, a viper method: the ints it reads on
+# itself and on the app, its parameter array (built only when the app has one: `p is not None`)
+PACER = {"ints": {"self": ("seq", "_telem_left", "_hb_us"), "app": ("period_us",)},
+         "arrays": {"self": ("_p",)}}
+# App._supply (firmware/app.py) -> fasttick.SupplyV(app).update: the app's state through a helper
+SUPPLY = {"ints": {"app": ("_vsup_acc", "vsup_mv", "vsup_min", "vsup_nom")}, "calls": {"app": ("_read_vsup",)},
+          "self_as": "app"}

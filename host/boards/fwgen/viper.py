@@ -423,3 +423,142 @@ def slot_viper_function(method: ast.FunctionDef, name: str, obj: SlotObject, arr
         if isinstance(n, ast.Name) and n.id == "self":
             raise ValueError(f"{name}: the transform left a reference to self")
     return f, t.extra, t.bool_return, used
+
+
+class _MethodViper(ast.NodeTransformer):
+    # a method kept a method (or a helper's): int attributes of named objects read as int(o.x),
+    # int-returning calls wrapped in int(), `x = o.a` for an int32 array a -> a ptr32 local
+    # (`x is not None` on it taken as true: the build is made only for an array), module
+    # constants `M.NAME` -> the private const `_NAME`, True/False -> 1/0, a comparison stored
+    # in a local -> 1/0
+    def __init__(self, ints: Mapping[str, set[str]], calls: Mapping[str, set[str]], arrays: Mapping[str, set[str]],
+                 modules: Mapping[str, dict[str, int]]) -> None:
+        self.ints, self.calls, self.arrays, self.modules = ints, calls, arrays, modules
+        self.ptrs: set[str] = set()
+        self.consts: dict[str, int] = {}
+
+    def _obj_attr(self, node: ast.AST) -> tuple[str, str] | None:
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):
+            return node.value.id, node.attr
+        return None
+
+    def visit_Attribute(self, node: ast.Attribute) -> ast.expr:
+        oa = self._obj_attr(node)
+        if oa and oa[0] in self.modules and oa[1] in self.modules[oa[0]]:
+            name = _private_name(oa[1])
+            self.consts[name] = self.modules[oa[0]][oa[1]]
+            return ast.copy_location(ast.Name(name, ast.Load()), node)
+        node = self.generic_visit(node)
+        if oa and isinstance(node.ctx, ast.Load) and oa[1] in self.ints.get(oa[0], ()):
+            return ast.Call(ast.Name("int", ast.Load()), [node], [])
+        return node
+
+    def visit_Call(self, node: ast.Call) -> ast.expr:
+        oa = self._obj_attr(node.func)
+        node.args = [self.visit(a) for a in node.args]
+        if oa and oa[1] in self.calls.get(oa[0], ()):
+            return ast.Call(ast.Name("int", ast.Load()), [node], [])
+        return node
+
+    def visit_Constant(self, node: ast.Constant) -> ast.expr:
+        if isinstance(node.value, bool):
+            return ast.copy_location(ast.Constant(1 if node.value else 0), node)
+        return node
+
+    def visit_Assign(self, node: ast.Assign) -> ast.stmt:
+        tgt = node.targets[0] if len(node.targets) == 1 else None
+        oa = self._obj_attr(node.value)
+        if isinstance(tgt, ast.Name) and oa and oa[1] in self.arrays.get(oa[0], ()):
+            self.ptrs.add(tgt.id)
+            return ast.copy_location(ast.Assign([tgt], ast.Call(ast.Name("ptr32", ast.Load()), [node.value], [])), node)
+        value = self.visit(node.value)
+        if isinstance(tgt, ast.Name) and _is_boolish(value):
+            return ast.copy_location(ast.If(value, [ast.Assign([tgt], ast.Constant(1))],
+                                            [ast.Assign([copy.deepcopy(tgt)], ast.Constant(0))]), node)
+        node.value = value
+        node.targets = [self.visit(t) for t in node.targets]
+        return node
+
+    def visit_If(self, node: ast.If) -> ast.stmt | list[ast.stmt]:
+        t = node.test
+        if (isinstance(t, ast.Compare) and len(t.ops) == 1 and isinstance(t.ops[0], ast.IsNot)
+                and isinstance(t.left, ast.Name) and t.left.id in self.ptrs
+                and isinstance(t.comparators[0], ast.Constant) and t.comparators[0].value is None):
+            out: list[ast.stmt] = []
+            for s in node.body:
+                r = self.visit(s)
+                out.extend(r if isinstance(r, list) else [r])
+            return out
+        return self.generic_visit(node)
+
+    def visit_Subscript(self, node: ast.Subscript) -> ast.expr:
+        node.slice = self.visit(node.slice)
+        if isinstance(node.value, ast.Name) and node.value.id in self.ptrs and isinstance(node.ctx, ast.Load):
+            return _sign_ext(node)
+        node.value = self.visit(node.value)
+        return node
+
+
+def _private_name(name: str) -> str:
+    return name if name.startswith("_") else "_" + name
+
+
+def method_viper(method: ast.FunctionDef, ints: Mapping[str, Iterable[str]], calls: Mapping[str, Iterable[str]] | None = None,
+                 arrays: Mapping[str, Iterable[str]] | None = None, modules: Mapping[str, dict[str, int]] | None = None,
+                 self_as: str | None = None, consts: Mapping[str, int] | None = None,
+                 ) -> tuple[ast.FunctionDef, dict[str, int]]:
+    """A method rewritten as a ``@micropython.viper`` method (see :class:`_MethodViper`).
+
+    Parameters
+    ----------
+    method : ast.FunctionDef
+        The readable method.
+    ints : mapping of str to names
+        Local or ``self`` name -> its attributes that hold small ints.
+    calls : mapping of str to names, optional
+        Object name -> its methods that return small ints.
+    arrays : mapping of str to names, optional
+        Object name -> its int32 array attributes (read through ``ptr32``).
+    modules : mapping of str to dict, optional
+        Module alias -> its constants (``T.P_TELEM_DIV`` -> ``_P_TELEM_DIV``).
+    self_as : str, optional
+        The method belongs to another object reached as ``self.<self_as>`` (a helper built
+        around it): ``self`` in the source becomes that name, bound first.
+    consts : mapping of str to int, optional
+        Module constants of the source, renamed to their private names.
+
+    Returns
+    -------
+    tuple
+        The method and the private constants it uses (name -> value).
+    """
+    t = _MethodViper({k: set(v) for k, v in ints.items()}, {k: set(v) for k, v in (calls or {}).items()},
+                     {k: set(v) for k, v in (arrays or {}).items()}, modules or {})
+    src = copy.deepcopy(method)
+    body = _strip_docs(src.body)
+    if self_as is not None:
+        body = [_Rename("self", self_as).visit(s) for s in body]
+    out: list[ast.stmt] = []
+    for s in body:
+        r = t.visit(s)
+        out.extend(r if isinstance(r, list) else [r])
+    used = dict(t.consts)
+    if consts:
+        names = referenced_names(ast.Module(body=out, type_ignores=[]))
+        ren = {k for k in consts if k in names}
+        for k in ren:
+            used[_private_name(k)] = consts[k]
+
+        class _Priv(ast.NodeTransformer):
+            def visit_Name(self, n: ast.Name) -> ast.Name:
+                return ast.Name(_private_name(n.id), n.ctx) if n.id in ren else n
+
+        out = [_Priv().visit(s) for s in out]
+    if any(isinstance(n, ast.Name) and n.id == "sb" for s in out for n in ast.walk(s)):
+        out = ast.parse(SIGN_PRELUDE).body + out
+    if self_as is not None:
+        out = [ast.Assign([ast.Name(self_as, ast.Store())], ast.Attribute(ast.Name("self", ast.Load()), self_as,
+                                                                         ast.Load()))] + out
+    returns_value = any(isinstance(n, ast.Return) and n.value is not None for s in out for n in ast.walk(s))
+    args = [_arg("self", None)] + [_arg(a.arg, "int") for a in method.args.args[1:]]
+    return _function(method.name, args, out, "viper", "int" if returns_value else None), used
