@@ -317,7 +317,8 @@ class App:
 
     # ---- the loop ----
     def step(self):
-        t0 = self._ticks()
+        ticks = self._ticks
+        t0 = ticks()
         tm = self.timing
         tm.begin(t0)
         s = self.sensors
@@ -329,7 +330,8 @@ class App:
                 self._frames = n
                 sup.wd_count = 0
         ext = self._ext
-        self._ext = 0
+        if ext:
+            self._ext = 0
         if self._estop is not None and self._estop():
             ext |= F_ESTOP
         if self._has_open and self.hal.adc_open:
@@ -349,8 +351,17 @@ class App:
                 s.zero()
                 c.reset(s.yx, s.yp)
             # catch mode for large tilts (a compare, a row swap; the reference it returns
-            # differs from self.ref only while handing back)
-            u = self._cstep(c, s.yx, s.yp, c.schedule(self.ref))
+            # differs from self.ref only while handing back).  Controller.schedule's common
+            # case -- not catching, no ramp, the prediction inside phi_on: the reference as
+            # set -- is checked here without the call (a call costs more on a board)
+            r = self.ref
+            if c.catching or c.ramp:
+                r = c.schedule(r)
+            else:
+                on = c.phi_on
+                if on > 0 and (c.p[2] > on or c.p[2] < -on):
+                    r = c.schedule(r)
+            u = self._cstep(c, s.yx, s.yp, r)
             duty = self.motor.duty(u, c.vh)
             if self.exc.on:
                 duty = self._excite(c, u)
@@ -377,7 +388,7 @@ class App:
                 k = k + 1 if k < _TICKS_MASK else 0
             self.uptime_ms = k
         self._us_frac = f
-        self.step_us = tm.end(t0, self._ticks())
+        self.step_us = tm.end(t0, ticks())
         return duty
 
     def _excite(self, c, u):

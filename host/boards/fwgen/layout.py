@@ -19,7 +19,7 @@ from pathlib import Path
 from host.boards.fwgen.viper import SlotObject
 
 __all__ = ["FIRMWARE", "CONTROLLER_ARRAYS", "CONTROLLER_SCALARS", "TickPart", "TICK_PARTS", "TICKS_DIFF", "PACER",
-           "SUPPLY"]
+           "SUPPLY", "STEP"]
 
 FIRMWARE = Path(__file__).resolve().parents[3] / "firmware"
 
@@ -89,3 +89,17 @@ PACER = {"ints": {"self": ("seq", "_telem_left", "_hb_us"), "app": ("period_us",
 # App._supply (firmware/app.py) -> fasttick.SupplyV(app).update: the app's state through a helper
 SUPPLY = {"ints": {"app": ("_vsup_acc", "vsup_mv", "vsup_min", "vsup_nom")}, "calls": {"app": ("_read_vsup",)},
           "self_as": "app"}
+
+# App.step (firmware/app.py) -> fasttick.StepV.step (host/boards/fwgen/step.py): its parts with a
+# slot layout (self.<attr> -> class of TICK_PARTS), the int attributes and int-returning methods
+# it reads (by the object's path in the source), the controller's int32 array it indexes, and the
+# conditions on what the HAL offers, fixed at App construction (bits of StepV.opts)
+STEP = {
+    "parts": {"timing": "Timing", "sensors": "Sensors", "sup": "Supervisor", "motor": "Motor"},
+    "ints": {"self": ("_frames", "_ext", "duty", "_st", "tick", "_us_frac", "period_us", "uptime_ms"),
+             "self.hal": ("n_sensor",), "c": ("phi_on", "vh")},
+    "calls": {"self": ("_read_adc", "_read_enc", "_supply", "_cstep", "_excite")},
+    "int_locals": ("ticks",),  # locals bound to int-returning callables (ticks = self._ticks)
+    "arrays": {"c": ("p",)},
+    "fixed": ("self._has_frames", "self._estop is not None", "self._has_open", "self._read_vsup is not None"),
+}
