@@ -333,7 +333,11 @@ class _SlotViper(ast.NodeTransformer):
     def visit_Return(self, node: ast.Return) -> ast.Return:
         if isinstance(node.value, ast.Constant) and isinstance(node.value.value, bool):
             self.bool_return = True
-        return self.generic_visit(node)
+        node = self.generic_visit(node)
+        if node.value is not None and _is_boolish(node.value):
+            # a comparison returned: 1/0 (a viper function returns one type)
+            node.value = ast.IfExp(node.value, ast.Constant(1), ast.Constant(0))
+        return node
 
     def _store(self, attr: str, value: ast.expr, like: ast.stmt) -> list[ast.stmt]:
         if self.obj.kinds[attr] == "b" and _is_boolish(value):
