@@ -73,15 +73,13 @@ except ImportError:  # CPython
     _mem_free = None
 
 from . import crc16
+from . import emitter
 from . import fixmath
 from . import msgtable as T
 from .controller import Controller
 from .excite import EXC_OPEN, Excite
-from .motor import Motor
-from .sensors import Sensors
-from .supervisor import ARMED, BALANCING, DISARMED, FAULT, F_ADC_OPEN, F_CONFIG, F_GAINS, F_LOOP, F_UNDERVOLT, Supervisor
+from .supervisor import ARMED, BALANCING, DISARMED, FAULT, F_ADC_OPEN, F_CONFIG, F_GAINS, F_LOOP, F_UNDERVOLT
 from .supervisor import F_DEADLINE, F_ESTOP, F_RESET
-from .timing import Timing
 
 STALL_MS = const(100)  # no-motion check (F_STALL) default: this long without a count
 STALL_DUTY = const(800)  # ... at |duty| at least this
@@ -133,30 +131,17 @@ class App:
         layout = gains.LAYOUT
         flat = gains.FLAT
         self.ctrl = Controller(layout, flat)
-        # the controller step: bytecode, or the native/viper builds of firmware/fastpath.py
-        em = cfg.get("emitter", "bytecode")
-        if em == "native":
-            from .fastpath import step_native as cstep
-        elif em == "viper":
-            from .fastpath import step_viper as cstep
-        else:
-            cstep = Controller.step
-        self._cstep = cstep
-        self.emitter = em  # also the host link's frame encoder (framing.Encoder)
+        # the code emitter of every hot part (firmware/emitter.py: the one place that chooses)
+        em = emitter.check(cfg.get("emitter", "bytecode"))
+        Sn, Mo, Su, Tm, self._cstep = emitter.parts(em)
+        self.emitter = em  # also the host link's (framing.Encoder, the pacer, the commands' CRC)
         off = self.ctrl.off
         self.off = off
         # telemetry scaling (fill_telemetry): the TEL offset, and viper's build of it
         self._tel_o = off["TEL"]
-        self._tel_fast = None
-        if em == "viper":
-            from .fastframe import telem_viper
-            self._tel_fast = telem_viper
+        self._tel_fast = emitter.telemetry(em)
         self.table = array("i", flat)
         self.rate = flat[off["RATE"]]
-        Sn, Mo, Su, Tm = Sensors, Motor, Supervisor, Timing
-        if em == "viper":
-            # their per-tick methods in viper too (firmware/fasttick.py: same attributes)
-            from .fasttick import MotorV as Mo, SensorsV as Sn, SupervisorV as Su, TimingV as Tm
         self.sensors = Sn(flat, off, cfg.get("adc_sign", 1), cfg.get("enc_sign", 1), cfg.get("pot_offset"))
         self.motor = Mo(flat, off, cfg.get("deadband"), cfg.get("backemf", True))
         self.sup = Su()
@@ -219,10 +204,8 @@ class App:
         self.vsup_min = cfg.get("vsup_min_mv", 0)
         self.vsup_mv = self.vsup_nom
         self._vsup_acc = -1
-        if em == "viper" and self._read_vsup is not None:
-            # _supply in viper (firmware/fasttick.py: a helper's bound method, same state)
-            from .fasttick import SupplyV
-            self._supply = SupplyV(self).update
+        if self._read_vsup is not None:
+            self._supply = emitter.supply(self)
         self._frames = -1
         self._has_frames = hasattr(hal, "n_sensor")
         # parameters: defaults from msgtable, then config overrides by name
@@ -258,11 +241,9 @@ class App:
             self.sup.faults |= F_RESET
             self.sup.state = FAULT
         # bound methods cached for the loop
+        # the step of the emitter (viper: fasttick.StepV, whose bound method then hides App.step)
         if em == "viper":
-            # the whole step in viper (firmware/fasttick.py StepV: the same statements on the
-            # slot arrays of the viper classes; this instance attribute hides App.step)
-            from .fasttick import StepV
-            self.step = StepV(self).step
+            self.step = emitter.step(self)
         self._step = self.step
         self._period_m = self._period
         self._read_adc = hal.read_angle_raw
@@ -336,7 +317,8 @@ class App:
 
     # ---- the loop ----
     def step(self):
-        t0 = self._ticks()
+        ticks = self._ticks
+        t0 = ticks()
         tm = self.timing
         tm.begin(t0)
         s = self.sensors
@@ -348,7 +330,8 @@ class App:
                 self._frames = n
                 sup.wd_count = 0
         ext = self._ext
-        self._ext = 0
+        if ext:
+            self._ext = 0
         if self._estop is not None and self._estop():
             ext |= F_ESTOP
         if self._has_open and self.hal.adc_open:
@@ -368,8 +351,17 @@ class App:
                 s.zero()
                 c.reset(s.yx, s.yp)
             # catch mode for large tilts (a compare, a row swap; the reference it returns
-            # differs from self.ref only while handing back)
-            u = self._cstep(c, s.yx, s.yp, c.schedule(self.ref))
+            # differs from self.ref only while handing back).  Controller.schedule's common
+            # case -- not catching, no ramp, the prediction inside phi_on: the reference as
+            # set -- is checked here without the call (a call costs more on a board)
+            r = self.ref
+            if c.catching or c.ramp:
+                r = c.schedule(r)
+            else:
+                on = c.phi_on
+                if on > 0 and (c.p[2] > on or c.p[2] < -on):
+                    r = c.schedule(r)
+            u = self._cstep(c, s.yx, s.yp, r)
             duty = self.motor.duty(u, c.vh)
             if self.exc.on:
                 duty = self._excite(c, u)
@@ -396,7 +388,7 @@ class App:
                 k = k + 1 if k < _TICKS_MASK else 0
             self.uptime_ms = k
         self._us_frac = f
-        self.step_us = tm.end(t0, self._ticks())
+        self.step_us = tm.end(t0, ticks())
         return duty
 
     def _excite(self, c, u):

@@ -37,11 +37,10 @@ class Encoder:
         self._fast = None
         self._lut = None
         self._vals = self  # the vals array fastframe may read (self: none yet)
-        if emitter == "viper" or emitter == "native":
-            from . import fastframe
-            self._lut = fastframe.make_lut(layout, self.table)
-            self._fast = fastframe.encode_viper if emitter == "viper" else fastframe.encode_native
-            self._set_len = fastframe.set_vals_len
+        if emitter != "bytecode":
+            from .emitter import frame_encoder
+            make_lut, self._fast, self._set_len = frame_encoder(emitter)
+            self._lut = make_lut(layout, self.table)
 
     def encode(self, mid, seq, vals, voff):
         # pack vals[voff:] as message mid, frame it; returns the wire length in self.out

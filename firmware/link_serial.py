@@ -38,14 +38,12 @@ except ImportError:
     def const(x):
         return x
 
-from array import array
-
 from . import codec
 from . import commands
 from . import crc16
+from . import emitter
 from . import framing
 from . import msgtable as T
-from .pacer import Pacer
 
 _RX = const(64)
 _RX_TICK = const(96)  # bytes decoded per tick at most
@@ -85,15 +83,9 @@ class SerialLink:
         self.tx = framing.SerialTx(enc, self._write)
         self.disp = commands.Dispatcher(app, layout, self.tx, table)
         self.disp.dec = self.dec
-        if getattr(app, "emitter", "") == "viper":
-            # the commands' integrity check (CRC-32) in viper too
-            from .fastframe import crc32_low30
-            self.disp.crc30 = crc32_low30
-        self.pacer = Pacer(app, self.disp)
-        if getattr(app, "emitter", "") == "viper" and type(self.pacer._p) is array:
-            # its tick in viper too (firmware/fasttick.py)
-            from .fasttick import PacerV
-            self.pacer = PacerV(app, self.disp)
+        # the commands' integrity check (CRC-32) and the pacer of the app's emitter too
+        self.disp.crc30 = emitter.command_crc(getattr(app, "emitter", "bytecode"))
+        self.pacer = emitter.pacer(app, self.disp)
         self._tick = self.pacer.tick
         # MODE: the mode asked for (-1: stay in robot mode); the exception made now (the
         # heap is locked when it is raised)

@@ -37,7 +37,7 @@ from . import crc16
 from . import msgtable as T
 from .fixmath import ticks_add, ticks_diff
 from .hal_hil import HilHal
-from .pacer import Pacer
+from . import emitter
 
 _RX = const(256)
 _IDLE_MS = const(50)
@@ -99,7 +99,9 @@ class HilMain:
     # uart: UnixUART or machine.UART-like (wait/any, readinto(buf, n), write(buf, n));
     # app_factory(hal, link) -> the firmware app (default firmware.app.App; link is this
     # object in real time, whose poll() app.run() calls after each step)
-    # config: passed to the default App (e.g. {"boot": n}, see firmware/app.py)
+    # config: passed to the default App (e.g. {"boot": n}, see firmware/app.py); its
+    # "emitter" is the board's (firmware/board.py EMITTER) unless given: HIL runs the code
+    # the robot runs, on the board and on the unix port (the WebAssembly port: "bytecode")
     def __init__(self, uart, link="serial", mode="lockstep", node=1, app_factory=None, config=None):
         if link != "serial" and link != "can":
             raise ValueError("link must be 'serial' or 'can'")
@@ -108,6 +110,11 @@ class HilMain:
         self.uart = uart
         self.mode = mode
         self.can = link == "can"
+        cfg = dict(config) if config is not None else {}
+        if "emitter" not in cfg:
+            from .board import EMITTER
+            cfg["emitter"] = EMITTER
+        em = cfg["emitter"]
         layout = codec.Layout()
         table = crc16.make_table()
         self.layout = layout
@@ -121,14 +128,14 @@ class HilMain:
         else:
             from . import framing
             self.dec = framing.Decoder(layout, table)
-            self.tx = framing.SerialTx(framing.Encoder(layout, table), uart.write)
+            self.tx = framing.SerialTx(framing.Encoder(layout, table, em), uart.write)
             self.pbuf = self.dec.buf
             self.poff = 2
         self.hal = HilHal(self.tx)
         rt_link = self if mode == "realtime" else None
         if app_factory is None:
             from .app import App
-            self.app = App(self.hal, rt_link, None, config)
+            self.app = App(self.hal, rt_link, None, cfg)
         else:
             self.app = app_factory(self.hal, rt_link)
         self.hal.set_status(self.app.fill_heartbeat)
@@ -139,7 +146,9 @@ class HilMain:
         self.switch = False
         self.next_mode = T.MODE_ROBOT
         self.disp.on_mode = self._on_mode
-        self.pacer = Pacer(self.app, self.disp)
+        em = getattr(self.app, "emitter", "bytecode")
+        self.disp.crc30 = emitter.command_crc(em)
+        self.pacer = emitter.pacer(self.app, self.disp)
         self.rx = bytearray(_RX)
         self.sv = array("i", [0] * 4)
         self.n_steps = 0

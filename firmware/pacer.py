@@ -44,7 +44,8 @@ class Pacer:
 
     def tick(self):
         # every control tick; the same as elapse(app.period_us) after the telemetry, in one
-        # call (a call costs more than this body on a board)
+        # call (a call costs more than this body on a board).  Its viper build (fasttick.PacerV)
+        # is generated from this body (host/boards/fwgen)
         app = self.app
         p = self._p
         if p is not None:
@@ -58,8 +59,9 @@ class Pacer:
             n = self._telem_left - 1
             if n <= 0:
                 n = div
-                self.seq = (self.seq + 1) & 0xFF
-                self.telemetry(self.seq)
+                q = (self.seq + 1) & 0xFF
+                self.seq = q
+                self.telemetry(q)
                 sent = div > 1
             self._telem_left = n
         if hb <= 0:
@@ -70,8 +72,9 @@ class Pacer:
             self._hb_us = t
             return
         self._hb_us = 0
-        self.seq = (self.seq + 1) & 0xFF
-        self.heartbeat(self.seq)
+        q = (self.seq + 1) & 0xFF
+        self.seq = q
+        self.heartbeat(q)
 
     def elapse(self, us):
         # us: 0 .. 2**20 per call (a period or an idle wait); the sum stays below 2**25

@@ -75,11 +75,12 @@ class Sensors:
 
     def update(self, adc, enc):
         # one reading of both sensors (any ints: out-of-range values are clamped/masked)
+        am = self.adc_max
         if adc <= 0:
             adc = 0
             self.rail = True
-        elif adc >= self.adc_max:
-            adc = self.adc_max
+        elif adc >= am:
+            adc = am
             self.rail = True
         else:
             self.rail = False
@@ -105,7 +106,8 @@ class Sensors:
         if self.enc_sign < 0:
             dl = -dl
         self.delta = dl
-        self.jump = dl > self.encj or dl < -self.encj
+        j = self.encj
+        self.jump = dl > j or dl < -j
         v = self.pos + dl
         if v > _POS_MAX:
             v = _POS_MAX

@@ -100,22 +100,30 @@ class Supervisor:
         if jump:
             f |= F_ENC_JUMP
         st = self.state
+        # (limits read once into locals: the viper build, fasttick.py, is generated from this)
         if st == BALANCING:
             # a railed ADC is no angle measurement: F_ADC_RAIL alone names the cause
-            if not rail and (counts > self.tilt_counts or counts < -self.tilt_counts):
+            t = self.tilt_counts
+            if not rail and (counts > t or counts < -t):
                 f |= F_TILT
-            if pos > self.track_counts or pos < -self.track_counts:
+            t = self.track_counts
+            if pos > t or pos < -t:
                 f |= F_TRACK
-            if self.stall_ticks > 0:
+            n = self.stall_ticks
+            if n > 0:
+                t = self.stall_duty
                 if delta != 0:
                     self.stall_count = 0
-                elif duty >= self.stall_duty or duty <= -self.stall_duty:
-                    self.stall_count += 1
-                    if self.stall_count > self.stall_ticks:
+                elif duty >= t or duty <= -t:
+                    c = self.stall_count + 1
+                    self.stall_count = c
+                    if c > n:
                         f |= F_STALL
-        if (st == ARMED or st == BALANCING) and self.wd_ticks > 0:
-            self.wd_count += 1
-            if self.wd_count > self.wd_ticks:
+        n = self.wd_ticks
+        if (st == ARMED or st == BALANCING) and n > 0:
+            c = self.wd_count + 1
+            self.wd_count = c
+            if c > n:
                 f |= F_WATCHDOG
         self.last = f
         if f:
@@ -126,7 +134,7 @@ class Supervisor:
             # latched but no longer present: stay in FAULT until cleared
             self.state = FAULT
             return False
-        if st == ARMED and self.timing_ok and -self.arm_counts < counts < self.arm_counts:
+        if st == ARMED and self.timing_ok and -self.arm_counts < counts and counts < self.arm_counts:
             self.state = BALANCING
             self.stall_count = 0
             return True

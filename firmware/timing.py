@@ -58,12 +58,13 @@ class Timing:
             per = self._diff(t, self.last_us)
             if per > self.period_max:
                 self.period_max = per
-            j = per - self.period_us
+            p = self.period_us
+            j = per - p
             if j < 0:
                 j = -j
             if j > self.jitter_max:
                 self.jitter_max = j
-            if per > self.period_us + (self.period_us >> 1) and self.overruns < _U16:
+            if per > p + (p >> 1) and self.overruns < _U16:
                 self.overruns += 1
         self.last_us = t
         self._have_last = True
@@ -83,10 +84,12 @@ class Timing:
             self.steps += 1
         if ex > _U16:
             ex = _U16
-        self._sum += ex
-        self._n += 1
-        if self._n >= _WINDOW:
-            self.mean_us = self._sum >> _WINDOW_BITS
-            self._sum = 0
-            self._n = 0
+        s = self._sum + ex
+        n = self._n + 1
+        if n >= _WINDOW:
+            self.mean_us = s >> _WINDOW_BITS
+            s = 0
+            n = 0
+        self._sum = s
+        self._n = n
         return ex

@@ -11,7 +11,8 @@ from __future__ import annotations
 import pytest
 
 import fwharness as H
-from host.design.export import export, render_fastpath
+from host.boards.fwgen.fastpath import render_fastpath
+from host.design.export import export
 from host.boards.mpyrun import run_unix
 from sim.params import load_params
 

@@ -220,3 +220,32 @@ def test_boot_counter_on_by_default_and_can_be_off() -> None:
             VirtualBoard(slave_of(link._ser.fileno()), boot_counter=False, boot_file="x")
     finally:
         link.close()
+
+
+EMITTER_SCRIPT = r"""
+from firmware import board, main_hil
+class U:
+    def write(self, b, n=None):
+        return len(b)
+    def readinto(self, b, n=None):
+        return 0
+    def wait(self, ms):
+        return False
+    def any(self):
+        return 0
+m = main_hil.HilMain(U())
+print(m.app.emitter, board.EMITTER, type(m.app.sensors).__name__, type(m.pacer).__name__,
+      m.tx.enc._fast is not None, m.disp.crc30 is not None)
+m = main_hil.HilMain(U(), config={'emitter': 'bytecode'})
+print(m.app.emitter, type(m.app.sensors).__name__, type(m.pacer).__name__)
+"""
+
+
+def test_hil_runs_the_boards_emitter_unless_told_otherwise() -> None:
+    # the unix-port HIL (and the board's HIL mode, main.py's _hil) runs what the robot runs:
+    # firmware/board.py EMITTER's builds of the step, the pacer, the frame encoder, the CRC
+    from host.boards.mpyrun import run_unix
+
+    first, second = run_unix(EMITTER_SCRIPT, timeout=60).strip().splitlines()
+    assert first.split() == ["viper", "viper", "SensorsV", "PacerV", "True", "True"]
+    assert second.split() == ["bytecode", "Sensors", "Pacer"]

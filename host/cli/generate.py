@@ -18,7 +18,8 @@ ROOT = Path(__file__).resolve().parents[2]
 # path relative to the repository root -> renderer "module:function" (no arguments)
 GENERATED: dict[str, str] = {
     "firmware/gains.py": "host.design.export:render_default",
-    "firmware/fastpath.py": "host.design.export:render_fastpath",
+    "firmware/fastpath.py": "host.boards.fwgen.fastpath:render_fastpath",
+    "firmware/fasttick.py": "host.boards.fwgen.fasttick:render_fasttick",
     "docs/upright.dbc": "host.link.dbc:render_default",
     "docs/protocol.md": "host.link.protodoc:render_protocol_md",
     "firmware/identity.py": "host.link.identity:render_identity",

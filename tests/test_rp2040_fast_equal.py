@@ -1,0 +1,68 @@
+"""The viper and native builds equal the plain code on the emulated RP2040 (32-bit, armv6m .mpy).
+
+The unix port and CPython prove the generated builds (firmware/fastpath.py, fasttick.py)
+equal the plain methods bit for bit (tests/test_firmware_fastpath.py,
+test_firmware_fasttick.py); a 64-bit port's words never overflow the way a 32-bit board's
+small ints could.  Here the same scripts run on the emulated Pico from the bundle
+``make firmware`` builds (viper compiled for armv6m), fewer iterations (the emulator runs at
+~0.15x real time): the controller step of the three emitters on a closed-loop sequence and
+its extremes, every per-tick method of the viper classes against the plain one, and whole
+Apps tick by tick (App.step against StepV.step).  One booted board for the module.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+import fwharness as H
+import test_firmware_fastpath as FP
+import test_firmware_fasttick as FT
+from host.boards.rp2040.board import EmulatedBoard, build_bundle
+
+pytestmark = [pytest.mark.slow, pytest.mark.rp2040]
+
+METHODS_DIV = 10  # per-tick methods: a tenth of the unix port's iterations
+APP_DIV = 4  # whole apps: 1500 ticks per HAL kind
+
+
+@pytest.fixture(scope="module")
+def board(tmp_path_factory: pytest.TempPathFactory):
+    bundle: Path = build_bundle(tmp_path_factory.mktemp("bundle"))
+    with EmulatedBoard(bundle, main=False) as b:
+        yield b
+
+
+def test_controller_step_of_every_emitter_equal_on_the_board(board: EmulatedBoard) -> None:
+    yx, yp, r = _seq()
+    yx, yp, r = yx[-900:], yp[-900:], r[-900:]  # the end of the run and every extreme
+    code = (H.INTS_SRC + f"LAYOUT = {tuple(H.layout_of(FP.FD))!r}\nFLAT = tuple(ints({' '.join(map(str, FP.FD.flat()))!r}))\n"
+            + f"YX = ints({H._ints(yx)!r})\nYP = ints({H._ints(yp)!r})\nR = ints({H._ints(r)!r})\n"
+            + FP.SCRIPT.split(H.FAKE_HAL)[0])
+    out = dict(line.split() for line in board.exec(code, timeout=60).splitlines() if line.strip())
+    assert int(out["n"]) == len(yx) and int(out["bad"]) == 0
+
+
+def _seq() -> tuple[list[int], list[int], list[int]]:
+    # test_firmware_fastpath.py's sequence (its fixture's body): a closed-loop run, then extremes
+    s = H.measurements(FP.P, FP.FD, [0, 0, 0.1, 0], 3.0, x_ref=lambda t: 0.3 if t > 1.0 else 0.0)
+    ylx = FP.FD.tables["YLIM"][0] << FP.FD.fmt["QX"]
+    ylp = FP.FD.tables["YLIM"][1] << FP.FD.fmt["QP"]
+    rl = FP.FD.tables["RLIM"][0]
+    ext = [(ylx, ylp, rl), (-ylx, -ylp, -rl), (ylx, -ylp, rl), (-ylx, ylp, -rl)] * 150
+    return s.yx + [e[0] for e in ext], s.yp + [e[1] for e in ext], s.r + [e[2] for e in ext]
+
+
+def test_viper_methods_equal_the_plain_ones_on_the_board(board: EmulatedBoard) -> None:
+    code = FT.SCRIPT.replace("DIV = 1 ", f"DIV = {METHODS_DIV} ", 1)
+    FT._check(board.exec(code, timeout=120), METHODS_DIV)
+
+
+def test_viper_step_equals_app_step_on_the_board(board: EmulatedBoard) -> None:
+    code = FT.APP_EQ.replace("DIV = 1 ", f"DIV = {APP_DIV} ", 1)
+    out = board.exec(code, timeout=240)
+    lines = dict(line.split(" ", 1) for line in out.splitlines() if line.strip() and not line.startswith(("diff", "faults")))
+    assert int(lines["app_ticks"]) == 12000 // APP_DIV
+    assert int(lines["states"]) == 4  # disarmed, armed, balancing and fault all reached
+    assert int(lines["balancing"]) > 1000 // APP_DIV and int(lines["app_bad"]) == 0, out
