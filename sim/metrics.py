@@ -282,10 +282,13 @@ def compute_metrics(log: Mapping[str, np.ndarray], scenario: Scenario, params: R
     else:
         k = int(np.argmax(np.abs(phi)))
         # first peak: the largest |phi| before the first sign change after the largest excursion start
-        sign0 = np.sign(phi[np.nonzero(np.abs(phi) > 0.1 * np.abs(phi[k]))[0][0]]) if np.abs(phi[k]) > 0 else 0.0
+        i0 = int(np.nonzero(np.abs(phi) > 0.1 * np.abs(phi[k]))[0][0]) if np.abs(phi[k]) > 0 else 0
+        sign0 = np.sign(phi[i0]) if np.abs(phi[k]) > 0 else 0.0
         if sign0 != 0:
-            first = np.nonzero(np.sign(phi) == -sign0)[0]
-            peak1 = float(np.max(np.abs(phi[: first[0]]))) if first.size else float(np.max(np.abs(phi)))
+            # the first sign change after the excursion starts (an opposite sign before it, e.g. a
+            # small swing at t = 0, is not the first peak's end: phi[i0] itself has sign0)
+            first = np.nonzero(np.sign(phi[i0:]) == -sign0)[0] + i0
+            peak1 = float(np.max(np.abs(phi[i0: first[0]]))) if first.size else float(np.max(np.abs(phi)))
             opp = float(np.max(-sign0 * phi))
             overshoot = 100.0 * max(0.0, opp) / peak1 if peak1 > 0 else 0.0
 

@@ -122,3 +122,16 @@ def test_summary_table_marks() -> None:
     import json
 
     json.dumps(d)
+
+
+def test_overshoot_when_the_run_starts_on_the_other_side() -> None:
+    """A small opposite swing at t = 0 (below a tenth of the peak) is not the first peak's end:
+    the first peak is the excursion's, the overshoot its opposite swing (this raised on an
+    empty slice before)."""
+    p = load_params()
+    sc = scenario_from_dict({"name": "syn", "duration": 5.0})
+    t = np.arange(0, 5, DT)
+    phi = np.where(t < 0.05, -0.001, 0.1 * np.exp(-1.5 * (t - 0.05)) * np.cos(5 * (t - 0.05)))
+    m = compute_metrics(_log(t, phi=phi), sc, p)
+    opp = float(np.max(-phi[t >= 0.05]))
+    assert m.overshoot == pytest.approx(100.0 * opp / 0.1, rel=1e-6)
