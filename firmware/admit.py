@@ -13,6 +13,7 @@
 #   a.open()                 start of the tick's receive phase (limit and forcing fixed)
 #   a.now()                  us since the step's scheduled start (>= 0; after open())
 #   a.fits(now, cost, k)     may a frame of planned cost start now? (k: frames handled so far)
+#   a.fits_now(cost, k)      the same at the clock's time now
 #   a.close(now, k, backlog) end of the receive phase (now < 0: read the clock); backlog: frames
 #                            still waiting (held or unread)
 #   a.idle()                 a tick with no receive phase (nothing came in): nothing carried
@@ -81,6 +82,11 @@ class Admit:
 
     def fits(self, now, c, k):
         return now <= self.lim - c or (self.force and k == 0)
+
+    def fits_now(self, c, k):
+        # fits() at the clock's time now (one call where the caller keeps no time of its own)
+        n = self._diff(self._ticks(), self.t0)
+        return n <= self.lim - c or (self.force and k == 0)
 
     def close(self, now, k, backlog):
         if now < 0:

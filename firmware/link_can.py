@@ -10,9 +10,8 @@
 #
 # Bounded work per tick, in the time a real Pico takes (the emulated board's XIP flash-cache
 # model): poll() queues the periodic frames first (the pacer), then reads and dispatches frames
-# under the links' admission rule (admit.py, shared with link_serial.py): a receive buffer is
-# read only when reading it (_READ_US) and a heartbeat could still follow, and a frame read is
-# dispatched only when its kind's cost (admit.cost) and the SPI loads queued by then
+# under the links' admission rule (admit.py, shared with link_serial.py): a frame read (its kind
+# is known only then) is dispatched only when its kind's cost (admit.cost) and the SPI loads queued by then
 # (_LOAD_US each) still end within app.link_budget_us (11/8 of the period) of the step's
 # scheduled start; else it is held (the driver's receive registers keep it: nothing else is read
 # before it goes) for the next tick, and what is still in the chip stays there (two buffers; a
@@ -66,9 +65,8 @@ _UNKNOWN = const(0xFF)
 _RXIF = const(0x03)
 _ERRF = const(0xA0)  # ERRIF | MERRF
 _STATE_BITS = const(0x3F)  # EFLG error-state bits (not the overflow flags)
-# on a predicted real Pico (XIP model): reading a receive buffer with its flags ~450 us (cold); one
-# SPI transaction of the flush (READ STATUS, a LOAD TX BUFFER, RTS) 65-130 us
-_READ_US = const(500)
+# on a predicted real Pico (XIP model): one SPI transaction of the flush (READ STATUS, a LOAD TX
+# BUFFER, RTS) 65-130 us
 _LOAD_US = const(100)
 
 _ERRORS = ("", "no answer on SPI (controller absent or miswired: check SCK/MOSI/MISO/CS and 3V3)",
@@ -231,18 +229,14 @@ class CanLink:
         if budget:
             adm.open()
         k = 0
-        now = -1
         mid = self._pend
         held = False
         if mid >= 0:
-            if budget:
-                now = adm.now()
-                held = not adm.fits(now, self._plan(mid), 0)
+            held = budget and not adm.fits_now(self._plan(mid), 0)
             if not held:
                 self._pend = -1
                 self._dispatch(mid)
                 k = 1
-                now = -1
         left = 0
         if drv.pending():
             # the flags always (an error state change is handled in this tick, held frame or not)
@@ -252,27 +246,21 @@ class CanLink:
             b = 1
             while left and b <= 2 and not held:
                 if left & b:
-                    if budget:
-                        now = adm.now()
-                        if not adm.fits(now, _READ_US + admit.HB_US, k):
-                            break
+                    # read (its cost is known once it is read: a frame that does not fit then is
+                    # held), dispatched when its plan fits
                     left &= ~b
                     mid = self._rx(b - 1)
-                    now = -1
                     if mid >= 0:
-                        if budget:
-                            now = adm.now()
-                            if not adm.fits(now, self._plan(mid), k):
-                                self._pend = mid
-                                break
+                        if budget and not adm.fits_now(self._plan(mid), k):
+                            self._pend = mid
+                            break
                         self._dispatch(mid)
                         k += 1
-                        now = -1
                 b <<= 1
             if f & _ERRF or self.bus_off:
                 self._errors()
         if budget:
-            adm.close(now, k, self._pend >= 0 or left)
+            adm.close(-1, k, self._pend >= 0 or left)
 
     def _plan(self, mid):
         # a read frame's planned cost: its kind's, and the SPI loads queued by then and its reply
