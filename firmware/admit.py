@@ -13,7 +13,7 @@
 #   a.open()                 start of the tick's receive phase (limit and forcing fixed)
 #   a.now()                  us since the step's scheduled start (>= 0; after open())
 #   a.fits(now, cost, k)     may a frame of planned cost start now? (k: frames handled so far)
-#   a.fits_now(cost, k)      the same at the clock's time now
+#   a.fits_now(cost, k, fresh)  the same at the clock's time now; fresh: within the period
 #   a.close(now, k, backlog) end of the receive phase (now < 0: read the clock); backlog: frames
 #                            still waiting (held or unread)
 #   a.idle()                 a tick with no receive phase (nothing came in): nothing carried
@@ -83,10 +83,16 @@ class Admit:
     def fits(self, now, c, k):
         return now <= self.lim - c or (self.force and k == 0)
 
-    def fits_now(self, c, k):
-        # fits() at the clock's time now (one call where the caller keeps no time of its own)
+    def fits_now(self, c, k, fresh):
+        # fits() at the clock's time now (one call where the caller keeps no time of its own);
+        # fresh: a frame not yet held must end within the period (the excess counted) -- only a
+        # frame that has waited a tick may take the 11/8 (CAN: a held frame waits in the driver
+        # and costs nothing; the tick after a telemetry tick has the room)
         n = self._diff(self._ticks(), self.t0)
-        return n <= self.lim - c or (self.force and k == 0)
+        lim = self.lim
+        if fresh:
+            lim -= self.app.link_budget_us - self.app.period_us
+        return n <= lim - c or (self.force and k == 0)
 
     def close(self, now, k, backlog):
         if now < 0:

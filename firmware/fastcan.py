@@ -9,6 +9,9 @@
 #     codes, nfields  the Layout's bytearrays (field codes, _MAXF per id; field count per id)
 #     vals            array('i'); the caller checks voff + nfields[mid] <= len(vals)
 #     -> payload bytes written at buf[off:] (raw-byte fields left as the caller put them)
+#   n = frame_viper(codes, nfields, vals, voff, mid, q, cid)
+#     the same into a link_can transmit slot q (payload at q[6:]) with the 11-bit id cid and the
+#     DLC: link_can.CanLink._fill's bytes in the same call
 
 try:
     import micropython
@@ -57,3 +60,17 @@ def pack_viper(codes, nfields, vals, voff: int, mid: int, buf, off: int) -> int:
         off += size
         k += 1
     return off - o0
+
+
+@micropython.viper
+def frame_viper(codes, nfields, vals, voff: int, mid: int, q, cid: int) -> int:
+    # a whole LOAD TX BUFFER slot q (link_can: q[0] the instruction, set when loaded): the 11-bit
+    # id cid in SIDH/SIDL, EID8/EID0 0, DLC, the payload packed at q[6:]; -> payload length
+    b = ptr8(q)
+    n = int(pack_viper(codes, nfields, vals, voff, mid, q, 6))
+    b[1] = (cid >> 3) & 0xFF
+    b[2] = (cid & 7) << 5
+    b[3] = 0
+    b[4] = 0
+    b[5] = n
+    return n

@@ -6,21 +6,23 @@
 #
 # Receive: the chip's acceptance filters pass only this node's ids; poll() looks at the chip
 # only when its INT pin is low (no SPI at all on a quiet tick), then reads CANINTF+EFLG in one
-# transaction and the receive buffers (RXB0 rolls over into RXB1).
+# transaction and the receive buffers (RXB0 rolls over into RXB1).  A frame with an unknown
+# or host-bound message id for this node (n_unknown), a DLC that is not the message's length
+# (n_length), or an extended/remote frame (n_framing) is dropped and counted; a receive
+# buffer overflow (RXnOVR) is counted as framing (STATS_DECODE.framing) and in STATS_CAN.
 #
 # Bounded work per tick, in the time a real Pico takes (the emulated board's XIP flash-cache
 # model): poll() queues the periodic frames first (the pacer), then reads and dispatches frames
 # under the links' admission rule (admit.py, shared with link_serial.py): a frame read (its kind
-# is known only then) is dispatched only when its kind's cost (admit.cost) and the SPI loads queued by then
-# (_LOAD_US each) still end within app.link_budget_us (11/8 of the period) of the step's
-# scheduled start; else it is held (the driver's receive registers keep it: nothing else is read
-# before it goes) for the next tick, and what is still in the chip stays there (two buffers; a
-# third frame is an overflow, counted).  A tick that ran past its period hands the excess on.
-# With the viper emitter (App config "emitter") payloads are packed by fastcan.py: a telemetry
-# frame in a few us instead of ~360 (bytecode, cold cache) on a predicted real Pico.  A frame with an unknown
-# or host-bound message id for this node (n_unknown), a DLC that is not the message's length
-# (n_length), or an extended/remote frame (n_framing) is dropped and counted; a receive
-# buffer overflow (RXnOVR) is counted as framing (STATS_DECODE.framing) and in STATS_CAN.
+# is known only then) is dispatched only when its kind's cost (admit.cost, plus _CAN_US) and the
+# SPI loads queued by then (_LOAD_US each) still end within the period (a frame just read) or
+# app.link_budget_us (11/8 of the period: a frame held a tick) of the step's scheduled start;
+# else it is held (the driver's receive registers keep
+# it: nothing else is read before it goes) for the next tick, and what is still in the chip
+# stays there (two buffers; a third frame is an overflow, counted).  A tick that ran past its
+# period hands the excess on.  The flags are read whenever INT is low, held frame or not: an
+# error state change (bus-off: F_CAN) is handled in its tick.  With the viper emitter (App
+# config "emitter") payloads are packed by fastcan.py.
 #
 # Transmit: send() packs the payload straight into a slot of a software queue (two rings: heartbeat, replies
 # and stats before telemetry; a full ring drops the new frame, counted in tx_dropped); the end
@@ -66,7 +68,10 @@ _RXIF = const(0x03)
 _ERRF = const(0xA0)  # ERRIF | MERRF
 _STATE_BITS = const(0x3F)  # EFLG error-state bits (not the overflow flags)
 # on a predicted real Pico (XIP model): one SPI transaction of the flush (READ STATUS, a LOAD TX
-# BUFFER, RTS) 65-130 us
+# BUFFER, RTS) 65-130 us; a frame's path through this link beyond the dispatcher's own work
+# (admit.cost: measured on the serial link), cold: a host heartbeat's tick costs ~1170 us over an
+# idle one here (CANINTF/EFLG and the receive buffer read ~450, the dispatch ~720), 320 on serial
+_CAN_US = const(400)
 _LOAD_US = const(100)
 
 _ERRORS = ("", "no answer on SPI (controller absent or miswired: check SCK/MOSI/MISO/CS and 3V3)",
@@ -112,8 +117,8 @@ class CanLink:
         # payloads packed in viper on the board (fastcan.py), else codec.Layout.pack
         self._pk = None
         if getattr(app, "emitter", "") == "viper":
-            from .fastcan import pack_viper
-            self._pk = pack_viper
+            from .fastcan import frame_viper
+            self._pk = frame_viper
         self._codes = layout.codes
         self._nf = layout.nfields
         # the admission rule in predicted time and the user hook (admit.py)
@@ -132,7 +137,9 @@ class CanLink:
         if q is not None:
             pk = self._pk
             if pk is not None and voff + self._nf[mid] <= len(vals):
-                self._fill(q, mid, pk(self._codes, self._nf, vals, voff, mid, q, 6))
+                # id, DLC and payload in one viper call (the same bytes as _fill's)
+                pk(self._codes, self._nf, vals, voff, mid, q, ((self.node & 0x3F) << 5) | (mid & 0x1F))
+                self.n_sent = self.n_sent + 1 if self.n_sent < _CMAX else 0
             else:
                 self._fill(q, mid, self.layout.pack(mid, vals, voff, q, 6))
 
@@ -232,7 +239,7 @@ class CanLink:
         mid = self._pend
         held = False
         if mid >= 0:
-            held = budget and not adm.fits_now(self._plan(mid), 0)
+            held = budget and not adm.fits_now(self._plan(mid), 0, False)
             if not held:
                 self._pend = -1
                 self._dispatch(mid)
@@ -251,7 +258,7 @@ class CanLink:
                     left &= ~b
                     mid = self._rx(b - 1)
                     if mid >= 0:
-                        if budget and not adm.fits_now(self._plan(mid), k):
+                        if budget and not adm.fits_now(self._plan(mid), k, True):
                             self._pend = mid
                             break
                         self._dispatch(mid)
@@ -264,7 +271,7 @@ class CanLink:
 
     def _plan(self, mid):
         # a read frame's planned cost: its kind's, and the SPI loads queued by then and its reply
-        return admit.cost(mid, self.drv.rdata[0]) + (self.hi_n + self.lo_n + 3) * _LOAD_US
+        return admit.cost(mid, self.drv.rdata[0]) + _CAN_US + (self.hi_n + self.lo_n + 3) * _LOAD_US
 
     def _rx(self, k):
         # read RXBk; its message id when it is a frame for this board, else -1 (dropped, counted)
