@@ -1,33 +1,39 @@
 # The host links' admission rule in predicted time (issue 26), one copy for both links
 # (link_serial.SerialLink, link_can.CanLink): a received frame is handled in this tick only when
 # its planned cost still ends within the tick's limit, counted from the step's *scheduled* start
-# (App: timing.last_us); what does not fit is held for the next tick.  A tick that runs past its
-# period hands the excess on (over): the next tick's limit is that much shorter, so it catches
-# up.  A backlog held _FORCE ticks in a row gets one frame whatever the time (a loop rate at which
-# no frame ever fits still answers, one late tick per _FORCE ticks of traffic).  Then the user
-# hook (set_user): called in the spare time that is left, timed, switched off when over budget.
+# (App: timing.last_us); what does not fit is held for the next tick.  The limit is
+# app.link_budget_us (11/8 of the period) -- or the period itself for a frame a link has just
+# read and can hold at no cost (CAN: plim) -- less what the last tick ran past its period (over:
+# the next tick catches up).  A backlog held _FORCE ticks in a row gets one frame whatever the
+# time (a loop rate at which no frame ever fits still answers, one late tick per _FORCE ticks of
+# traffic).  Then the user hook (set_user): called in the spare time left, timed, switched off
+# when over its budget.
 #
-#   a = Admit(app)           the limit: app.link_budget_us (11/8 of the period, App) from the
-#                            step's scheduled start; it follows the loop rate
-#   a.on                     False: the app has no clock/step start (host tests): no time rule
-#   a.open()                 start of the tick's receive phase (limit and forcing fixed)
-#   a.now()                  us since the step's scheduled start (>= 0; after open())
-#   a.fits(now, cost, k)     may a frame of planned cost start now? (k: frames handled so far)
-#   a.fits_now(cost, k, fresh)  the same at the clock's time now; fresh: within the period
-#   a.close(now, k, backlog) end of the receive phase (now < 0: read the clock); backlog: frames
-#                            still waiting (held or unread)
-#   a.idle()                 a tick with no receive phase (nothing came in): nothing carried
-#   a.user()                 the user hook, if set and its budget fits (after close/idle)
+#   a = Admit(app)           a.on False: the app has no clock/step start (host tests): no rule
+#   a.open()                 a tick's receive phase starts: a.t0 (the step's scheduled start),
+#                            a.lim, a.plim (us from t0 a frame must end within), a.force
+#   the link, per frame:     c = a.ctab[mid] (a REQUEST: a.rtab[requested id & 31]) + its own;
+#                            now = ticks_diff(ticks(), a.t0); the frame goes when
+#                            now <= lim - c or (force and k == 0)   (k: frames handled so far)
+#                            -- written inline in the links with lim/force in locals: a method
+#                            call costs ~50 us on a predicted Pico from a cold cache, and the
+#                            rule's planned costs were measured without any
+#   a.close(now, k, backlog) the receive phase ends (now < 0: the clock is read); backlog:
+#                            frames still waiting (held or unread)
+#   a.over = 0               a tick with no receive phase (nothing came in): nothing carried
+#   a.set_user(fn, us), a.user()   the user hook (after close/idle)
 #
-# The planned costs (cost()) are measured on the predicted real Pico (the harness's XIP cache
-# model, a cold cache: command code runs rarely) -- docs/firmware.md, "Board timing".
-# Allocation-free; integers only.
+# The planned costs are measured on the predicted real Pico (the harness's XIP cache model, a
+# cold cache: command code runs rarely) -- docs/firmware.md, "Board timing".  Allocation-free;
+# integers only.
 
 try:
     from micropython import const
 except ImportError:
     def const(x):
         return x
+
+from array import array
 
 from . import msgtable as T
 
@@ -43,15 +49,6 @@ _USER_MARGIN = const(100)  # us a user hook leaves before the next step is due
 _U16 = const(65535)
 
 
-def cost(mid, w):
-    # planned cost (us) of handling a decoded frame mid (w: its first payload byte)
-    if mid == T.HOST_HEARTBEAT:
-        return HB_US
-    if mid == T.REQUEST and (w == T.STATS_DECODE or w == T.STATS_FRAMES or w == T.STATS_LOOP or w == T.TIMING):
-        return HEAVY_US
-    return FRAME_US
-
-
 class Admit:
     def __init__(self, app):
         self.app = app
@@ -63,7 +60,14 @@ class Admit:
         self.held = 0  # ticks in a row a backlog got no frame (the rule held it)
         self.t0 = 0
         self.lim = 0
+        self.plim = 0
         self.force = False
+        # planned cost (us) of a decoded frame by message id, and of a REQUEST by requested id
+        self.ctab = array("H", [FRAME_US] * 32)
+        self.ctab[T.HOST_HEARTBEAT] = HB_US
+        self.rtab = array("H", [FRAME_US] * 32)
+        for w in (T.STATS_DECODE, T.STATS_FRAMES, T.STATS_LOOP, T.TIMING):
+            self.rtab[w] = HEAVY_US
         # the user hook: called in a tick's spare time, within its budget
         self.fn = None
         self.budget = 0
@@ -72,40 +76,22 @@ class Admit:
 
     def open(self):
         # (the step's start read now: a TIMING request's reply restarts the app's statistics)
-        self.t0 = self.app.timing.last_us
-        self.lim = self.app.link_budget_us - self.over
+        app = self.app
+        self.t0 = app.timing.last_us
+        lim = app.link_budget_us - self.over
+        self.lim = lim
+        self.plim = lim - (app.link_budget_us - app.period_us)
         self.force = self.held >= _FORCE
-
-    def now(self):
-        n = self._diff(self._ticks(), self.t0)
-        return n if n > 0 else 0
-
-    def fits(self, now, c, k):
-        return now <= self.lim - c or (self.force and k == 0)
-
-    def fits_now(self, c, k, fresh):
-        # fits() at the clock's time now (one call where the caller keeps no time of its own);
-        # fresh: a frame not yet held must end within the period (the excess counted) -- only a
-        # frame that has waited a tick may take the 11/8 (CAN: a held frame waits in the driver
-        # and costs nothing; the tick after a telemetry tick has the room)
-        n = self._diff(self._ticks(), self.t0)
-        lim = self.lim
-        if fresh:
-            lim -= self.app.link_budget_us - self.app.period_us
-        return n <= lim - c or (self.force and k == 0)
 
     def close(self, now, k, backlog):
         if now < 0:
-            now = self.now()
+            now = self._diff(self._ticks(), self.t0)
         o = now + self.over - self.app.period_us
         self.over = o if o > 0 else 0
         if backlog:
             self.held = 0 if k else self.held + 1
         else:
             self.held = 0
-
-    def idle(self):
-        self.over = 0
 
     def set_user(self, fn, budget_us):
         self.fn = fn

@@ -14,7 +14,7 @@
 # Bounded work per tick, in the time a real Pico takes (the emulated board's XIP flash-cache
 # model): poll() queues the periodic frames first (the pacer), then reads and dispatches frames
 # under the links' admission rule (admit.py, shared with link_serial.py): a frame read (its kind
-# is known only then) is dispatched only when its kind's cost (admit.cost, plus _CAN_US) and the
+# is known only then) is dispatched only when its kind's cost (admit.py's, plus _CAN_US) and the
 # SPI loads queued by then (_LOAD_US each) still end within the period (a frame just read) or
 # app.link_budget_us (11/8 of the period: a frame held a tick) of the step's scheduled start;
 # else it is held (the driver's receive registers keep
@@ -124,6 +124,8 @@ class CanLink:
         # the admission rule in predicted time and the user hook (admit.py)
         self.adm = admit.Admit(app)
         self._budget = self.adm.on
+        self._ticks = getattr(app, "_ticks", None)
+        self._diff = getattr(app, "_tdiff", None)
         self._pend = -1  # a frame read and held by the rule (its id; the driver's rdata keeps it)
         self.err = drv.init(bitrate, xtal_hz, self.node)
         self.ok = self.err == C.OK
@@ -211,7 +213,7 @@ class CanLink:
         if self._pend >= 0 or self.drv.pending():
             self._service()
         else:
-            self.adm.idle()
+            self.adm.over = 0
         if self.bus_off:
             self._latch()
             self._bo_left -= 1
@@ -230,16 +232,23 @@ class CanLink:
 
     def _service(self):
         # the held frame, then the chip's flags and receive buffers, within this tick's budget
+        # (admit.py: the rule's state there, its comparison inline here)
         drv = self.drv
         adm = self.adm
         budget = self._budget
         if budget:
             adm.open()
+            ticks = self._ticks
+            diff = self._diff
+            t0 = adm.t0
+            force = adm.force
         k = 0
         mid = self._pend
         held = False
         if mid >= 0:
-            held = budget and not adm.fits_now(self._plan(mid), 0, False)
+            if budget:
+                # held a tick: it may end within 11/8 of the period
+                held = diff(ticks(), t0) > adm.lim - self._plan(mid) and not force
             if not held:
                 self._pend = -1
                 self._dispatch(mid)
@@ -253,12 +262,12 @@ class CanLink:
             b = 1
             while left and b <= 2 and not held:
                 if left & b:
-                    # read (its cost is known once it is read: a frame that does not fit then is
-                    # held), dispatched when its plan fits
+                    # read (its kind is known once it is read: a frame that does not fit then is
+                    # held), dispatched when its plan ends within the period
                     left &= ~b
                     mid = self._rx(b - 1)
                     if mid >= 0:
-                        if budget and not adm.fits_now(self._plan(mid), k, True):
+                        if budget and diff(ticks(), t0) > adm.plim - self._plan(mid) and not (force and k == 0):
                             self._pend = mid
                             break
                         self._dispatch(mid)
@@ -270,8 +279,11 @@ class CanLink:
             adm.close(-1, k, self._pend >= 0 or left)
 
     def _plan(self, mid):
-        # a read frame's planned cost: its kind's, and the SPI loads queued by then and its reply
-        return admit.cost(mid, self.drv.rdata[0]) + _CAN_US + (self.hi_n + self.lo_n + 3) * _LOAD_US
+        # a read frame's planned cost: its kind's (admit.py), this link's own part, and the SPI
+        # loads queued by then and its reply
+        adm = self.adm
+        c = adm.ctab[mid] if mid != T.REQUEST else adm.rtab[self.drv.rdata[0] & 31]
+        return c + _CAN_US + (self.hi_n + self.lo_n + 3) * _LOAD_US
 
     def _rx(self, k):
         # read RXBk; its message id when it is a frame for this board, else -1 (dropped, counted)

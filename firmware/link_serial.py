@@ -17,7 +17,7 @@
 # poll() sends the periodic frames first (the pacer: on a telem_div 1 tick the telemetry pair,
 # ~210 us), then decodes and dispatches frames under the links' admission rule (admit.py, shared
 # with link_can.py): a frame is read only when a heartbeat could still follow, and dispatched only
-# when the decoding (_SCAN_US) and its kind's cost (admit.cost: measured) still end within
+# when the decoding (_SCAN_US) and its kind's cost (admit.py's tables: measured) still end within
 # app.link_budget_us (11/8 of the period) of the step's scheduled start (a decoded frame that does
 # not fit is held for the next tick); a tick that ran past its period hands its excess on.  So no
 # frame makes a gap between two step starts longer than 1.5 periods (a late tick, App._period) on
@@ -52,7 +52,7 @@ _RX_TICK = const(96)  # bytes decoded per tick at most
 FRAMES_PER_TICK = const(4)  # frames dispatched per tick at most (tests read it)
 _SENT = const(3)  # ... and none after the replies of this tick reach this many frames
 # reading and decoding a frame on a predicted real Pico: up to ~470 us (a frame's own work:
-# admit.cost)
+# admit.py's tables)
 _HB_US = const(400)  # admit.HB_US: a heartbeat could still follow
 _SCAN_US = const(500)
 _U16 = const(65535)
@@ -169,7 +169,7 @@ class SerialLink:
             if self.mode >= 0:
                 raise self._switch
         else:
-            self.adm.idle()
+            self.adm.over = 0
         if self.adm.fn is not None:
             self.adm.user()
 
@@ -206,7 +206,14 @@ class SerialLink:
         if budget:
             # a frame starts only if it ends within link_budget_us of the step's scheduled start
             # (the previous tick's excess counted), at its kind's cost; a long hold forces one
+            # (admit.py: the rule's state there, its comparison inline here)
             adm.open()
+            ticks = self._ticks
+            diff = self._diff
+            t0 = adm.t0
+            lim = adm.lim
+            force = adm.force
+            ctab = adm.ctab
         waited = self.wait > 0
         st = self.tx
         s0 = st.n_sent
@@ -223,9 +230,11 @@ class SerialLink:
         got = False
         while True:
             if budget and now < 0:
-                now = adm.now()
+                now = diff(ticks(), t0)
+                if now < 0:
+                    now = 0
             if mid < 0:
-                if budget and not adm.fits(now, _SCAN_US + _HB_US, k):
+                if budget and now > lim - _SCAN_US - _HB_US and not (force and k == 0):
                     break
                 if i >= n:
                     if left <= 0:
@@ -252,13 +261,13 @@ class SerialLink:
             # a decoded frame: dispatched if it still fits at its kind's cost, else held (dec.buf
             # keeps it: nothing is scanned before it goes) for the next tick
             if budget:
-                c = admit.cost(mid, dec.buf[2])
+                c = ctab[mid] if mid != T.REQUEST else adm.rtab[dec.buf[2] & 31]
                 if got:
-                    now = adm.now()
+                    now = diff(ticks(), t0)
                     got = False
                 else:
                     c += _SCAN_US
-                if not adm.fits(now, c, k):
+                if now > lim - c and not (force and k == 0):
                     break
             self.disp.handle(mid, seq, dec.buf, 2)
             mid = -1
