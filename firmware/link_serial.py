@@ -105,6 +105,8 @@ class SerialLink:
         self._pend = -1  # a decoded frame the budget held (its id; dec.buf keeps it), or -1
         self._pseq = 0
         self._budget = self.adm.on  # (host tests may switch the time rule off)
+        self._ticks = getattr(app, "_ticks", None)
+        self._diff = getattr(app, "_tdiff", None)
         self._scan = self.dec.scan
         self._uart_write = uart.write
         self._readinto = uart.readinto
