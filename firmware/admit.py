@@ -5,7 +5,7 @@
 # app.link_budget_us (11/8 of the period) -- or the period itself for a frame a link has just
 # read and can hold at no cost (CAN: plim) -- less what the last tick ran past its period (over:
 # the next tick catches up).  A backlog held _FORCE ticks in a row gets one frame whatever the
-# time (a loop rate at which no frame ever fits still answers, one late tick per _FORCE ticks of
+# time (a loop rate at which no frame ever fits still answers, one late tick per FORCE ticks of
 # traffic).  Then the user hook (set_user): called in the spare time left, timed, switched off
 # when over its budget.
 #
@@ -17,7 +17,10 @@
 #                            now <= lim - c or (force and k == 0)   (k: frames handled so far)
 #                            -- written inline in the links with lim/force in locals: a method
 #                            call costs ~50 us on a predicted Pico from a cold cache, and the
-#                            rule's planned costs were measured without any
+#                            rule's planned costs were measured without any (the serial link,
+#                            whose bursts run at the edge of the budget, inlines open() and
+#                            close() too: their statements below, on this object's state; the
+#                            request sweep saw a late tick with the two calls)
 #   a.close(now, k, backlog) the receive phase ends (now < 0: the clock is read); backlog:
 #                            frames still waiting (held or unread)
 #   a.over = 0               a tick with no receive phase (nothing came in): nothing carried
@@ -44,7 +47,7 @@ from . import msgtable as T
 HB_US = const(400)
 FRAME_US = const(1200)
 HEAVY_US = const(1600)
-_FORCE = const(8)  # ticks a backlog waits at most before one frame goes whatever the time
+FORCE = const(8)  # ticks a backlog waits at most before one frame goes whatever the time
 _USER_MARGIN = const(100)  # us a user hook leaves before the next step is due
 _U16 = const(65535)
 
@@ -81,7 +84,7 @@ class Admit:
         lim = app.link_budget_us - self.over
         self.lim = lim
         self.plim = lim - (app.link_budget_us - app.period_us)
-        self.force = self.held >= _FORCE
+        self.force = self.held >= FORCE
 
     def close(self, now, k, backlog):
         if now < 0:

@@ -208,13 +208,14 @@ class SerialLink:
         if budget:
             # a frame starts only if it ends within link_budget_us of the step's scheduled start
             # (the previous tick's excess counted), at its kind's cost; a long hold forces one
-            # (admit.py: the rule's state there, its comparison inline here)
-            adm.open()
+            # (admit.py: the rule's state and tables there, Admit.open/close's statements inline
+            # here -- no call in this path)
+            app = self.app
             ticks = self._ticks
             diff = self._diff
-            t0 = adm.t0
-            lim = adm.lim
-            force = adm.force
+            t0 = app.timing.last_us
+            lim = app.link_budget_us - adm.over
+            force = adm.held >= admit.FORCE
             ctab = adm.ctab
         waited = self.wait > 0
         st = self.tx
@@ -286,7 +287,15 @@ class SerialLink:
         backlog = mid >= 0 or i < n or self._any()
         if budget:
             # what this tick ran past its period from its scheduled start: the next one catches up
-            adm.close(now, k, backlog)
+            # (Admit.close)
+            if now < 0:
+                now = diff(ticks(), t0)
+            o = now + adm.over - app.period_us
+            adm.over = o if o > 0 else 0
+            if backlog:
+                adm.held = 0 if k else adm.held + 1
+            else:
+                adm.held = 0
         if backlog:
             # a backlog: it waits for the next tick
             w = self.wait + 1
