@@ -1,10 +1,11 @@
 # The host links' admission rule in predicted time (issue 26), one copy for both links
 # (link_serial.SerialLink, link_can.CanLink): a received frame is handled in this tick only when
 # its planned cost still ends within the tick's limit, counted from the step's *scheduled* start
-# (App: timing.last_us); what does not fit is held for the next tick.  The limit is
-# app.link_budget_us (11/8 of the period) -- or the period itself for a frame a link has just
-# read and can hold at no cost (CAN: plim) -- less what the last tick ran past its period (over:
-# the next tick catches up).  A backlog held _FORCE ticks in a row gets one frame whatever the
+# (App: timing.last_us); what does not fit is held for the next tick.  The limit is the period
+# for a frame read in this tick (plim) and app.link_budget_us (11/8 of the period: lim) for one
+# held from the last tick -- so a command too long to fit beside the step and its own reading
+# is read in one tick and handled at the start of the next -- less what the last tick ran past
+# its period (over: the next tick catches up).  A backlog held _FORCE ticks in a row gets one frame whatever the
 # time (a loop rate at which no frame ever fits still answers, one late tick per FORCE ticks of
 # traffic).  Then the user hook (set_user): called in the spare time left, timed, switched off
 # when over its budget.

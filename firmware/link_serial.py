@@ -18,8 +18,9 @@
 # ~210 us), then decodes and dispatches frames under the links' admission rule (admit.py, shared
 # with link_can.py): a frame is read only when a heartbeat could still follow, and dispatched only
 # when the decoding (_SCAN_US) and its kind's cost (admit.py's tables: measured) still end within
-# app.link_budget_us (11/8 of the period) of the step's scheduled start (a decoded frame that does
-# not fit is held for the next tick); a tick that ran past its period hands its excess on.  So no
+# the period (a frame decoded in this tick) or app.link_budget_us (11/8 of the period: a frame
+# held from the last tick) of the step's scheduled start (a decoded frame that does not fit is
+# held for the next tick); a tick that ran past its period hands its excess on.  So no
 # frame makes a gap between two step starts longer than 1.5 periods (a late tick, App._period) on
 # a predicted real board; at most FRAMES_PER_TICK frames and _RX_TICK bytes per tick, and none
 # once this tick's replies reach _SENT frames (the UART's transmit interrupts cost the loop too).
@@ -215,6 +216,7 @@ class SerialLink:
             diff = self._diff
             t0 = app.timing.last_us
             lim = app.link_budget_us - adm.over
+            plim = lim - (app.link_budget_us - app.period_us)  # a frame decoded in this tick
             force = adm.held >= admit.FORCE
             ctab = adm.ctab
         waited = self.wait > 0
@@ -225,6 +227,7 @@ class SerialLink:
         i = self._ri
         n = self._rn
         mid = self._pend
+        fresh = False  # mid was decoded in this tick (not held from the last one)
         seq = self._pseq
         # the clock is read once per frame before reading and decoding it, and again before its
         # dispatch when bytes had to be read for it (the UART's receive path and the decoding,
@@ -261,8 +264,13 @@ class SerialLink:
                 if mid < 0:
                     continue
                 seq = dec.seq
-            # a decoded frame: dispatched if it still fits at its kind's cost, else held (dec.buf
-            # keeps it: nothing is scanned before it goes) for the next tick
+                fresh = True
+            # a decoded frame: dispatched if it still fits at its kind's cost -- within the period
+            # when decoded in this tick, within 11/8 of it when held from the last one -- else
+            # held (dec.buf keeps it: nothing is scanned before it goes) for the next tick.  So a
+            # command whose decoding and cold dispatch do not fit beside the step in one period
+            # (a set_reference: ~470 + ~980 us) is decoded in one tick and dispatched at the
+            # start of the next
             if budget:
                 c = ctab[mid] if mid != T.REQUEST else adm.rtab[dec.buf[2] & 31]
                 if got:
@@ -270,7 +278,7 @@ class SerialLink:
                     got = False
                 else:
                     c += _SCAN_US
-                if now > lim - c and not (force and k == 0):
+                if now > (plim if fresh else lim) - c and not (force and k == 0):
                     break
             self.disp.handle(mid, seq, dec.buf, 2)
             mid = -1
