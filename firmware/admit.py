@@ -22,6 +22,7 @@
 #                            whose bursts run at the edge of the budget, inlines open() and
 #                            close() too: their statements below, on this object's state; the
 #                            request sweep saw a late tick with the two calls)
+#   a.fits_now(c, k, fresh) the same comparison as a call, the clock read in it (link_can)
 #   a.close(now, k, backlog) the receive phase ends (now < 0: the clock is read); backlog:
 #                            frames still waiting (held or unread)
 #   a.over = 0               a tick with no receive phase (nothing came in): nothing carried
@@ -86,6 +87,14 @@ class Admit:
         self.lim = lim
         self.plim = lim - (app.link_budget_us - app.period_us)
         self.force = self.held >= FORCE
+
+    def fits_now(self, c, k, fresh):
+        # the rule at the clock's time now, for a frame of planned cost c (k: frames handled so
+        # far in this tick); fresh: read in this tick (limit plim), else held from the last (lim).
+        # The CAN link calls it (its planned costs were measured with the call); the serial link
+        # writes the same comparison inline
+        n = self._diff(self._ticks(), self.t0)
+        return n <= (self.plim if fresh else self.lim) - c or (self.force and k == 0)
 
     def close(self, now, k, backlog):
         if now < 0:

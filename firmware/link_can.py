@@ -124,8 +124,6 @@ class CanLink:
         # the admission rule in predicted time and the user hook (admit.py)
         self.adm = admit.Admit(app)
         self._budget = self.adm.on
-        self._ticks = getattr(app, "_ticks", None)
-        self._diff = getattr(app, "_tdiff", None)
         self._pend = -1  # a frame read and held by the rule (its id; the driver's rdata keeps it)
         self.err = drv.init(bitrate, xtal_hz, self.node)
         self.ok = self.err == C.OK
@@ -232,23 +230,19 @@ class CanLink:
 
     def _service(self):
         # the held frame, then the chip's flags and receive buffers, within this tick's budget
-        # (admit.py: the rule's state there, its comparison inline here)
+        # (admit.py: Admit.fits_now)
         drv = self.drv
         adm = self.adm
         budget = self._budget
         if budget:
             adm.open()
-            ticks = self._ticks
-            diff = self._diff
-            t0 = adm.t0
-            force = adm.force
         k = 0
         mid = self._pend
         held = False
         if mid >= 0:
             if budget:
                 # held a tick: it may end within 11/8 of the period
-                held = diff(ticks(), t0) > adm.lim - self._plan(mid) and not force
+                held = not adm.fits_now(self._plan(mid), 0, False)
             if not held:
                 self._pend = -1
                 self._dispatch(mid)
@@ -267,7 +261,7 @@ class CanLink:
                     left &= ~b
                     mid = self._rx(b - 1)
                     if mid >= 0:
-                        if budget and diff(ticks(), t0) > adm.plim - self._plan(mid) and not (force and k == 0):
+                        if budget and not adm.fits_now(self._plan(mid), k, True):
                             self._pend = mid
                             break
                         self._dispatch(mid)
