@@ -16,12 +16,11 @@
 #   the link, per frame:     c = a.ctab[mid] (a REQUEST: a.rtab[requested id & 31]) + its own;
 #                            now = ticks_diff(ticks(), a.t0); the frame goes when
 #                            now <= lim - c or (force and k == 0)   (k: frames handled so far)
-#                            -- written inline in the links with lim/force in locals: a method
-#                            call costs ~50 us on a predicted Pico from a cold cache, and the
-#                            rule's planned costs were measured without any (the serial link,
-#                            whose bursts run at the edge of the budget, inlines open() and
-#                            close() too: their statements below, on this object's state; the
-#                            request sweep saw a late tick with the two calls)
+#                            -- a.fits_now(c, k, fresh) in the CAN link; written inline in the
+#                            serial link, with open()/close()'s statements too (a method call
+#                            costs ~50 us on a predicted Pico from a cold cache, its planned
+#                            costs were measured without any, and its request sweep saw a late
+#                            tick with the calls)
 #   a.fits_now(c, k, fresh) the same comparison as a call, the clock read in it (link_can)
 #   a.close(now, k, backlog) the receive phase ends (now < 0: the clock is read); backlog:
 #                            frames still waiting (held or unread)
