@@ -82,9 +82,9 @@ def test_hil_emulate_over_can_balances_as_the_virtual_run(tmp_path: Path) -> Non
     # CAN link's frames are admitted in that time (firmware/admit.py, as the serial link's: a
     # frame just read must end within the period, a held one within 11/8 of it).  Before it, a
     # change that only moved code in flash put this run's worst tick at 2108 us of 2000 us
-    # (4 overruns, a host heartbeat on a telemetry tick); measured with it: 1715 us on a
+    # (4 overruns, a host heartbeat on a telemetry tick); measured with it: ~1730 us on a
     # telemetry tick, the heartbeat held to the next tick, and one iteration over the period, the
-    # arm's (~2640 us: arming runs its code once, from a cold cache)
+    # arm's (~2590 us: arming runs its code once, from a cold cache)
     p = _hil("--link", "can", "--scenario", str(sc), "--out", str(out), "--json", str(js))
     assert p.returncode == 0, p.stdout + p.stderr
     [rec] = json.loads(js.read_text())
