@@ -6,10 +6,23 @@
 #
 # Receive: the chip's acceptance filters pass only this node's ids; poll() looks at the chip
 # only when its INT pin is low (no SPI at all on a quiet tick), then reads CANINTF+EFLG in one
-# transaction and both receive buffers (RXB0 rolls over into RXB1).  A frame with an unknown
+# transaction and the receive buffers (RXB0 rolls over into RXB1).  A frame with an unknown
 # or host-bound message id for this node (n_unknown), a DLC that is not the message's length
 # (n_length), or an extended/remote frame (n_framing) is dropped and counted; a receive
 # buffer overflow (RXnOVR) is counted as framing (STATS_DECODE.framing) and in STATS_CAN.
+#
+# Bounded work per tick, in the time a real Pico takes (the emulated board's XIP flash-cache
+# model): poll() queues the periodic frames first (the pacer), then reads and dispatches frames
+# under the links' admission rule (admit.py, shared with link_serial.py): a frame read (its kind
+# is known only then) is dispatched only when its kind's cost (admit.py's, plus _CAN_US) and the
+# SPI loads queued by then (_LOAD_US each) still end within the period (a frame just read) or
+# app.link_budget_us (11/8 of the period: a frame held a tick) of the step's scheduled start;
+# else it is held (the driver's receive registers keep
+# it: nothing else is read before it goes) for the next tick, and what is still in the chip
+# stays there (two buffers; a third frame is an overflow, counted).  A tick that ran past its
+# period hands the excess on.  The flags are read whenever INT is low, held frame or not: an
+# error state change (bus-off: F_CAN) is handled in its tick.  With the viper emitter (App
+# config "emitter") payloads are packed by fastcan.py.
 #
 # Transmit: send() packs the payload straight into a slot of a software queue (two rings: heartbeat, replies
 # and stats before telemetry; a full ring drops the new frame, counted in tx_dropped); the end
@@ -36,6 +49,7 @@ except ImportError:
 
 from array import array
 
+from . import admit
 from . import codec
 from . import commands
 from . import crc16
@@ -53,6 +67,12 @@ _UNKNOWN = const(0xFF)
 _RXIF = const(0x03)
 _ERRF = const(0xA0)  # ERRIF | MERRF
 _STATE_BITS = const(0x3F)  # EFLG error-state bits (not the overflow flags)
+# on a predicted real Pico (XIP model): one SPI transaction of the flush (READ STATUS, a LOAD TX
+# BUFFER, RTS) 65-130 us; a frame's path through this link beyond the dispatcher's own work
+# (admit.cost: measured on the serial link), cold: a host heartbeat's tick costs ~1170 us over an
+# idle one here (CANINTF/EFLG and the receive buffer read ~450, the dispatch ~720), 320 on serial
+_CAN_US = const(400)
+_LOAD_US = const(100)
 
 _ERRORS = ("", "no answer on SPI (controller absent or miswired: check SCK/MOSI/MISO/CS and 3V3)",
            "no bit timing for this bit rate and crystal", "the controller did not enter normal mode")
@@ -94,6 +114,17 @@ class CanLink:
         self.disp.dec = self
         self.pacer = Pacer(app, self.disp)
         self._motor = app.hal.set_motor
+        # payloads packed in viper on the board (fastcan.py), else codec.Layout.pack
+        self._pk = None
+        if getattr(app, "emitter", "") == "viper":
+            from .fastcan import frame_viper
+            self._pk = frame_viper
+        self._codes = layout.codes
+        self._nf = layout.nfields
+        # the admission rule in predicted time and the user hook (admit.py)
+        self.adm = admit.Admit(app)
+        self._budget = self.adm.on
+        self._pend = -1  # a frame read and held by the rule (its id; the driver's rdata keeps it)
         self.err = drv.init(bitrate, xtal_hz, self.node)
         self.ok = self.err == C.OK
         if not self.ok:
@@ -104,7 +135,13 @@ class CanLink:
     def send(self, mid, seq, vals, voff):
         q = self._slot(mid)
         if q is not None:
-            self._fill(q, mid, self.layout.pack(mid, vals, voff, q, 6))
+            pk = self._pk
+            if pk is not None and voff + self._nf[mid] <= len(vals):
+                # id, DLC and payload in one viper call (the same bytes as _fill's)
+                pk(self._codes, self._nf, vals, voff, mid, q, ((self.node & 0x3F) << 5) | (mid & 0x1F))
+                self.n_sent = self.n_sent + 1 if self.n_sent < _CMAX else 0
+            else:
+                self._fill(q, mid, self.layout.pack(mid, vals, voff, q, 6))
 
     def _slot(self, mid):
         # the next free slot of mid's ring (counted as queued), or None: dropped and counted
@@ -169,53 +206,106 @@ class CanLink:
         if not self.ok:
             self._latch()
             return
-        drv = self.drv
-        if drv.pending():
+        # the periodic frames first (queued; their SPI loads count in the frames' plan)
+        self.pacer.tick()
+        if self._pend >= 0 or self.drv.pending():
             self._service()
+        else:
+            self.adm.over = 0
         if self.bus_off:
             self._latch()
             self._bo_left -= 1
             if self._bo_left <= 0:
                 self._bo_left = _BO_POLL
                 self._service()
-        self.pacer.tick()
         if self.hi_n or self.lo_n:
             self._flush()
+        if self.adm.fn is not None:
+            self.adm.user()
+
+    def set_user(self, fn, budget_us):
+        # the user hook, as link_serial.SerialLink.set_user (admit.Admit.user): called after the
+        # link's work and the flush, in the spare time
+        return self.adm.set_user(fn, budget_us)
 
     def _service(self):
+        # the held frame, then the chip's flags and receive buffers, within this tick's budget
+        # (admit.py: Admit.fits_now)
         drv = self.drv
-        drv.flags()
-        f = drv.intf
-        if f & _RXIF:
-            if f & 1:
-                self._rx(0)
-            if f & 2:
-                self._rx(1)
-        if f & _ERRF or self.bus_off:
-            self._errors()
+        adm = self.adm
+        budget = self._budget
+        if budget:
+            adm.open()
+        k = 0
+        mid = self._pend
+        held = False
+        if mid >= 0:
+            if budget:
+                # held a tick: it may end within 11/8 of the period
+                held = not adm.fits_now(self._plan(mid), 0, False)
+            if not held:
+                self._pend = -1
+                self._dispatch(mid)
+                k = 1
+        left = 0
+        if drv.pending():
+            # the flags always (an error state change is handled in this tick, held frame or not)
+            drv.flags()
+            f = drv.intf
+            left = f & _RXIF
+            b = 1
+            while left and b <= 2 and not held:
+                if left & b:
+                    # read (its kind is known once it is read: a frame that does not fit then is
+                    # held), dispatched when its plan ends within the period
+                    left &= ~b
+                    mid = self._rx(b - 1)
+                    if mid >= 0:
+                        if budget and not adm.fits_now(self._plan(mid), k, True):
+                            self._pend = mid
+                            break
+                        self._dispatch(mid)
+                        k += 1
+                b <<= 1
+            if f & _ERRF or self.bus_off:
+                self._errors()
+        if budget:
+            adm.close(-1, k, self._pend >= 0 or left)
+
+    def _plan(self, mid):
+        # a read frame's planned cost: its kind's (admit.py), this link's own part, and the SPI
+        # loads queued by then and its reply
+        adm = self.adm
+        c = adm.ctab[mid] if mid != T.REQUEST else adm.rtab[self.drv.rdata[0] & 31]
+        return c + _CAN_US + (self.hi_n + self.lo_n + 3) * _LOAD_US
 
     def _rx(self, k):
+        # read RXBk; its message id when it is a frame for this board, else -1 (dropped, counted)
         drv = self.drv
         drv.read_rx(k)
         rid = drv.rid
         if rid < 0:
             self.n_framing += 1 if self.n_framing < _CMAX else 0
-            return
+            return -1
         if (rid >> 5) != self.node:
             self.n_other += 1 if self.n_other < _CMAX else 0
-            return
+            return -1
         mid = rid & 0x1F
         pl = self.plen[mid]
         if pl == _UNKNOWN or self.dirn[mid] != T.TO_BOARD:
             self.n_unknown += 1 if self.n_unknown < _CMAX else 0
-            return
+            return -1
         if pl != drv.rdlc:
             self.n_length += 1 if self.n_length < _CMAX else 0
-            return
+            return -1
         self.n_ok += 1 if self.n_ok < _CMAX else 0
-        d = drv.rdata
+        return mid
+
+    def _dispatch(self, mid):
+        # the frame in the driver's receive registers
+        d = self.drv.rdata
         if mid == T.REQUEST and d[0] == T.STATS_CAN:
-            drv.counters()
+            self.drv.counters()
             self.send_stats_can()
             return
         self.disp.handle(mid, 0, d, 0)
@@ -236,6 +326,7 @@ class CanLink:
                 self.busy = 0
                 self.hi_n = 0
                 self.lo_n = 0
+                self._pend = -1  # a held command goes with them
                 self._latch()
         elif self.bus_off:
             self.bus_off = False

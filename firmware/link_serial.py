@@ -15,18 +15,18 @@
 # command code runs rarely, so from a cold cache -- a frame costs 300-1530 us on a predicted real
 # Pico, where the same code takes 60-400 us on ideal cycles; docs/firmware.md, "Board timing"):
 # poll() sends the periodic frames first (the pacer: on a telem_div 1 tick the telemetry pair,
-# ~210 us), then decodes and dispatches frames.  A frame is read only when a heartbeat could still
-# follow, and dispatched only when the decoding (_SCAN_US) and its kind's cost (_HB_US, _FRAME_US,
-# _HEAVY_US: measured, below) still end within app.link_budget_us (11/8 of the period) of the step's start, counted from its
-# scheduled start (a decoded frame that does not fit is held for the next tick):
-# a tick that ran past its period hands its excess on, and the next tick's budget is that much
-# shorter (it catches up).  So no frame makes a gap between two step starts longer than 1.5 periods (a late
-# tick, App._period) on a predicted real board; at most FRAMES_PER_TICK frames and _RX_TICK bytes
-# per tick, and none once this tick's replies reach _SENT frames (the UART's transmit interrupts
-# cost the loop too).  A backlog held back _FORCE ticks in a row gets one frame whatever the time (a
-# loop rate at which no frame ever fits -- above ~700 Hz on a predicted real Pico -- still answers,
-# one late tick per _FORCE ticks of traffic).  Every command's own work is bounded (commands.py,
-# App).
+# ~210 us), then decodes and dispatches frames under the links' admission rule (admit.py, shared
+# with link_can.py): a frame is read only when a heartbeat could still follow, and dispatched only
+# when the decoding (_SCAN_US) and its kind's cost (admit.py's tables: measured) still end within
+# the period (a frame decoded in this tick) or app.link_budget_us (11/8 of the period: a frame
+# held from the last tick) of the step's scheduled start (a decoded frame that does not fit is
+# held for the next tick); a tick that ran past its period hands its excess on.  So no
+# frame makes a gap between two step starts longer than 1.5 periods (a late tick, App._period) on
+# a predicted real board; at most FRAMES_PER_TICK frames and _RX_TICK bytes per tick, and none
+# once this tick's replies reach _SENT frames (the UART's transmit interrupts cost the loop too).
+# A backlog held back 8 ticks in a row gets one frame whatever the time (a loop rate at which no
+# frame ever fits -- above ~700 Hz on a predicted real Pico -- still answers, one late tick per 8
+# ticks of traffic).  Every command's own work is bounded (commands.py, App).
 # What is left waits -- bytes already read in self.rx, the rest in the UART's receive
 # buffer (HalPico.uart() makes it large) -- for the next tick.  Frames handled after
 # waiting are counted (n_deferred) and the longest wait is kept in ticks (wait_max): the
@@ -38,6 +38,7 @@ except ImportError:
     def const(x):
         return x
 
+from . import admit
 from . import codec
 from . import commands
 from . import crc16
@@ -49,16 +50,10 @@ _RX = const(64)
 _RX_TICK = const(96)  # bytes decoded per tick at most
 FRAMES_PER_TICK = const(4)  # frames dispatched per tick at most (tests read it)
 _SENT = const(3)  # ... and none after the replies of this tick reach this many frames
-# a frame's work on a predicted real Pico (us, XIP model, cold cache, measured with the telemetry
-# pair every tick): a host heartbeat 320; a stats request (three replies) 1530, a timing request
-# 1283; every other frame at most ~1090 (arm 1090, excite 1080, param_set 1067, gains_chunk 1059,
-# set_reference 979).  Reading and decoding a frame first: up to ~470
-_HB_US = const(400)
-_FRAME_US = const(1200)
-_HEAVY_US = const(1600)
+# reading and decoding a frame on a predicted real Pico: up to ~470 us (a frame's own work:
+# admit.py's tables)
+_HB_US = const(400)  # admit.HB_US: a heartbeat could still follow
 _SCAN_US = const(500)
-_FORCE = const(8)  # ticks a backlog waits at most before one frame goes whatever the time
-_USER_MARGIN = const(100)  # us a user hook leaves before the next step is due
 _U16 = const(65535)
 _CMAX = const(0x3FFFFFFF)  # frame counter wrap (framing.SerialTx.n_sent)
 
@@ -98,19 +93,13 @@ class SerialLink:
         self.n_deferred = 0
         self.wait = 0  # ticks the current backlog has waited
         self.wait_max = 0
-        self._over = 0  # us the last tick with link work ran past its period (the next catches up)
-        self._held = 0  # ticks in a row a backlog got no frame (the budget held it)
-        # the user hook (set_user): called in a tick's spare time, within its budget
-        self._user = None
-        self._ubudget = 0
-        self.user_runs = 0
-        self.user_over = 0
+        # the admission rule in predicted time and the user hook (admit.py)
+        self.adm = admit.Admit(app)
         self._pend = -1  # a decoded frame the budget held (its id; dec.buf keeps it), or -1
         self._pseq = 0
-        self._ticks = app._ticks if hasattr(app, "_ticks") else None
+        self._budget = self.adm.on  # (host tests may switch the time rule off)
+        self._ticks = getattr(app, "_ticks", None)
         self._diff = getattr(app, "_tdiff", None)
-        # the time budget needs the app's clock and its step start (App: timing.last_us)
-        self._budget = self._ticks is not None and hasattr(app, "link_budget_us") and hasattr(app, "timing")
         self._scan = self.dec.scan
         self._uart_write = uart.write
         self._readinto = uart.readinto
@@ -175,40 +164,26 @@ class SerialLink:
             if self.mode >= 0:
                 raise self._switch
         else:
-            self._over = 0
-        u = self._user
-        if u is not None and self._budget:
-            self._run_user(u)
+            self.adm.over = 0
+        if self.adm.fn is not None:
+            self.adm.user()
 
     def set_user(self, fn, budget_us):
-        # a user hook (docs/firmware.md, "User code in the spare time"): fn() -- no arguments,
-        # allocation-free (the heap is locked in the loop), a bound method made once -- is called
-        # at most once a tick, after the link's work, only when budget_us still ends
-        # _USER_MARGIN us before the next step is due.  Each call is timed: one that takes longer
+        # a user hook (docs/firmware.md, "User code in the spare time"; admit.Admit.user): fn()
+        # -- no arguments, allocation-free (the heap is locked in the loop), a bound method made
+        # once -- is called at most once a tick, after the link's work, only when budget_us still
+        # ends 100 us before the next step is due.  Each call is timed: one that takes longer
         # than budget_us switches the hook off (user_over counts it; set_user again to resume).
-        # None: no hook.
-        self._user = fn
-        self._ubudget = budget_us if budget_us > 0 else 0
-        return self._budget
+        # None: no hook.  Returns whether the board's clock times it (False: never called)
+        return self.adm.set_user(fn, budget_us)
 
-    def _run_user(self, u):
-        app = self.app
-        diff = self._diff
-        t0 = app.timing.last_us
-        now = diff(self._ticks(), t0) + self._over
-        if now + self._ubudget > app.period_us - _USER_MARGIN:
-            return
-        u()
-        if self.user_runs < _U16:
-            self.user_runs += 1
-        e = diff(self._ticks(), t0) + self._over
-        if e - now > self._ubudget:
-            # over its budget: off; the link's next budget knows how far this tick ran over
-            self._user = None
-            if self.user_over < _U16:
-                self.user_over += 1
-            if e > app.period_us:
-                self._over = e - app.period_us
+    @property
+    def user_runs(self):
+        return self.adm.runs
+
+    @property
+    def user_over(self):
+        return self.adm.n_over
 
     def _on_mode(self, m):
         # MODE (commands.py: motor off, m valid): robot is this mode already
@@ -221,16 +196,21 @@ class SerialLink:
         rx = self.rx
         dec = self.dec
         scan = self._scan
-        app = self.app
-        ticks = self._ticks
-        diff = self._diff
+        adm = self.adm
         budget = self._budget
         if budget:
-            t0 = app.timing.last_us
             # a frame starts only if it ends within link_budget_us of the step's scheduled start
             # (the previous tick's excess counted), at its kind's cost; a long hold forces one
-            lim = app.link_budget_us - self._over
-            force = self._held >= _FORCE
+            # (admit.py: the rule's state and tables there, Admit.open/close's statements inline
+            # here -- no call in this path)
+            app = self.app
+            ticks = self._ticks
+            diff = self._diff
+            t0 = app.timing.last_us
+            lim = app.link_budget_us - adm.over
+            plim = lim - (app.link_budget_us - app.period_us)  # a frame decoded in this tick
+            force = adm.held >= admit.FORCE
+            ctab = adm.ctab
         waited = self.wait > 0
         st = self.tx
         s0 = st.n_sent
@@ -239,6 +219,7 @@ class SerialLink:
         i = self._ri
         n = self._rn
         mid = self._pend
+        fresh = False  # mid was decoded in this tick (not held from the last one)
         seq = self._pseq
         # the clock is read once per frame before reading and decoding it, and again before its
         # dispatch when bytes had to be read for it (the UART's receive path and the decoding,
@@ -275,22 +256,21 @@ class SerialLink:
                 if mid < 0:
                     continue
                 seq = dec.seq
-            # a decoded frame: dispatched if it still fits at its kind's cost, else held (dec.buf
-            # keeps it: nothing is scanned before it goes) for the next tick
+                fresh = True
+            # a decoded frame: dispatched if it still fits at its kind's cost -- within the period
+            # when decoded in this tick, within 11/8 of it when held from the last one -- else
+            # held (dec.buf keeps it: nothing is scanned before it goes) for the next tick.  So a
+            # command whose decoding and cold dispatch do not fit beside the step in one period
+            # (a set_reference: ~470 + ~980 us) is decoded in one tick and dispatched at the
+            # start of the next
             if budget:
-                c = _FRAME_US
-                if mid == T.HOST_HEARTBEAT:
-                    c = _HB_US
-                elif mid == T.REQUEST:
-                    w = dec.buf[2]
-                    if w == T.STATS_DECODE or w == T.STATS_FRAMES or w == T.STATS_LOOP or w == T.TIMING:
-                        c = _HEAVY_US
+                c = ctab[mid] if mid != T.REQUEST else adm.rtab[dec.buf[2] & 31]
                 if got:
                     now = diff(ticks(), t0)
                     got = False
                 else:
                     c += _SCAN_US
-                if now > lim - c and not (force and k == 0):
+                if now > (plim if fresh else lim) - c and not (force and k == 0):
                     break
             self.disp.handle(mid, seq, dec.buf, 2)
             mid = -1
@@ -304,14 +284,19 @@ class SerialLink:
         self._pseq = seq
         self._ri = i
         self._rn = n
+        backlog = mid >= 0 or i < n or self._any()
         if budget:
             # what this tick ran past its period from its scheduled start: the next one catches up
+            # (Admit.close)
             if now < 0:
                 now = diff(ticks(), t0)
-            o = now + self._over - app.period_us
-            self._over = o if o > 0 else 0
-        if mid >= 0 or i < n or self._any():
-            self._held = 0 if k else self._held + 1
+            o = now + adm.over - app.period_us
+            adm.over = o if o > 0 else 0
+            if backlog:
+                adm.held = 0 if k else adm.held + 1
+            else:
+                adm.held = 0
+        if backlog:
             # a backlog: it waits for the next tick
             w = self.wait + 1
             self.wait = w
@@ -319,4 +304,3 @@ class SerialLink:
                 self.wait_max = w if w < _U16 else _U16
         else:
             self.wait = 0
-            self._held = 0

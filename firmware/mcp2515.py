@@ -8,7 +8,8 @@
 #   drv.init(bitrate, xtal_hz, node)     -> OK or E_ABSENT / E_BITRATE / E_MODE (start-up)
 #   drv.pending()                        INT low (or no INT pin): something to look at
 #   drv.flags()                          CANINTF in drv.intf, EFLG in drv.eflg (one transaction)
-#   drv.read_rx(k)                       RXBk -> drv.rid, drv.rdlc, drv.rdata[0:8]; clears RXkIF
+#   drv.read_rx(k)                       RXBk -> drv.rid, drv.rdlc, drv.rdata[0:8] (kept until the
+#                                        next read_rx); clears RXkIF
 #   drv.load_tx(k, buf, off) / rts(m)    LOAD TX BUFFER k from buf[off:off+13] / request to send
 #   drv.load_frame(k, frame)             LOAD TX BUFFER k from a 14-byte transaction buffer
 #   drv.tx_busy()                        TXREQ bits of TXB0..2 as a 3-bit mask (READ STATUS)
@@ -135,7 +136,14 @@ class MCP2515:
         self._w = spi.write
         self._cs = cs.value
         self._irq = irq.value if irq is not None else None
-        self.rdata = bytearray(8)
+        # READ RX BUFFER: its own receive buffer (the frame stays there until the next read_rx: a
+        # link may hold a frame across ticks) and instruction buffers (the bytes after the
+        # instruction are don't-care: left 0), so a read copies nothing in bytecode
+        self._rxb = bytearray(14)
+        self.rdata = memoryview(self._rxb)[6:14]
+        self._rxq = (bytearray(14), bytearray(14))
+        self._rxq[0][0] = _READ_RX
+        self._rxq[1][0] = _READ_RX | (1 << 2)
         self.rid = 0
         self.rdlc = 0
         self.intf = 0
@@ -306,13 +314,12 @@ class MCP2515:
 
     def read_rx(self, k):
         # READ RX BUFFER k (0, 1): 13 bytes from SIDH; CS rising clears RXkIF.
-        # -> standard id in rid (-1: extended or remote frame), dlc in rdlc, data in rdata
-        t = self.tx
-        t[0] = _READ_RX | (k << 2)
-        for i in range(1, 14):
-            t[i] = 0
-        self._xfer(14)
-        r = self.rx
+        # -> standard id in rid (-1: extended or remote frame), dlc in rdlc, data in rdata (a view
+        # of the read's own buffer: valid until the next read_rx)
+        r = self._rxb
+        self._cs(0)
+        self._wr(self._rxq[k], r)
+        self._cs(1)
         sidl = r[2]
         dlc = r[5]
         if sidl & 0x08 or sidl & 0x10 or dlc & 0x40:
@@ -320,11 +327,7 @@ class MCP2515:
             self.rid = -1
         else:
             self.rid = (r[1] << 3) | (sidl >> 5)
-        n = dlc & 0x0F
-        self.rdlc = n
-        d = self.rdata
-        for i in range(8):
-            d[i] = r[6 + i]
+        self.rdlc = dlc & 0x0F
 
     def load_tx(self, k, buf, off):
         # LOAD TX BUFFER k (0..2) with buf[off:off+13]: SIDH SIDL EID8 EID0 DLC D0..D7

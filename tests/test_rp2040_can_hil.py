@@ -78,18 +78,20 @@ def _dphi(a: np.ndarray, b: np.ndarray) -> float:
 def test_hil_emulate_over_can_balances_as_the_virtual_run(tmp_path: Path) -> None:
     sc = _scenario(tmp_path, "tilt_0p1", TILT_S)
     out, js = tmp_path / "out", tmp_path / "r.json"
-    # ideal cycles (UPRIGHT_XIP_CACHE=0): the CAN link's per-tick work is not yet budgeted in
-    # predicted time as the serial link's is (issue 26, firmware/link_serial.py's admission rule;
-    # link_can.py has none). With the flash-cache model on, this run's worst tick is at the edge
-    # of the period: 2108 us of 2000 us and 4 overruns (|a| 5.26 m/s^2) after a change that only
-    # moved code in flash (a method added to sensors.py), and passed before it -- a layout
-    # effect, so the model's verdict here waits for the CAN budget
-    p = _hil("--link", "can", "--scenario", str(sc), "--out", str(out), "--json", str(js),
-             env={"UPRIGHT_XIP_CACHE": "0"})
+    # timed with the XIP flash-cache model (the default: the predicted real Pico, issue 26); the
+    # CAN link's frames are admitted in that time (firmware/admit.py, as the serial link's: a
+    # frame just read must end within the period, a held one within 11/8 of it).  Before it, a
+    # change that only moved code in flash put this run's worst tick at 2108 us of 2000 us
+    # (4 overruns, a host heartbeat on a telemetry tick); measured with it: ~1730 us on a
+    # telemetry tick, the heartbeat held to the next tick, and one iteration over the period, the
+    # arm's (~2590 us: arming runs its code once, from a cold cache)
+    p = _hil("--link", "can", "--scenario", str(sc), "--out", str(out), "--json", str(js))
     assert p.returncode == 0, p.stdout + p.stderr
     [rec] = json.loads(js.read_text())
     assert rec["name"] == "tilt_0p1" and rec["mode"] == "emulated" and rec["link"] == "can"
-    assert rec["period_us"] == 2000.0 and 0 < rec["tick_us_mean"] <= rec["tick_us_max"] < 2.5 * rec["period_us"]
+    assert rec["period_us"] == 2000.0 and 0 < rec["tick_us_mean"] <= rec["tick_us_max"]
+    # no late tick (App._period: 1.5 periods); the link's budget ends its work within 11/8
+    assert rec["tick_us_max"] < 1.5 * rec["period_us"], rec["tick_us_max"]
     virt = _virtual(sc)
     sv = virt.summary()
     # the same verdict, check by check, as the firmware under MicroPython on the pty

@@ -1,0 +1,135 @@
+# The host links' admission rule in predicted time (issue 26), one copy for both links
+# (link_serial.SerialLink, link_can.CanLink): a received frame is handled in this tick only when
+# its planned cost still ends within the tick's limit, counted from the step's *scheduled* start
+# (App: timing.last_us); what does not fit is held for the next tick.  The limit is the period
+# for a frame read in this tick (plim) and app.link_budget_us (11/8 of the period: lim) for one
+# held from the last tick -- so a command too long to fit beside the step and its own reading
+# is read in one tick and handled at the start of the next -- less what the last tick ran past
+# its period (over: the next tick catches up).  A backlog held _FORCE ticks in a row gets one frame whatever the
+# time (a loop rate at which no frame ever fits still answers, one late tick per FORCE ticks of
+# traffic).  Then the user hook (set_user): called in the spare time left, timed, switched off
+# when over its budget.
+#
+#   a = Admit(app)           a.on False: the app has no clock/step start (host tests): no rule
+#   a.open()                 a tick's receive phase starts: a.t0 (the step's scheduled start),
+#                            a.lim, a.plim (us from t0 a frame must end within), a.force
+#   the link, per frame:     c = a.ctab[mid] (a REQUEST: a.rtab[requested id & 31]) + its own;
+#                            now = ticks_diff(ticks(), a.t0); the frame goes when
+#                            now <= lim - c or (force and k == 0)   (k: frames handled so far)
+#                            -- a.fits_now(c, k, fresh) in the CAN link; written inline in the
+#                            serial link, with open()/close()'s statements too (a method call
+#                            costs ~50 us on a predicted Pico from a cold cache, its planned
+#                            costs were measured without any, and its request sweep saw a late
+#                            tick with the calls)
+#   a.fits_now(c, k, fresh) the same comparison as a call, the clock read in it (link_can)
+#   a.close(now, k, backlog) the receive phase ends (now < 0: the clock is read); backlog:
+#                            frames still waiting (held or unread)
+#   a.over = 0               a tick with no receive phase (nothing came in): nothing carried
+#   a.set_user(fn, us), a.user()   the user hook (after close/idle)
+#
+# The planned costs are measured on the predicted real Pico (the harness's XIP cache model, a
+# cold cache: command code runs rarely) -- docs/firmware.md, "Board timing".  Allocation-free;
+# integers only.
+
+try:
+    from micropython import const
+except ImportError:
+    def const(x):
+        return x
+
+from array import array
+
+from . import msgtable as T
+
+# a frame's work on a predicted real Pico (us, XIP model, cold cache, measured with the telemetry
+# pair every tick on the serial link): a host heartbeat 320; a stats request (three replies)
+# 1530, a timing request 1283; every other frame at most ~1090 (arm 1090, excite 1080, param_set
+# 1067, gains_chunk 1059, set_reference 979)
+HB_US = const(400)
+FRAME_US = const(1200)
+HEAVY_US = const(1600)
+FORCE = const(8)  # ticks a backlog waits at most before one frame goes whatever the time
+_USER_MARGIN = const(100)  # us a user hook leaves before the next step is due
+_U16 = const(65535)
+
+
+class Admit:
+    def __init__(self, app):
+        self.app = app
+        self._ticks = app._ticks if hasattr(app, "_ticks") else None
+        self._diff = getattr(app, "_tdiff", None)
+        # the rule needs the app's clock and its step start (App: timing.last_us)
+        self.on = self._ticks is not None and hasattr(app, "link_budget_us") and hasattr(app, "timing")
+        self.over = 0  # us the last tick with link work ran past its period (the next catches up)
+        self.held = 0  # ticks in a row a backlog got no frame (the rule held it)
+        self.t0 = 0
+        self.lim = 0
+        self.plim = 0
+        self.force = False
+        # planned cost (us) of a decoded frame by message id, and of a REQUEST by requested id
+        self.ctab = array("H", [FRAME_US] * 32)
+        self.ctab[T.HOST_HEARTBEAT] = HB_US
+        self.rtab = array("H", [FRAME_US] * 32)
+        for w in (T.STATS_DECODE, T.STATS_FRAMES, T.STATS_LOOP, T.TIMING):
+            self.rtab[w] = HEAVY_US
+        # the user hook: called in a tick's spare time, within its budget
+        self.fn = None
+        self.budget = 0
+        self.runs = 0
+        self.n_over = 0
+
+    def open(self):
+        # (the step's start read now: a TIMING request's reply restarts the app's statistics)
+        app = self.app
+        self.t0 = app.timing.last_us
+        lim = app.link_budget_us - self.over
+        self.lim = lim
+        self.plim = lim - (app.link_budget_us - app.period_us)
+        self.force = self.held >= FORCE
+
+    def fits_now(self, c, k, fresh):
+        # the rule at the clock's time now, for a frame of planned cost c (k: frames handled so
+        # far in this tick); fresh: read in this tick (limit plim), else held from the last (lim).
+        # The CAN link calls it (its planned costs were measured with the call); the serial link
+        # writes the same comparison inline
+        n = self._diff(self._ticks(), self.t0)
+        return n <= (self.plim if fresh else self.lim) - c or (self.force and k == 0)
+
+    def close(self, now, k, backlog):
+        if now < 0:
+            now = self._diff(self._ticks(), self.t0)
+        o = now + self.over - self.app.period_us
+        self.over = o if o > 0 else 0
+        if backlog:
+            self.held = 0 if k else self.held + 1
+        else:
+            self.held = 0
+
+    def set_user(self, fn, budget_us):
+        self.fn = fn
+        self.budget = budget_us if budget_us > 0 else 0
+        return self.on
+
+    def user(self):
+        # fn() is called when its budget still ends _USER_MARGIN us before the next step is due;
+        # a call over its budget switches the hook off (n_over counts it) and, when it ran past
+        # the period, hands the excess on to the next tick's limit
+        u = self.fn
+        if u is None or not self.on:
+            return
+        app = self.app
+        diff = self._diff
+        t0 = app.timing.last_us
+        now = diff(self._ticks(), t0) + self.over
+        if now + self.budget > app.period_us - _USER_MARGIN:
+            return
+        u()
+        if self.runs < _U16:
+            self.runs += 1
+        e = diff(self._ticks(), t0) + self.over
+        if e - now > self.budget:
+            self.fn = None
+            if self.n_over < _U16:
+                self.n_over += 1
+            if e > app.period_us:
+                self.over = e - app.period_us
