@@ -338,9 +338,11 @@ def motor_duty(M: ptr32, u: int, vh: int) -> int:
         acc += (((M[_MO_KDV] + sb) & msk) - sb) * vh
     d = acc >> M[_MO_SD]
     db = ((M[_MO_DEADBAND] + sb) & msk) - sb
-    if u > 0:
+    # in the direction of the duty (the bridge takes its deadband off |duty|: with the
+    # back-EMF term the duty can oppose the force), of the force when the duty is 0
+    if d > 0 or (d == 0 and u > 0):
         d += db
-    elif u < 0:
+    elif d < 0 or u < 0:
         d -= db
     vs = ((M[_MO_VSCALE] + sb) & msk) - sb
     if vs != _VS_ONE:

@@ -40,6 +40,7 @@ from typing import Any, Callable
 import numpy as np
 
 from host.operate.board import BoardError
+from sim.motor import DUTY_MAX
 from sim.params import RobotParams, load_params
 
 __all__ = ["STAGES", "CommissionError", "Commission", "telemetry_metrics", "PHI_BOUND", "STATE_FILE", "weighed",
@@ -50,7 +51,11 @@ STATE_FILE = "commission.json"
 PHI_BOUND = 0.15
 """rad: a balancing excitation that tilts the pendulum beyond this is stopped (half the report's 0.3)."""
 AMP0 = 0.2  # N, the first balancing amplitude
-CART_AMP = 1.0  # N, the cart-only PRBS amplitude
+CART_AMP = 1.0  # N, the first cart-only PRBS amplitude (grown x1.6 until the cart moves)
+CART_A_CMD = 30.0  # m/s^2: the force clamp of the cart-only run's table (the excitation is at most half
+# of it: a bridge that loses 4 % of its duty and a cart with 0.75 N of stiction need ~4 N to move)
+CART_LEVEL2 = 1.6  # the second cart-only run's amplitude over the first (two levels fit the deadband)
+DB_MAX = 4096  # duty counts: the largest deadband compensation a table carries (host.design.export)
 CART_S, COAST_S, BAL_TRY_S, BAL_S = 8.0, 3.0, 2.0, 15.0
 BAL_DIV = 8  # control ticks per PRBS bit of the balancing run (16 ms: slow enough to move the pendulum)
 
@@ -108,14 +113,17 @@ def weighed(design: RobotParams, plant: RobotParams) -> RobotParams:
 
 
 def identify_cart(log: Any, params: RobotParams, max_delay: float = 0.03) -> dict[str, Any]:
-    """The drive from a cart-only log alone: ``kt``, ``ke``, ``b``, the delay (adapter around
-    :func:`host.studies.identify.cart_fit` until :mod:`host.studies.identify` has ``identify_cart``)."""
+    """The drive from cart-only logs alone (one log or a list: two amplitudes fit the deadband):
+    ``kt``, ``ke``, ``b``, the delay, the deadband (:func:`host.studies.identify_cart.identify_cart`)."""
     from host.studies import identify as idm
 
+    logs = list(log) if isinstance(log, (list, tuple)) else [log]
     if hasattr(idm, "identify_cart"):
-        return idm.identify_cart([log], params)  # type: ignore[attr-defined]
-    from sim.motor import DUTY_MAX
+        from host.studies.identify_cart import MAX_RES_COUNTS_DRY
 
+        return idm.identify_cart(logs, params, max_delay=max_delay,  # type: ignore[attr-defined]
+                                 max_res_counts=MAX_RES_COUNTS_DRY)
+    log = logs[0]
     dt = 1.0 / float(params.rate)
     fits = [idm.cart_fit([log], params.M, dt, d) for d in range(int(round(max_delay / dt)) + 1)]
     d = int(np.argmin([f["sse"] for f in fits]))
@@ -232,14 +240,15 @@ class Commission:
         self.state["data"]["robot_cal"] = "robot_cal.toml"
         self._upload("robot_cal", None, "calibrated robot, shipped weights")
 
-    def _upload(self, key: str, cand: Any, label: str) -> None:
+    def _upload(self, key: str, cand: Any, label: str, *, deadband: int = 0) -> None:
         # design the table of `cand` for the robot file `key` of the state, upload it, keep it in
-        # DIR/table.bin (a resumed run uploads it again: the board may have been reset)
+        # DIR/table.bin (a resumed run uploads it again: the board may have been reset);
+        # `deadband`: the motor row's compensation (duty counts)
         from host.design.margin import candidates, fixed_design
 
         p = self._params(key)
         c = cand if cand is not None else candidates(ki=(0.0,), a_cmd=(4.73,))[0]
-        fd = fixed_design(p, c)
+        fd = fixed_design(p, c, deadband=int(deadband))
         (self.out / "table.bin").write_bytes(fd.blob())
         self.state["data"]["table"] = {"params": key, "label": label, "crc": fd.crc()}
         self.robot.upload(fd.blob(), p)
@@ -252,27 +261,49 @@ class Commission:
             self.say(f"  resumed: uploaded the table in force ({t['label']})")
 
     def _cart(self) -> None:
+        from host.design.margin import candidates
         from host.studies.identify_log import read_log
 
         p = self._params("robot_cal")
+        # a table with a wide force clamp for the open-loop runs only (the excitation is bounded
+        # by half the active clamp; the controller's output is not applied in mode 2)
+        cand = candidates(ki=(0.0,), a_cmd=(CART_A_CMD,), names=("shipped",))[0]
+        self._upload("robot_cal", cand, "cart-only runs (wide force clamp)")
+        amp_max = 0.49 * float(cand.as_dict(p)["u_max"])
+        secs = CART_S * (0.6 if self.fast else 1.0)
         amp = CART_AMP
-        for _ in range(4):
-            run = self.robot.excite(2, amp, seconds=CART_S * (0.6 if self.fast else 1.0), coast_s=COAST_S)
+        while True:
+            run = self.robot.excite(2, amp, seconds=secs, coast_s=COAST_S)
             if np.ptp(run.columns["x"]) > 0.02:
                 break
-            self.say(f"  the cart moved {1e3 * np.ptp(run.columns['x']):.1f} mm at {amp:g} N: more")
-            amp *= 1.6
-        else:
-            raise CommissionError("cart: the cart did not move under the cart-only excitation (dead drive, "
-                                  "stuck cart or unwired encoder)")
-        path = _write_csv(run.columns, self.out / "cart.csv")
-        lg = read_log(path)
-        res = identify_cart(lg, p)
+            self.say(f"  the cart moved {1e3 * np.ptp(run.columns['x']):.1f} mm at {amp:.2f} N: more")
+            if amp >= amp_max:
+                raise CommissionError(f"cart: the cart did not move under the cart-only excitation up to {amp:.2f} N "
+                                      "(dead drive, stuck cart or unwired encoder)")
+            amp = min(amp * 1.6, amp_max)
+        paths = [_write_csv(run.columns, self.out / "cart.csv")]
+        # a second level (more if the table allows, else less) separates the deadband from the gain
+        amp2 = amp * CART_LEVEL2 if amp * CART_LEVEL2 <= amp_max else amp / CART_LEVEL2
+        run2 = self.robot.excite(2, amp2, seconds=secs, coast_s=COAST_S)
+        logs = [read_log(paths[0])]
+        if np.ptp(run2.columns["x"]) > 0.02:
+            paths.append(_write_csv(run2.columns, self.out / "cart2.csv"))
+            logs.append(read_log(paths[1]))
+        res = identify_cart(logs, p)
         e = res["estimates"]
         if not (e["kt"] > 0 and math.isfinite(e["kt"])):
             raise CommissionError(f"cart: no usable drive from the cart-only run (kt {e['kt']:.3g})")
-        self.state["data"]["cart"] = {"log": "cart.csv", "amplitude_n": amp, "estimates": e}
-        self.say(f"  drive: kt {e['kt']:.4g} N m/A, b {e['b']:.3g} N s/m, delay {1e3 * e['delay']:.0f} ms")
+        db = float(e.get("deadband", 0.0) or 0.0)
+        self.state["data"]["cart"] = {"log": "cart.csv", "logs": [q.name for q in paths], "amplitude_n": amp,
+                                      "amplitudes_n": [amp, amp2][:len(paths)], "estimates": e,
+                                      "deadband_counts": int(min(DB_MAX, max(0, round(db * DUTY_MAX)))),
+                                      "notes": res.get("notes", [])}
+        self.say(f"  drive: kt {e['kt']:.4g} N m/A, b {e['b']:.3g} N s/m, delay {1e3 * e['delay']:.0f} ms, "
+                 f"deadband {100 * db:.1f} % of full duty")
+
+    def _deadband(self) -> int:
+        # the deadband compensation the balancing tables carry: the cart-only runs' estimate
+        return int(self.state["data"].get("cart", {}).get("deadband_counts", 0))
 
     def _design1(self) -> None:
         from host.design.margin import candidates, design_with_margin, confidence_box
@@ -295,7 +326,7 @@ class Commission:
         md = design_with_margin(p1, box, candidates(ki=(0.0,), names=("shipped", "x2")) if self.fast
                                 else candidates(ki=(0.0,)), top=2 if self.fast else 3)
         self.state["data"]["design1"] = md.candidate.as_dict(p1) | {"worst_ratio": md.worst_ratio}
-        self._upload("robot_stage1", md.candidate, f"stage-1 design {md.candidate.name}")
+        self._upload("robot_stage1", md.candidate, f"stage-1 design {md.candidate.name}", deadband=self._deadband())
 
     def _balance(self) -> None:
         from host.studies.identify_log import read_log
@@ -334,7 +365,8 @@ class Commission:
         from host.studies.identify import identified_params, identify, read_log, robot_toml
 
         p = self._params("robot_cal")
-        logs = [read_log(self.out / "balance.csv"), read_log(self.out / "cart.csv")]
+        carts = self.state["data"]["cart"].get("logs", ["cart.csv"])
+        logs = [read_log(self.out / "balance.csv")] + [read_log(self.out / c) for c in carts]
         with np.errstate(all="ignore"), warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             res = identify(logs, p, n_boot=40 if self.fast else 100)
@@ -365,7 +397,8 @@ class Commission:
             "precise": md.precise,
             "rows": md.rows(pid), "tried": md.tried, "box": {k: list(v) for k, v in box.factors.items()} | {
                 "delay": list(box.delay)}}
-        self._upload("robot_id", md.candidate, f"final design {md.candidate.name} (margin {100 * md.margin:.0f} %)")
+        self._upload("robot_id", md.candidate, f"final design {md.candidate.name} (margin {100 * md.margin:.0f} %)",
+                     deadband=self._deadband())
         self.say(f"  worst ratio over the box {md.worst_ratio:.3f} (margin {100 * md.margin:.0f} %), "
                  f"force row {md.force_lsb:.1f} LSB")
 
