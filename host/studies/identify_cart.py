@@ -322,7 +322,7 @@ def _stage(carts: Sequence[RunLog], params: RobotParams, dmax: int, latency: boo
 
 def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: float = 0.03,
                   latency: bool = True, one_constant: bool = True,
-                  max_res_counts: float = MAX_RES_COUNTS) -> dict[str, Any]:
+                  max_res_counts: float = MAX_RES_COUNTS, deadband: float | None = None) -> dict[str, Any]:
     """The first stage: the drive (``kt``, ``ke``), the friction ``b``, the delay and latency from cart-only runs.
 
     Parameters
@@ -344,6 +344,9 @@ def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: flo
         ``ke`` apart) runs too, as a check: ``free`` in the result, and a note when its ``ke``
         differs from the one constant by more than its interval (``motor.R`` or
         ``motor.V_supply`` of ``params`` off, or not a plain DC motor).  False: the free fit is the result.
+    deadband : float, optional
+        The deadband held at this value (fraction of full duty; e.g. the breakaway measured by the
+        excitation's amplitude steps) instead of fitted from two levels or the robot file's.
     max_res_counts : float
         Largest rms residual accepted, in encoder counts (default :data:`MAX_RES_COUNTS`, a clean
         run).  A cart with dry friction and gear play (which the model does not have) leaves
@@ -372,8 +375,9 @@ def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: flo
     for lg in carts:
         check_cart_log(lg, rate)
     M = float(params.M)
-    fit_db = _levels(carts) >= 2
-    db_known = float(params.values.get("motor.deadband", 0.0) or 0.0) * DUTY_MAX
+    fit_db = _levels(carts) >= 2 and deadband is None
+    db_known = float(params.values.get("motor.deadband", 0.0) or 0.0) if deadband is None else float(deadband)
+    db_known *= DUTY_MAX
     dmax = int(round(max_delay / dt))
     dbk = None if fit_db else db_known
     oc = _coefs(params) if one_constant else None
@@ -417,12 +421,15 @@ def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: flo
                      "are those of the best viscous fit")
     if not cf["has_coast"]:
         notes.append("no coast-down in the cart-only runs: b not measured (NaN), ke includes the friction")
-    if not fit_db:
+    if deadband is not None:
+        notes.append(f"the deadband held at {deadband:g} of full duty (given: the breakaway of the excitation's steps)")
+    elif not fit_db:
         notes.append(f"one duty level: the deadband held at the robot file's {db_known / DUTY_MAX:g} "
                      "(two cart-only runs of different --amplitude fit it)")
     return {"estimates": {k: float(v) for k, v in est.items()}, "ci": ci, "units": CART_UNITS,
             "delay_samples": dw, "latency_samples": tau - dw, "fit_delay": d, "delay_sse": [float(v) for v in sse],
             "fit": cf, "free": free, "one_constant": bool(one_constant), "rows": int(cf["n"]),
+            "res_counts": float(rms / count),
             "logs": [{"file": lg.name, "kind": "cart-only", "rows": len(lg.x)} for lg in carts], "notes": notes}
 
 
