@@ -10,7 +10,8 @@
 #     gains   optional gain module/object with LAYOUT and FLAT (default firmware.gains).
 #     config  optional dict: pot_offset (ADC counts upright), adc_sign/enc_sign (+-1),
 #             deadband (duty counts), backemf (bool), boot (int), stall_ms/stall_duty
-#             (no-motion check, F_STALL; on by default: STALL_MS at |duty| >= STALL_DUTY;
+#             (no-motion check, F_STALL; on by default: STALL_MS at |duty| >= STALL_DUTY beyond the
+#             table's deadband compensation;
 #             stall_ms=0 switches it off), emitter ("bytecode",
 #             "native" or "viper": how the controller step is compiled), and any msgtable PARAMS
 #             name (e.g. watchdog_ms) -- config values are not range-checked, so
