@@ -10,7 +10,8 @@
 #     gains   optional gain module/object with LAYOUT and FLAT (default firmware.gains).
 #     config  optional dict: pot_offset (ADC counts upright), adc_sign/enc_sign (+-1),
 #             deadband (duty counts), backemf (bool), boot (int), stall_ms/stall_duty
-#             (no-motion check, F_STALL; on by default: STALL_MS at |duty| >= STALL_DUTY;
+#             (no-motion check, F_STALL; on by default: STALL_MS at |duty| >= STALL_DUTY beyond the
+#             table's deadband compensation;
 #             stall_ms=0 switches it off), emitter ("bytecode",
 #             "native" or "viper": how the controller step is compiled), and any msgtable PARAMS
 #             name (e.g. watchdog_ms) -- config values are not range-checked, so
@@ -220,8 +221,10 @@ class App:
         # count (stall_ms=0: off).  800 duty (~2 N at rest, 3/4 of the default design's
         # force clamp) for 100 ms moves the cart by centimetres; in ticks at the active
         # table's rate (_apply_params: again whenever the table changes)
+        # (beyond the table's deadband compensation, which every nonzero force adds and which
+        # moves nothing on a bridge with that deadband: _apply_params)
         self.stall_ms = cfg.get("stall_ms", STALL_MS)
-        self.sup.stall_duty = cfg.get("stall_duty", STALL_DUTY)
+        self.stall_duty = cfg.get("stall_duty", STALL_DUTY)
         self._apply_params()
         # readiness of the flashed table: the firmware's own check and its CRC (gains.CRC);
         # a table that fails either is never run (F_GAINS on every tick, arm refused)
@@ -282,6 +285,7 @@ class App:
         # 5/4 held frames back 225 ticks in a burst on the predicted Pico)
         self.link_budget_us = self.period_us + (self.period_us >> 1) - (self.period_us >> 3)
         sup.stall_ticks = (self.stall_ms * rate) // 1000
+        sup.stall_duty = self.stall_duty + self.motor.deadband
         t = self.table
         # track fault at 1.25 x the reference limit (encoder counts)
         qx = t[self.off["FMT"]]

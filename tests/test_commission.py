@@ -199,3 +199,41 @@ def test_commission_a_realistic_cart_refuses_or_verifies(tmp_path) -> None:
         stage = str(err).split(":")[0]
         assert stage in STAGES and stage not in st["done"] and "\n" not in str(err)
         assert st["done"] == list(STAGES[:STAGES.index(stage)])
+
+
+def _vertex(**f):
+    # a vertex of sim/uncertainty_realistic.toml at its roughest plant realism (the bench's robots)
+    from host.bench.commission import robots
+
+    for label, p in robots(50):
+        if all(f"{k} x{v:g}" in label for k, v in f.items()) and "coulomb 0.5" in label:
+            return label, p
+    raise LookupError(f)
+
+
+@pytest.mark.slow
+def test_a_dry_cart_held_by_stiction_is_not_a_stall_and_the_deadband_is_compensated_by_the_duty() -> None:
+    # the realistic set's roughest vertex (Coulomb 0.5 N, stiction 0.75 N, 3 mm of play, 4 %
+    # deadband), a table designed for its own parameters with the bridge's deadband compensated:
+    # the cart stuck at the end of the step must not trip F_STALL (the compensation is not a
+    # stall: before, the board faulted at 2.05 s and the pendulum fell), and compensating in the
+    # duty's direction keeps the step's true |xdd| well under the 14 m/s^2 of the force's direction
+    from firmware import supervisor
+    from host.bench.commission import true_verdict
+    from host.operate.commission_lockstep import LockstepRobot
+    from sim.motor import DUTY_MAX
+    from sim.scenario import load_scenario
+
+    _, plant = _vertex(inertia=0.5, cart_mass=0.8, pendulum_mass=0.8)
+    des = plant.replace(**{"sensors.delay": 0.01})  # the firmware's predictor length
+    cand = Mg.candidates(ki=(0.0,), a_cmd=(4.73,), names=("shipped",))[0]
+    fd = Mg.fixed_design(des, cand, deadband=int(round(plant.realism["deadband"] * DUTY_MAX)))
+    sc = load_scenario("ref_step_20cm")
+    with LockstepRobot(plant) as r:
+        r.upload(fd.blob(), des)
+        lg = r.run_scenario(sc)
+    faults = np.bitwise_or.reduce(lg["faults"].astype(int))
+    assert not faults & supervisor.F_STALL, faults
+    v = true_verdict(lg, sc, plant)
+    assert not v["fell"] and v["peak_phi"] < 0.15, v
+    assert v["peak_xddot"] < 11.0, v  # 14.5 with the compensation in the force's direction
