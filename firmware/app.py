@@ -1,37 +1,28 @@
 # The firmware application: one control loop object, the protocol's target.
 #
 #   app = App(hal, link=None, gains=None, config=None)
-#     hal     read_angle_raw() -> ADC counts, read_encoder() -> 16-bit counter,
-#             set_motor(duty) (int, -32767..32767), ticks_us() (wraps at a multiple of 2**30).
-#             If the HAL counts host frames in an attribute n_sensor (hal_hil.HilHal),
-#             every new frame feeds the command watchdog.
+#     hal     a firmware.hal_base.Hal: read_angle_raw() -> ADC counts, read_encoder() -> 16-bit
+#             counter, set_motor(duty) (int, -32767..32767), ticks_us() (wraps at a multiple
+#             of 2**30), and the optional capabilities declared there (None: absent), read once
+#             here: n_sensor (host frames, hal_hil.HilHal: each new one feeds the command
+#             watchdog), read_supply_mv() (the duty scaled by nominal/measured, F_UNDERVOLT),
+#             adc_open (True: the wiper test found the angle potentiometer open -> F_ADC_OPEN).
 #     link    optional object with poll(): called once per tick after the control step by
 #             run() (serve the host link: decode commands, send telemetry); or set_link(link).
 #     gains   optional gain module/object with LAYOUT and FLAT (default firmware.gains).
-#     config  optional dict: pot_offset (ADC counts upright), adc_sign/enc_sign (+-1),
-#             deadband (duty counts), backemf (bool), boot (int), stall_ms/stall_duty
-#             (no-motion check, F_STALL; on by default: STALL_MS at |duty| >= STALL_DUTY;
-#             stall_ms=0 switches it off), emitter ("bytecode",
-#             "native" or "viper": how the controller step is compiled), and any msgtable PARAMS
-#             name (e.g. watchdog_ms) -- config values are not range-checked, so
-#             watchdog_ms=0 switches the watchdog off (bench/tests only);
-#             vsup_nom_mv (the supply the table's motor constants assume) and vsup_min_mv
-#             (undervoltage threshold) when the HAL measures the motor supply.
-#     A HAL may also offer read_supply_mv() (motor supply, mV: the duty is then scaled by
-#     nominal/measured and an undervoltage latches F_UNDERVOLT) and an attribute adc_open
-#     (True: its wiper test found the angle potentiometer open -> F_ADC_OPEN).
+#     config  optional dict: the keys of CONFIG below (default, range, meaning), each checked
+#             (cfg_value: an unknown key or a value out of range -> ValueError naming it), and
+#             any msgtable PARAMS name (e.g. watchdog_ms), not range-checked, so
+#             watchdog_ms=0 switches the watchdog off (bench/tests only).
 #   app.attach_store(store)  at start-up: load the newest valid saved configuration
 #                (firmware/store.py); copies there but none valid -> defaults, F_CONFIG.
 #   SAVE_CONFIG (cmd_save) is queued and run by service_save() between ticks, motor off.
-#     Optional HAL methods, each used only when present: set_enable(on) (driver enable:
-#     high only while balancing), estop() (True while the e-stop input is asserted or was
-#     since the last call -> F_ESTOP), wdt_start(ms)/wdt_feed()/wdt_stop() (hardware
-#     watchdog: started by run() when config wdt_ms > 0, fed once per completed tick, by
-#     nothing else), mark(cause) (the reset cause to report if the board resets now:
-#     msgtable.RC_*; see firmware/main.py).
-#     Config also: wdt_ms (hardware watchdog timeout, 0/absent = none), reset_cause (what
-#     main.py found at boot; not RC_POWER_ON latches F_RESET), deadline (False: late ticks
-#     only counted, never F_DEADLINE -- the unix-port HIL on a desktop OS; boards keep it).
+#     Optional HAL methods (hal_base.Hal), each used only when not None: set_enable(on)
+#     (driver enable: high only while balancing), estop() (True while the e-stop input is
+#     asserted or was since the last call -> F_ESTOP), wdt_start(ms)/wdt_feed()/wdt_stop()
+#     (hardware watchdog: started by run() when config wdt_ms > 0, fed once per completed
+#     tick, by nothing else), mark(cause) (the reset cause to report if the board resets
+#     now: msgtable.RC_*; see firmware/main.py), set_period(us).
 #   Timing is a safety input: the period is always the active gain table's RATE
 #   (loop_rate_hz is read-only); run() checks the time between step starts every tick:
 #   a gap > 1.5 periods is a late tick; while armed/balancing F_DEADLINE latches on one gap
@@ -105,7 +96,7 @@ CONFIG = (
     ("pot_offset", None, -1, 65535),  # ADC counts upright (-1: the table's; as msgtable)
     ("deadband", None, 0, _I16),  # duty counts added in the force's direction
     ("backemf", True, 0, 1),  # back-EMF compensation on
-    ("boot", 0, 0, _TICKS_MASK),  # boot counter (main.py; the low 8 bits are kept)
+    ("boot", 0, 0, 255),  # boot counter (firmware/boot.py: mod 256)
     ("uptime_ms", 0, 0, _TICKS_MASK),  # board time at this start (main.py)
     ("wdt_ms", 0, 0, 8388),  # hardware watchdog timeout, 0: none (8388: the RP2040's longest)
     ("reset_cause", T.RC_POWER_ON, T.RC_POWER_ON, T.RC_EXCEPTION),  # what main.py found at boot
@@ -138,7 +129,7 @@ def cfg_value(cfg, key):
             v = cfg[key]
             if lo is None or (v is None and d is None):
                 return v
-            if not isinstance(v, int) or v < lo or v > hi:
+            if not isinstance(v, (int, bool)) or v < lo or v > hi:  # MicroPython: a bool is no int
                 raise ValueError("config %s: %r is outside %d..%d" % (key, v, lo, hi))
             return v
     raise ValueError("config %s: unknown key (none of App CONFIG or msgtable PARAMS)" % (key,))
