@@ -220,6 +220,9 @@ class App:
         # hardware cut-offs: driver enable, e-stop input, hardware watchdog, reset marker
         self._set_enable = hal.set_enable
         self._estop = hal.estop
+        # (flags, not bound methods: reading hal.wdt_start would allocate one in run())
+        self._has_wdt = hal.wdt_start is not None
+        self._has_period = hal.set_period is not None
         self._en = 1
         self.wdt_ms = cfg_value(cfg, "wdt_ms")
         self._wdt_feed = None
@@ -331,7 +334,7 @@ class App:
         p[T.P_LOOP_RATE] = rate
         self.period_us = 1000000 // rate
         self.timing.period_us = self.period_us
-        if self.hal.set_period is not None:
+        if self._has_period:
             self.hal.set_period(self.period_us)  # HalPico: the driver-enable dead-man's timeout
         # the link's per-tick budget (link_serial): its frames end within this many us of the
         # step's scheduled start (11/8 of the period: short of a late tick, 1.5 periods, by
@@ -617,7 +620,7 @@ class App:
 
     def _wdt_start(self, ms):
         # start the hardware watchdog (and mark: a reset from now on is the watchdog's)
-        if ms > 0 and self.hal.wdt_start is not None:
+        if ms > 0 and self._has_wdt:
             self.hal.wdt_start(ms)
             self._wdt_feed = self.hal.wdt_feed
             self._mark(T.RC_WATCHDOG)
