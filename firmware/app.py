@@ -1,38 +1,28 @@
 # The firmware application: one control loop object, the protocol's target.
 #
 #   app = App(hal, link=None, gains=None, config=None)
-#     hal     read_angle_raw() -> ADC counts, read_encoder() -> 16-bit counter,
-#             set_motor(duty) (int, -32767..32767), ticks_us() (wraps at a multiple of 2**30).
-#             If the HAL counts host frames in an attribute n_sensor (hal_hil.HilHal),
-#             every new frame feeds the command watchdog.
+#     hal     a firmware.hal_base.Hal: read_angle_raw() -> ADC counts, read_encoder() -> 16-bit
+#             counter, set_motor(duty) (int, -32767..32767), ticks_us() (wraps at a multiple
+#             of 2**30), and the optional capabilities declared there (None: absent), read once
+#             here: n_sensor (host frames, hal_hil.HilHal: each new one feeds the command
+#             watchdog), read_supply_mv() (the duty scaled by nominal/measured, F_UNDERVOLT),
+#             adc_open (True: the wiper test found the angle potentiometer open -> F_ADC_OPEN).
 #     link    optional object with poll(): called once per tick after the control step by
 #             run() (serve the host link: decode commands, send telemetry); or set_link(link).
 #     gains   optional gain module/object with LAYOUT and FLAT (default firmware.gains).
-#     config  optional dict: pot_offset (ADC counts upright), adc_sign/enc_sign (+-1),
-#             deadband (duty counts), backemf (bool), boot (int), stall_ms/stall_duty
-#             (no-motion check, F_STALL; on by default: STALL_MS at |duty| >= STALL_DUTY beyond the
-#             table's deadband compensation;
-#             stall_ms=0 switches it off), emitter ("bytecode",
-#             "native" or "viper": how the controller step is compiled), and any msgtable PARAMS
-#             name (e.g. watchdog_ms) -- config values are not range-checked, so
-#             watchdog_ms=0 switches the watchdog off (bench/tests only);
-#             vsup_nom_mv (the supply the table's motor constants assume) and vsup_min_mv
-#             (undervoltage threshold) when the HAL measures the motor supply.
-#     A HAL may also offer read_supply_mv() (motor supply, mV: the duty is then scaled by
-#     nominal/measured and an undervoltage latches F_UNDERVOLT) and an attribute adc_open
-#     (True: its wiper test found the angle potentiometer open -> F_ADC_OPEN).
+#     config  optional dict: the keys of CONFIG below (default, range, meaning), each checked
+#             (cfg_value: an unknown key or a value out of range -> ValueError naming it), and
+#             any msgtable PARAMS name (e.g. watchdog_ms), not range-checked, so
+#             watchdog_ms=0 switches the watchdog off (bench/tests only).
 #   app.attach_store(store)  at start-up: load the newest valid saved configuration
 #                (firmware/store.py); copies there but none valid -> defaults, F_CONFIG.
 #   SAVE_CONFIG (cmd_save) is queued and run by service_save() between ticks, motor off.
-#     Optional HAL methods, each used only when present: set_enable(on) (driver enable:
-#     high only while balancing), estop() (True while the e-stop input is asserted or was
-#     since the last call -> F_ESTOP), wdt_start(ms)/wdt_feed()/wdt_stop() (hardware
-#     watchdog: started by run() when config wdt_ms > 0, fed once per completed tick, by
-#     nothing else), mark(cause) (the reset cause to report if the board resets now:
-#     msgtable.RC_*; see firmware/main.py).
-#     Config also: wdt_ms (hardware watchdog timeout, 0/absent = none), reset_cause (what
-#     main.py found at boot; not RC_POWER_ON latches F_RESET), deadline (False: late ticks
-#     only counted, never F_DEADLINE -- the unix-port HIL on a desktop OS; boards keep it).
+#     Optional HAL methods (hal_base.Hal), each used only when not None: set_enable(on)
+#     (driver enable: high only while balancing), estop() (True while the e-stop input is
+#     asserted or was since the last call -> F_ESTOP), wdt_start(ms)/wdt_feed()/wdt_stop()
+#     (hardware watchdog: started by run() when config wdt_ms > 0, fed once per completed
+#     tick, by nothing else), mark(cause) (the reset cause to report if the board resets
+#     now: msgtable.RC_*; see firmware/main.py), set_period(us).
 #   Timing is a safety input: the period is always the active gain table's RATE
 #   (loop_rate_hz is read-only); run() checks the time between step starts every tick:
 #   a gap > 1.5 periods is a late tick; while armed/balancing F_DEADLINE latches on one gap
@@ -94,6 +84,32 @@ _SAVE_WDT_MS = const(5000)
 _I16 = const(32767)
 _U16 = const(65535)
 _TICKS_MASK = const(0x3FFFFFFF)  # tick/uptime counters wrap to 0 after this (fixmath)
+# App(config=...): every key, its default and its valid range (lo..hi, inclusive), read
+# only through cfg_value(); a default None means "the table's" (pot_offset, deadband) or
+# "see __init__" (epoch, reset_cause_boot), lo None: checked elsewhere (emitter.check).  A
+# config may also name a msgtable PARAMS entry (e.g. watchdog_ms): it overrides that
+# parameter's default and is not range-checked (watchdog_ms=0: the watchdog off, tests/bench)
+CONFIG = (
+    ("emitter", "bytecode", None, None),  # how the hot parts are compiled (firmware/emitter.py)
+    ("adc_sign", 1, -1, 1),  # angle sign (+-1)
+    ("enc_sign", 1, -1, 1),  # encoder sign (+-1)
+    ("pot_offset", None, -1, 65535),  # ADC counts upright (-1: the table's; as msgtable)
+    ("deadband", None, 0, _I16),  # duty counts added in the force's direction
+    ("backemf", True, 0, 1),  # back-EMF compensation on
+    ("boot", 0, 0, 255),  # boot counter (firmware/boot.py: mod 256)
+    ("uptime_ms", 0, 0, _TICKS_MASK),  # board time at this start (main.py)
+    ("wdt_ms", 0, 0, 8388),  # hardware watchdog timeout, 0: none (8388: the RP2040's longest)
+    ("reset_cause", T.RC_POWER_ON, T.RC_POWER_ON, T.RC_EXCEPTION),  # what main.py found at boot
+    ("reset_cause_boot", None, T.RC_POWER_ON, T.RC_EXCEPTION),  # VERSION.reset_cause after a MODE switch
+    ("deadline", True, 0, 1),  # False: late ticks counted, never F_DEADLINE
+    ("epoch", None, 0, _TICKS_MASK),  # a fixed first arming token (tests)
+    ("seed", 0, 0, _TICKS_MASK),  # mixed into the first arming token (firmware/session.py)
+    ("starts", 1, 1, _TICKS_MASK),  # loop starts since the board started (main.py)
+    ("vsup_nom_mv", 12000, 1, 100000),  # the supply the table's motor constants assume
+    ("vsup_min_mv", 0, 0, 100000),  # undervoltage threshold (F_UNDERVOLT), 0: none
+    ("stall_ms", STALL_MS, 0, 60000),  # no-motion check (F_STALL) time, 0: off
+    ("stall_duty", STALL_DUTY, 0, _I16),  # ... at |duty| at least this beyond the deadband compensation
+)
 # the arming token's generator (App._new_token): a = 0x41C64E6D mod 2**30 in 15-bit limbs, c
 _LCG_AL = const(0x4E6D)
 _LCG_AH = const(0x038C)
@@ -103,14 +119,52 @@ _DERIVED = (T.P_TILT_LIMIT, T.P_ARM_TILT, T.P_WATCHDOG_MS, T.P_MAX_DUTY, T.P_POT
             T.P_ENC_SIGN, T.P_MOTOR_SIGN)
 
 
+def cfg_value(cfg, key):
+    # config key's value (its CONFIG default when absent); outside the range, or a key
+    # CONFIG lacks: a one-line ValueError naming the key.  __init__ only (a linear search)
+    for k, d, lo, hi in CONFIG:
+        if k == key:
+            if key not in cfg:
+                return d
+            v = cfg[key]
+            if lo is None or (v is None and d is None):
+                return v
+            if not isinstance(v, (int, bool)) or v < lo or v > hi:  # MicroPython: a bool is no int
+                raise ValueError("config %s: %r is outside %d..%d" % (key, v, lo, hi))
+            return v
+    raise ValueError("config %s: unknown key (none of App CONFIG or msgtable PARAMS)" % (key,))
+
+
+def cfg_check(cfg):
+    # every key of a config: a CONFIG key in its range, or a msgtable PARAMS name
+    for key in cfg:
+        if _in_config(key) or not _is_param(key):
+            cfg_value(cfg, key)
+
+
+def _in_config(key):
+    for c in CONFIG:
+        if c[0] == key:
+            return True
+    return False
+
+
+def _is_param(key):
+    for p in T.PARAMS:
+        if p[1] == key:
+            return True
+    return False
+
+
 def _epoch0(cfg, boot):
     # the arming token a start begins with (30 bits): os.urandom where the port has it, mixed
     # with config "seed" (main.py: firmware/session.py, which also mixes the RP2040's ring
     # oscillator and a seed persisted across starts -- an emulated board's urandom is the
     # same at every power-up) and the boot counter; config "epoch" fixes it (tests)
-    if "epoch" in cfg:
-        return cfg["epoch"] & _TICKS_MASK
-    v = (cfg.get("seed", 0) ^ (boot << 22)) & _TICKS_MASK
+    e = cfg_value(cfg, "epoch")
+    if e is not None:
+        return e & _TICKS_MASK
+    v = (cfg_value(cfg, "seed") ^ (boot << 22)) & _TICKS_MASK
     try:
         import os
         b = os.urandom(4)
@@ -126,6 +180,7 @@ class App:
             from . import gains as _g
             gains = _g
         cfg = config if config is not None else {}
+        cfg_check(cfg)
         self.hal = hal
         self.set_link(link)
         self.version = gains.VERSION
@@ -133,7 +188,7 @@ class App:
         flat = gains.FLAT
         self.ctrl = Controller(layout, flat)
         # the code emitter of every hot part (firmware/emitter.py: the one place that chooses)
-        em = emitter.check(cfg.get("emitter", "bytecode"))
+        em = emitter.check(cfg_value(cfg, "emitter"))
         Sn, Mo, Su, Tm, self._cstep = emitter.parts(em)
         self.emitter = em  # also the host link's (framing.Encoder, the pacer, the commands' CRC)
         off = self.ctrl.off
@@ -143,34 +198,37 @@ class App:
         self._tel_fast = emitter.telemetry(em)
         self.table = array("i", flat)
         self.rate = flat[off["RATE"]]
-        self.sensors = Sn(flat, off, cfg.get("adc_sign", 1), cfg.get("enc_sign", 1), cfg.get("pot_offset"))
-        self.motor = Mo(flat, off, cfg.get("deadband"), cfg.get("backemf", True))
+        self.sensors = Sn(flat, off, cfg_value(cfg, "adc_sign"), cfg_value(cfg, "enc_sign"), cfg_value(cfg, "pot_offset"))
+        self.motor = Mo(flat, off, cfg_value(cfg, "deadband"), cfg_value(cfg, "backemf"))
         self.sup = Su()
         # identification excitation (EXCITE; firmware/excite.py)
         self.exc = Excite()
         # tick arithmetic: the HAL's own where it has it (HalPico: time.ticks_diff/add, C)
-        self._tdiff = getattr(hal, "ticks_diff_fast", None) or fixmath.ticks_diff
-        self._tadd = getattr(hal, "ticks_add_fast", None) or fixmath.ticks_add
+        self._tdiff = hal.ticks_diff_fast or fixmath.ticks_diff
+        self._tadd = hal.ticks_add_fast or fixmath.ticks_add
         self.timing = Tm(1000000 // self.rate, self._tdiff)
-        self.boot = cfg.get("boot", 0) & 0xFF
+        self.boot = cfg_value(cfg, "boot") & 0xFF
         self.ref = 0
         self.ref_um = 0
         self.duty = 0
         self.tick = 0
-        self.uptime_ms = cfg.get("uptime_ms", 0) & _TICKS_MASK
+        self.uptime_ms = cfg_value(cfg, "uptime_ms") & _TICKS_MASK
         self._us_frac = 0
         self.step_us = 0
         self.gains_crc = 0
         self._crc_table = crc16.make_table()
         # hardware cut-offs: driver enable, e-stop input, hardware watchdog, reset marker
-        self._set_enable = getattr(hal, "set_enable", None)
-        self._estop = getattr(hal, "estop", None)
+        self._set_enable = hal.set_enable
+        self._estop = hal.estop
+        # (flags, not bound methods: reading hal.wdt_start would allocate one in run())
+        self._has_wdt = hal.wdt_start is not None
+        self._has_period = hal.set_period is not None
         self._en = 1
-        self.wdt_ms = cfg.get("wdt_ms", 0)
+        self.wdt_ms = cfg_value(cfg, "wdt_ms")
         self._wdt_feed = None
-        self.reset_cause = cfg.get("reset_cause", T.RC_POWER_ON)
+        self.reset_cause = cfg_value(cfg, "reset_cause")
         # deadline check (run()): late-tick score, counts, pending flags for the next step
-        self.deadline_check = cfg.get("deadline", True)
+        self.deadline_check = cfg_value(cfg, "deadline")
         self.late_score = 0
         self.n_late = 0
         self._on_time = 0
@@ -197,18 +255,18 @@ class App:
         self.cfg_status = 3  # msgtable S_CFG_STATUS: no storage (attach_store: what it loaded)
         # loop starts since the board started (main.py: +1 after a MODE switch back) and the
         # board time at this start (config uptime_ms: main.py carries it across the switch)
-        self.starts = cfg.get("starts", 1)
+        self.starts = cfg_value(cfg, "starts")
         # motor supply (HAL read_supply_mv) and the angle wiper test (HAL adc_open)
-        self._read_vsup = hal.read_supply_mv if hasattr(hal, "read_supply_mv") else None
-        self._has_open = hasattr(hal, "adc_open")
-        self.vsup_nom = cfg.get("vsup_nom_mv", 12000)
-        self.vsup_min = cfg.get("vsup_min_mv", 0)
+        self._read_vsup = hal.read_supply_mv
+        self._has_open = hal.adc_open is not None
+        self.vsup_nom = cfg_value(cfg, "vsup_nom_mv")
+        self.vsup_min = cfg_value(cfg, "vsup_min_mv")
         self.vsup_mv = self.vsup_nom
         self._vsup_acc = -1
         if self._read_vsup is not None:
             self._supply = emitter.supply(self)
         self._frames = -1
-        self._has_frames = hasattr(hal, "n_sensor")
+        self._has_frames = hal.n_sensor is not None
         # parameters: defaults from msgtable, then config overrides by name
         self.params = array("i", [0] * T.N_PARAMS)
         for p in T.PARAMS:
@@ -223,8 +281,8 @@ class App:
         # table's rate (_apply_params: again whenever the table changes)
         # (beyond the table's deadband compensation, which every nonzero force adds and which
         # moves nothing on a bridge with that deadband: _apply_params)
-        self.stall_ms = cfg.get("stall_ms", STALL_MS)
-        self.stall_duty = cfg.get("stall_duty", STALL_DUTY)
+        self.stall_ms = cfg_value(cfg, "stall_ms")
+        self.stall_duty = cfg_value(cfg, "stall_duty")
         self._apply_params()
         # readiness of the flashed table: the firmware's own check and its CRC (gains.CRC);
         # a table that fails either is never run (F_GAINS on every tick, arm refused)
@@ -238,7 +296,8 @@ class App:
         latch = self.reset_cause
         # VERSION.reset_cause: why the board last reset, also after a MODE switch restarted the
         # loop (main.py: config reset_cause_boot; F_RESET latches on the first start only)
-        self.reset_cause = cfg.get("reset_cause_boot", latch)
+        rb = cfg_value(cfg, "reset_cause_boot")
+        self.reset_cause = latch if rb is None else rb
         if latch != T.RC_POWER_ON:
             # restarted by the hardware watchdog or a loop exception: the host must see it
             self.sup.faults |= F_RESET
@@ -277,7 +336,7 @@ class App:
         p[T.P_LOOP_RATE] = rate
         self.period_us = 1000000 // rate
         self.timing.period_us = self.period_us
-        if hasattr(self.hal, "set_period"):
+        if self._has_period:
             self.hal.set_period(self.period_us)  # HalPico: the driver-enable dead-man's timeout
         # the link's per-tick budget (link_serial): its frames end within this many us of the
         # step's scheduled start (11/8 of the period: short of a late tick, 1.5 periods, by
@@ -558,13 +617,13 @@ class App:
             self._set_enable(on)
 
     def _mark(self, cause):
-        m = getattr(self.hal, "mark", None)
+        m = self.hal.mark
         if m is not None:
             m(cause)
 
     def _wdt_start(self, ms):
         # start the hardware watchdog (and mark: a reset from now on is the watchdog's)
-        if ms > 0 and hasattr(self.hal, "wdt_start"):
+        if ms > 0 and self._has_wdt:
             self.hal.wdt_start(ms)
             self._wdt_feed = self.hal.wdt_feed
             self._mark(T.RC_WATCHDOG)

@@ -21,6 +21,7 @@ except ImportError:
 from array import array
 
 from . import msgtable as T
+from .hal_base import Hal
 
 _DUTY_MAX = const(32767)
 
@@ -40,7 +41,7 @@ except ImportError:  # CPython (unit tests)
         return d - 0x40000000 if d & 0x20000000 else d
 
 
-class HilHal:
+class HilHal(Hal):
     # sender: object with send(mid, seq, vals, voff) (framing.SerialTx, canframe.SerialCanTx)
     # status: callable filling arr[0] = state, arr[1] = faults (e.g. app.fill_heartbeat),
     #         set later with set_status() once the app exists

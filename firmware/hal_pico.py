@@ -21,6 +21,8 @@ import sys
 import time
 from array import array
 
+from .hal_base import Hal
+
 try:
     import micropython
     from micropython import const
@@ -147,7 +149,7 @@ def _deadman():
     irq(rel(0))                 # expired: flag it; wraps to "off"
 
 
-class HalPico:
+class HalPico(Hal):
     def __init__(self, board):
         self.b = board
         self._adc = machine.ADC(machine.Pin(board.ADC_PIN))

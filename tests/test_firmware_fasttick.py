@@ -223,7 +223,8 @@ print('pacer_n', n)
 
 # supply: App._supply against SupplyV(app).update on two apps fed the same readings
 from firmware.app import App
-class VHal:
+from firmware.hal_base import Hal as HalBase
+class VHal(HalBase):
     def __init__(self):
         self.mv = 12000
         self.t = 0

@@ -38,11 +38,12 @@ from firmware import msgtable as T
 from firmware.app import App
 from firmware.crc32 import seal, of as crc32_of
 from firmware.link_serial import SerialLink
+from firmware.hal_base import Hal as HalBase
 
 _MASK = 0x3FFFFFFF
 
 
-class Hal:
+class Hal(HalBase):
     # scripted sensors; the clock advances `inc` us per read and starts 1.5 s before
     # its 2**30 wrap (wrapped here without ever computing 2**30)
     def __init__(s):

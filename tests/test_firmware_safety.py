@@ -45,11 +45,12 @@ from firmware import supervisor as S
 from firmware import gains as G
 from firmware import codec, commands, crc16
 from firmware.crc32 import seal, of as crc32_of
+from firmware.hal_base import Hal as HalBase
 
 def chk(name, v):
     print('OBS ' + name + ' ' + str(int(v)))
 
-class Hal:
+class Hal(HalBase):
     # stand-in board: a clock that advances `inc` us per read, `delay[n]` us more while the
     # n-th step reads the encoder (a slow step); every duty and enable recorded and checked
     def __init__(s):

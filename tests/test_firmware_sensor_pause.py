@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from firmware import fasttick as F
 from firmware import gains as G
+from firmware.hal_base import Hal as HalBase
 from firmware.sensors import Sensors
 
 
@@ -37,7 +38,7 @@ def test_the_counts_of_a_pause_are_followed_without_a_jump() -> None:
             assert s.jump, cls
 
 
-class _Hal:
+class _Hal(HalBase):
     def __init__(self) -> None:
         self.enc, self.duty, self.t = 0, 0, 0
 

@@ -120,8 +120,9 @@ import gc, micropython
 from array import array
 from firmware import codec, commands, framing
 from firmware.app import App
+from firmware.hal_base import Hal as HalBase
 
-class Hal:
+class Hal(HalBase):
     t = 0
     def read_angle_raw(self): return 2048
     def read_encoder(self): return 0

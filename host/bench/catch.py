@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from firmware.hal_base import Hal as HalBase
 from host.design.catch import drive_bound, physical_bound
 from host.design.export import FixedDesign, export
 from sim.params import RobotParams, load_params
@@ -61,7 +62,7 @@ class _Gains:
         self.CRC = fd.crc()
 
 
-class _Hal:
+class _Hal(HalBase):
     def __init__(self) -> None:
         self.adc = 2048
         self.enc = 0

@@ -39,6 +39,7 @@ from firmware import gains as G
 from firmware import msgtable as T
 from firmware import supervisor as S
 from firmware.app import App
+from firmware.hal_base import Hal as HalBase
 from firmware.crc32 import of as crc32_of, seal
 from firmware.store import CORRUPT
 
@@ -56,7 +57,7 @@ class SafetyViolation(AssertionError):
     """The motor could run (duty or enable) outside BALANCING-with-no-fault."""
 
 
-class FuzzHal:
+class FuzzHal(HalBase):
     """Stand-in board: sensors set by the machine, every motor/enable write checked at once."""
 
     def __init__(self) -> None:

@@ -32,7 +32,8 @@ __all__ = ["Sequence3", "measurements", "controller_inputs", "FAKE_HAL", "INTS_S
 # a scripted HAL for MicroPython/CPython runs of the app: the test sets adc/enc and
 # reads duty; ticks advance by `inc` us per call (two calls per step)
 FAKE_HAL = """
-class Hal:
+from firmware.hal_base import Hal as _HalBase
+class Hal(_HalBase):
     def __init__(s):
         s.adc = 2048
         s.enc = 0
