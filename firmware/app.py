@@ -14,6 +14,8 @@
 #             (cfg_value: an unknown key or a value out of range -> ValueError naming it), and
 #             any msgtable PARAMS name (e.g. watchdog_ms), not range-checked, so
 #             watchdog_ms=0 switches the watchdog off (bench/tests only).
+#             stall_ms/stall_duty: the no-motion check (F_STALL), on by default: STALL_MS at
+#             |duty| >= STALL_DUTY beyond the table's deadband compensation; stall_ms=0: off.
 #   app.attach_store(store)  at start-up: load the newest valid saved configuration
 #                (firmware/store.py); copies there but none valid -> defaults, F_CONFIG.
 #   SAVE_CONFIG (cmd_save) is queued and run by service_save() between ticks, motor off.
