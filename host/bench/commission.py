@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["bench", "robots", "true_verdict", "commission_one"]
+__all__ = ["bench", "robots", "true_verdict"]
 
 
 def robots(n: int) -> list[tuple[str, Any]]:
@@ -65,136 +65,64 @@ def true_verdict(log: dict[str, np.ndarray], scenario: Any, params: Any) -> dict
     return {"peak_phi": float(m.peak_phi), "peak_xddot": float(m.peak_xddot), "settle": settle, "fell": fell, "pass": ok}
 
 
-def commission_one(label: str, plant: Any) -> dict[str, Any]:
-    """One robot of the bench: the shipped table verified, then commissioned and verified again (module docstring)."""
+def bench(n: int | None = None) -> dict[str, Any]:
+    """Commission ``n`` robots (module docstring)."""
     from host.operate.commission import Commission, CommissionError, weighed
-    from host.operate.commission_lockstep import LockstepRobot
     from host.studies.identify import robot_toml
+    from host.operate.commission_lockstep import LockstepRobot
     from sim.params import load_params
     from sim.scenario import load_scenario
 
+    n = int(os.environ.get("UPRIGHT_BENCH_COMMISSION_N", "50")) if n is None else int(n)
     design = load_params()
     scen = [load_scenario("ref_step_20cm"), load_scenario("push_0p2N_5s")]
-    row: dict[str, Any] = {"robot": label}
-    t0 = time.monotonic()
-    with LockstepRobot(plant) as r:
-        r.fw_params = design  # the shipped table (the firmware's own; nothing uploaded)
-        before = [true_verdict(r.run_scenario(sc), sc, plant) for sc in scen]
-        row["shipped"] = all(v["pass"] for v in before)
-        row["shipped_fell"] = any(v["fell"] for v in before)
-        row["shipped_worst"] = _worst(before, plant)
-        lost = False
-        with tempfile.TemporaryDirectory() as td:
-            start = os.path.join(td, "weighed.toml")  # the robot file with the masses weighed
-            with open(start, "w") as fh:
-                fh.write(robot_toml(weighed(design, plant)))
-            c = Commission(r, td, params_in=start, say=lambda s: None, fast=True)
-            t1 = time.monotonic()
-            try:
-                data = c.run()
-                refused = ""
-                why = ""
-            except CommissionError as exc:
-                data, refused = c.state["data"], str(exc).split(":")[0]
-                why = str(exc)
-                lost = "fell" in str(exc)
-            row["seconds"] = time.monotonic() - t1
-            # a loss is the plant's truth: a balancing try whose pendulum passed phi_max, a
-            # stage that refused after a fall, a verification run that fell (below, re-run)
-            lost = lost or any(t.get("fell") for t in data.get("balance", {}).get("tries", []))
-            ver = data.get("verify", {})
-            row["refused"] = refused
-            row["why"] = why[:200]
-            row["verified"] = bool(ver) and all(v.get("pass", False) for v in ver.values())
-            row["margin"] = data.get("design2", {}).get("margin", math.nan)
-            row["deadband_est"] = data.get("cart", {}).get("estimates", {}).get("deadband", math.nan)
-            row["id_err"] = _id_errors(data, plant)
-            if ver:
-                after = [true_verdict(r.run_scenario(sc), sc, plant) for sc in scen]
-                row["after"] = all(v["pass"] for v in after)
-                row["after_settle"] = max(v["settle"] for v in after)
-                row["after_xdd"] = max(v["peak_xddot"] for v in after)
-                row["after_phi"] = max(v["peak_phi"] for v in after)
-                row["after_worst"] = _worst(after, plant)
-                row["verified_but_false"] = row["verified"] and not row["after"]
-                lost = lost or any(v["fell"] for v in after)
-            else:
-                row["after"] = False
-        row["lost"] = lost
-    row["wall_s"] = time.monotonic() - t0
-    return row
-
-
-def _worst(verdicts: list[dict[str, Any]], p: Any) -> float:
-    # the largest value/limit of the report's constraints over the runs (> 1: failed)
-    return float(max(max(v["peak_phi"] / p.phi_max, v["peak_xddot"] / p.a_max, v["settle"] / p.t_settle)
-                     for v in verdicts))
-
-
-def _id_errors(data: dict[str, Any], plant: Any) -> dict[str, float]:
-    # relative errors of the identified I, m L, kt, b; the deadband's absolute error (fraction of full duty)
-    e = data.get("identify", {}).get("estimates", {})
-    truth = {"I": plant.I, "mL": plant.m * plant.L, "kt": plant.kt, "b": plant.b}
-    out = {k: float(e[k] / v - 1.0) for k, v in truth.items() if k in e and v}
-    ce = data.get("cart", {}).get("estimates", {})
-    if "deadband" in ce:
-        out["deadband"] = float(ce["deadband"] - plant.realism["deadband"])
-    return out
-
-
-def _one(args: tuple[str, Any]) -> dict[str, Any]:
-    try:
-        return commission_one(*args)
-    except Exception as exc:  # noqa: BLE001 - a robot the harness could not run is a row, not a crash
-        return {"robot": args[0], "error": f"{type(exc).__name__}: {exc}"[:300], "shipped": False, "after": False,
-                "lost": False, "refused": "harness", "seconds": math.nan}
-
-
-def _progress(row: dict[str, Any]) -> None:
-    # each robot's row as it is done, one JSON line (UPRIGHT_BENCH_COMMISSION_ROWS: a file to append to)
-    path = os.environ.get("UPRIGHT_BENCH_COMMISSION_ROWS")
-    if path:
-        import json
-
-        with open(path, "a") as fh:
-            fh.write(json.dumps(row, default=float) + "\n")
-
-
-def bench(n: int | None = None, jobs: int | None = None) -> dict[str, Any]:
-    """Commission ``n`` robots in ``jobs`` processes (module docstring; ``UPRIGHT_BENCH_COMMISSION_N``,
-    ``UPRIGHT_BENCH_COMMISSION_JOBS``, default 2: each a firmware process of its own)."""
-    n = int(os.environ.get("UPRIGHT_BENCH_COMMISSION_N", "50")) if n is None else int(n)
-    jobs = int(os.environ.get("UPRIGHT_BENCH_COMMISSION_JOBS", "2")) if jobs is None else int(jobs)
-    todo = robots(n)
-    if jobs > 1:
-        import multiprocessing as mp
-
-        with mp.get_context("spawn").Pool(jobs) as pool:
-            rows = []
-            for row in pool.imap(_one, todo, chunksize=1):
-                rows.append(row)
-                _progress(row)
-    else:
-        rows = []
-        for t in todo:
-            rows.append(_one(t))
-            _progress(rows[-1])
+    rows: list[dict[str, Any]] = []
+    for label, plant in robots(n):
+        row: dict[str, Any] = {"robot": label}
+        t0 = time.monotonic()
+        with LockstepRobot(plant) as r:
+            r.fw_params = design  # the shipped table (the firmware's own; nothing uploaded)
+            before = [true_verdict(r.run_scenario(sc), sc, plant) for sc in scen]
+            row["shipped"] = all(v["pass"] for v in before)
+            row["shipped_fell"] = any(v["fell"] for v in before)
+            lost = False
+            with tempfile.TemporaryDirectory() as td:
+                start = os.path.join(td, "weighed.toml")  # the robot file with the masses weighed
+                with open(start, "w") as fh:
+                    fh.write(robot_toml(weighed(design, plant)))
+                c = Commission(r, td, params_in=start, say=lambda s: None, fast=True)
+                t1 = time.monotonic()
+                try:
+                    data = c.run()
+                    refused = ""
+                except CommissionError as exc:
+                    data, refused = c.state["data"], str(exc).split(":")[0]
+                    lost = "fell" in str(exc)
+                row["seconds"] = time.monotonic() - t1
+                ver = data.get("verify", {})
+                row["refused"] = refused
+                row["verified"] = bool(ver) and all(v.get("pass", False) for v in ver.values())
+                row["margin"] = data.get("design2", {}).get("margin", math.nan)
+                if ver:
+                    after = [true_verdict(r.run_scenario(sc), sc, plant) for sc in scen]
+                    row["after"] = all(v["pass"] for v in after)
+                    row["after_settle"] = max(v["settle"] for v in after)
+                    row["after_xdd"] = max(v["peak_xddot"] for v in after)
+                    lost = lost or any(v["fell"] for v in after)
+                else:
+                    row["after"] = False
+            row["lost"] = lost
+        row["wall_s"] = time.monotonic() - t0
+        rows.append(row)
     k = len(rows)
-    secs = [r["seconds"] for r in rows if math.isfinite(r.get("seconds", math.nan))] or [math.nan]
-    refused: dict[str, int] = {}
-    for r in rows:
-        if r.get("refused"):
-            refused[r["refused"]] = refused.get(r["refused"], 0) + 1
-    vbf = sum(bool(r.get("verified_but_false")) for r in rows)
+    secs = [r["seconds"] for r in rows]
     notes = [f"{k} robots of sim/uncertainty_realistic.toml (nominal, vertices at the roughest realism, random)",
              f"meet every report constraint (step + push, true traces): shipped table {sum(r['shipped'] for r in rows)}/{k}, "
              f"after commissioning {sum(r['after'] for r in rows)}/{k} (target >= 95 %)",
              f"lost the pendulum during commissioning: {sum(r['lost'] for r in rows)} (target 0); "
-             f"stages refused: {sum(bool(r['refused']) for r in rows)} {refused}",
-             f"verified from telemetry but failing in truth: {vbf}",
-             f"time per commissioning: median {np.median(secs):.1f} s, max {max(secs):.1f} s (lockstep HIL, unix port, "
-             f"{jobs} processes)"]
+             f"stages refused: {sum(bool(r['refused']) for r in rows)}",
+             f"time per commissioning: median {np.median(secs):.1f} s, max {max(secs):.1f} s (lockstep HIL, unix port)"]
     return {"title": "commission: robots of the realistic set, end to end in lockstep HIL", "rows": rows, "notes": notes,
             "summary": {"robots": k, "shipped_pass": sum(r["shipped"] for r in rows),
                         "after_pass": sum(r["after"] for r in rows), "lost": sum(r["lost"] for r in rows),
-                        "verified_but_false": vbf, "refused": refused, "median_s": float(np.median(secs))}}
+                        "median_s": float(np.median(secs))}}

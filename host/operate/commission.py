@@ -19,9 +19,7 @@ when done so that ``--resume`` starts after the last one:
                (:func:`host.design.margin.design_with_margin`), uploaded and saved;
 ``verify``     on the robot itself: the report's 20 cm step and 0.2 N push, measured from what
                the host reads (x and phi, the acceleration from the position through a
-               zero-phase low-pass at 30 Hz), against |phi| < 0.3 rad, |xdd| <= 0.8 x 5 m/s^2
-               (:data:`XDD_DERATE`: the low-pass reads peaks low), settling <= 2.5 s into the
-               2 % band (a limit cycle inside the band is settled; one beyond it never settles);
+               zero-phase low-pass), against |phi| < 0.3 rad, |xdd| <= 5 m/s^2, settling <= 2.5 s;
 ``save``       ``robot.toml`` (the identified robot), ``report.html`` (identified vs nominal with
                intervals, the design's margins, the verification traces).
 
@@ -42,7 +40,6 @@ from typing import Any, Callable
 import numpy as np
 
 from host.operate.board import BoardError
-from sim.motor import DUTY_MAX
 from sim.params import RobotParams, load_params
 
 __all__ = ["STAGES", "CommissionError", "Commission", "telemetry_metrics", "PHI_BOUND", "STATE_FILE", "weighed",
@@ -53,19 +50,8 @@ STATE_FILE = "commission.json"
 PHI_BOUND = 0.15
 """rad: a balancing excitation that tilts the pendulum beyond this is stopped (half the report's 0.3)."""
 AMP0 = 0.2  # N, the first balancing amplitude
-CART_AMP = 1.0  # N, the first cart-only PRBS amplitude (grown x1.6 until the cart moves)
-CART_A_CMD = 30.0  # m/s^2: the force clamp of the cart-only run's table (the excitation is at most half
-# of it: a bridge that loses 4 % of its duty and a cart with 0.75 N of stiction need ~4 N to move)
-CART_LEVEL2 = 1.6  # the second cart-only run's amplitude over the first (two levels fit the deadband)
-DB_MAX = 4096  # duty counts: the largest deadband compensation a table carries (host.design.export)
+CART_AMP = 1.0  # N, the cart-only PRBS amplitude
 CART_S, COAST_S, BAL_TRY_S, BAL_S = 8.0, 3.0, 2.0, 15.0
-XDD_FC = 30.0
-"""Hz: the low-pass of the telemetry's acceleration (the second derivative of the encoder's position)."""
-XDD_DERATE = 0.8
-"""The telemetry's peak |xdd| must stay under this fraction of the report's limit: a low-pass reads an
-instantaneous peak low (measured in lockstep HIL: truth / 30 Hz reading 1.2 on the report's robot,
-1.5-2.0 on the realistic set's corners, where backlash and stiction make the peaks), so the verdict
-from telemetry refuses where the truth is near the limit rather than pass a robot that fails it."""
 BAL_DIV = 8  # control ticks per PRBS bit of the balancing run (16 ms: slow enough to move the pendulum)
 
 
@@ -77,11 +63,8 @@ def telemetry_metrics(log: dict[str, np.ndarray], scenario: Any, params: RobotPa
     """Peak ``|phi|``, peak ``|xdd|`` and settling time of a run as the host reads it.
 
     ``x``, ``phi`` as read (sensor steps); the acceleration is the second derivative of ``x``
-    through a zero-phase 4th-order Butterworth low-pass at :data:`XDD_FC` (the encoder's and the
-    telemetry's quantisation would otherwise dominate it: about 1 m/s^2 of noise at 30 Hz; at
-    10 Hz the peaks of a cart with backlash read 2.6 where the truth is 7.2); settling as
-    :func:`sim.metrics.compute_metrics` defines it (the 2 % band: a limit cycle inside it is settled,
-    one beyond it never settles).
+    through a zero-phase 4th-order Butterworth low-pass at 10 Hz (the encoder's quantisation
+    would otherwise dominate it); settling as :func:`sim.metrics.compute_metrics` defines it.
     """
     from scipy import signal
 
@@ -90,7 +73,7 @@ def telemetry_metrics(log: dict[str, np.ndarray], scenario: Any, params: RobotPa
     t = np.asarray(log["t"], dtype=float)
     x = np.asarray(log["x"], dtype=float)
     dt = float(t[1] - t[0])
-    sos = signal.butter(4, XDD_FC, fs=1.0 / dt, output="sos")
+    sos = signal.butter(4, 10.0, fs=1.0 / dt, output="sos")
     xf = signal.sosfiltfilt(sos, x)
     xdd = np.gradient(np.gradient(xf, dt), dt)
     lg = {"t": t, "x": x, "phi": np.asarray(log["phi"], dtype=float), "x_ref": np.asarray(log["x_ref"], dtype=float),
@@ -102,8 +85,7 @@ def telemetry_metrics(log: dict[str, np.ndarray], scenario: Any, params: RobotPa
 
 
 def _verdict(m: dict[str, float], p: RobotParams) -> bool:
-    return ((not m["fell"]) and m["peak_phi"] < p.phi_max and m["peak_xddot"] <= XDD_DERATE * p.a_max
-            and m["settle"] <= p.t_settle)
+    return (not m["fell"]) and m["peak_phi"] < p.phi_max and m["peak_xddot"] <= p.a_max and m["settle"] <= p.t_settle
 
 
 def _write_csv(cols: dict[str, np.ndarray], path: Path) -> Path:
@@ -125,18 +107,15 @@ def weighed(design: RobotParams, plant: RobotParams) -> RobotParams:
     return design.replace(**ch)
 
 
-def identify_cart(log: Any, params: RobotParams, max_delay: float = 0.03, deadband: float | None = None) -> dict[str, Any]:
-    """The drive from cart-only logs alone (one log or a list: two amplitudes fit the deadband):
-    ``kt``, ``ke``, ``b``, the delay, the deadband (:func:`host.studies.identify_cart.identify_cart`)."""
+def identify_cart(log: Any, params: RobotParams, max_delay: float = 0.03) -> dict[str, Any]:
+    """The drive from a cart-only log alone: ``kt``, ``ke``, ``b``, the delay (adapter around
+    :func:`host.studies.identify.cart_fit` until :mod:`host.studies.identify` has ``identify_cart``)."""
     from host.studies import identify as idm
 
-    logs = list(log) if isinstance(log, (list, tuple)) else [log]
     if hasattr(idm, "identify_cart"):
-        from host.studies.identify_cart import MAX_RES_COUNTS_DRY
+        return idm.identify_cart([log], params)  # type: ignore[attr-defined]
+    from sim.motor import DUTY_MAX
 
-        return idm.identify_cart(logs, params, max_delay=max_delay,  # type: ignore[attr-defined]
-                                 max_res_counts=MAX_RES_COUNTS_DRY, deadband=deadband)
-    log = logs[0]
     dt = 1.0 / float(params.rate)
     fits = [idm.cart_fit([log], params.M, dt, d) for d in range(int(round(max_delay / dt)) + 1)]
     d = int(np.argmin([f["sse"] for f in fits]))
@@ -253,15 +232,14 @@ class Commission:
         self.state["data"]["robot_cal"] = "robot_cal.toml"
         self._upload("robot_cal", None, "calibrated robot, shipped weights")
 
-    def _upload(self, key: str, cand: Any, label: str, *, deadband: int = 0) -> None:
+    def _upload(self, key: str, cand: Any, label: str) -> None:
         # design the table of `cand` for the robot file `key` of the state, upload it, keep it in
-        # DIR/table.bin (a resumed run uploads it again: the board may have been reset);
-        # `deadband`: the motor row's compensation (duty counts)
+        # DIR/table.bin (a resumed run uploads it again: the board may have been reset)
         from host.design.margin import candidates, fixed_design
 
         p = self._params(key)
         c = cand if cand is not None else candidates(ki=(0.0,), a_cmd=(4.73,))[0]
-        fd = fixed_design(p, c, deadband=int(deadband))
+        fd = fixed_design(p, c)
         (self.out / "table.bin").write_bytes(fd.blob())
         self.state["data"]["table"] = {"params": key, "label": label, "crc": fd.crc()}
         self.robot.upload(fd.blob(), p)
@@ -274,67 +252,27 @@ class Commission:
             self.say(f"  resumed: uploaded the table in force ({t['label']})")
 
     def _cart(self) -> None:
-        from host.design.margin import candidates
         from host.studies.identify_log import read_log
 
         p = self._params("robot_cal")
-        # a table with a wide force clamp for the open-loop runs only (the excitation is bounded
-        # by half the active clamp; the controller's output is not applied in mode 2)
-        cand = candidates(ki=(0.0,), a_cmd=(CART_A_CMD,), names=("shipped",))[0]
-        self._upload("robot_cal", cand, "cart-only runs (wide force clamp)")
-        amp_max = 0.49 * float(cand.as_dict(p)["u_max"])
-        secs = CART_S * (0.6 if self.fast else 1.0)
-        amp, still = CART_AMP, 0.0
-        while True:
-            run = self.robot.excite(2, amp, seconds=secs, coast_s=COAST_S)
+        amp = CART_AMP
+        for _ in range(4):
+            run = self.robot.excite(2, amp, seconds=CART_S * (0.6 if self.fast else 1.0), coast_s=COAST_S)
             if np.ptp(run.columns["x"]) > 0.02:
                 break
-            if np.ptp(run.columns["x"]) < 5e-4:
-                still = amp  # nothing moved (the encoder within a count or two): below the breakaway
-            self.say(f"  the cart moved {1e3 * np.ptp(run.columns['x']):.1f} mm at {amp:.2f} N: more")
-            if amp >= amp_max:
-                raise CommissionError(f"cart: the cart did not move under the cart-only excitation up to {amp:.2f} N "
-                                      "(dead drive, stuck cart or unwired encoder)")
-            amp = min(amp * 1.6, amp_max)
-        paths = [_write_csv(run.columns, self.out / "cart.csv")]
-        # a second level (more if the table allows, else less) separates the deadband from the gain
-        amp2 = amp * CART_LEVEL2 if amp * CART_LEVEL2 <= amp_max else amp / CART_LEVEL2
-        run2 = self.robot.excite(2, amp2, seconds=secs, coast_s=COAST_S)
-        logs = [read_log(paths[0])]
-        if np.ptp(run2.columns["x"]) > 0.02:
-            paths.append(_write_csv(run2.columns, self.out / "cart2.csv"))
-            logs.append(read_log(paths[1]))
-        # the breakaway: the largest amplitude that moved nothing, as duty counts through the
-        # table's drive (the bridge's deadband plus the cart's static friction): held as the deadband
-        # (the viscous model cannot separate them; compensating the sum is what holds the cart)
-        v = p.values
-        a_nom = v["motor.n_motors"] * v["motor.gear"] * v["motor.kt"] * v["motor.V_supply"] / (v["motor.r_wheel"] * v["motor.R"])
-        held = still / a_nom if still > 0 else None
-        res = identify_cart(logs, p, deadband=held)
+            self.say(f"  the cart moved {1e3 * np.ptp(run.columns['x']):.1f} mm at {amp:g} N: more")
+            amp *= 1.6
+        else:
+            raise CommissionError("cart: the cart did not move under the cart-only excitation (dead drive, "
+                                  "stuck cart or unwired encoder)")
+        path = _write_csv(run.columns, self.out / "cart.csv")
+        lg = read_log(path)
+        res = identify_cart(lg, p)
         e = res["estimates"]
         if not (e["kt"] > 0 and math.isfinite(e["kt"])):
             raise CommissionError(f"cart: no usable drive from the cart-only run (kt {e['kt']:.3g})")
-        db = float(e.get("deadband", 0.0) or 0.0)
-        from host.studies.identify_cart import MAX_RES_COUNTS
-
-        dry = float(res.get("res_counts", 0.0)) > MAX_RES_COUNTS
-        self.state["data"]["cart"] = {"log": "cart.csv", "logs": [q.name for q in paths], "amplitude_n": amp,
-                                      "amplitudes_n": [amp, amp2][:len(paths)], "estimates": e,
-                                      "deadband_counts": int(min(DB_MAX, max(0, round(db * DUTY_MAX)))),
-                                      "notes": res.get("notes", []), "dry": dry, "deadband_held": held}
-        self.say(f"  drive: kt {e['kt']:.4g} N m/A, b {e['b']:.3g} N s/m, delay {1e3 * e['delay']:.0f} ms, "
-                 f"deadband {100 * db:.1f} % of full duty" + (" (dry friction: kt and b not used, the robot file's "
-                                                             "kept)" if dry else ""))
-
-    def _dry(self) -> bool:
-        # the cart-only runs left more than a clean run's residual: dry friction and gear play the
-        # viscous model does not have bias its kt and b (x1.5-2 and x10-100 at the realistic set's
-        # roughest corners), so the designs keep the robot file's (datasheet) drive, over a wider box
-        return bool(self.state["data"].get("cart", {}).get("dry", False))
-
-    def _deadband(self) -> int:
-        # the deadband compensation the balancing tables carry: the cart-only runs' estimate
-        return int(self.state["data"].get("cart", {}).get("deadband_counts", 0))
+        self.state["data"]["cart"] = {"log": "cart.csv", "amplitude_n": amp, "estimates": e}
+        self.say(f"  drive: kt {e['kt']:.4g} N m/A, b {e['b']:.3g} N s/m, delay {1e3 * e['delay']:.0f} ms")
 
     def _design1(self) -> None:
         from host.design.margin import candidates, design_with_margin, confidence_box
@@ -344,8 +282,8 @@ class Commission:
         e = self.state["data"]["cart"]["estimates"]
         # the delay stays the firmware's (its table's predictor length is fixed at boot); the
         # identified one goes into the design's box
-        ch: dict[str, float] = {} if self._dry() else {"motor.kt": e["kt"]}
-        if math.isfinite(e.get("b", math.nan)) and not self._dry():
+        ch: dict[str, float] = {"motor.kt": e["kt"]}
+        if math.isfinite(e.get("b", math.nan)):
             ch["cart.b"] = max(0.0, e["b"])
         p1 = p.replace(**ch)
         (self.out / "robot_stage1.toml").write_text(robot_toml(p1, "upright commission: after the cart-only run"))
@@ -357,15 +295,13 @@ class Commission:
         md = design_with_margin(p1, box, candidates(ki=(0.0,), names=("shipped", "x2")) if self.fast
                                 else candidates(ki=(0.0,)), top=2 if self.fast else 3)
         self.state["data"]["design1"] = md.candidate.as_dict(p1) | {"worst_ratio": md.worst_ratio}
-        self._upload("robot_stage1", md.candidate, f"stage-1 design {md.candidate.name}", deadband=self._deadband())
+        self._upload("robot_stage1", md.candidate, f"stage-1 design {md.candidate.name}")
 
     def _balance(self) -> None:
         from host.studies.identify_log import read_log
 
         p1 = self._params("robot_stage1")
-        # at most a fifth of the clamp (0.45 lost the pendulum at 0.9-1.1 N at the realistic set's
-        # dry corners) on a dry cart (0.58 N at the shipped clamp): its stick-slip adds its own excitation
-        amp_max = (0.2 if self._dry() else 0.45) * float(self.state["data"]["design1"]["u_max"])
+        amp_max = 0.45 * float(self.state["data"]["design1"]["u_max"])
         amp, tries = AMP0, []
         while True:
             run = self.robot.excite(1, amp, seconds=BAL_TRY_S, div=BAL_DIV, phi_stop=PHI_BOUND)
@@ -396,16 +332,12 @@ class Commission:
         import warnings
 
         from host.studies.identify import identified_params, identify, read_log, robot_toml
-        from host.studies.identify_cart import MAX_RES_COUNTS_DRY
 
         p = self._params("robot_cal")
-        carts = self.state["data"]["cart"].get("logs", ["cart.csv"])
-        logs = [read_log(self.out / "balance.csv")] + [read_log(self.out / c) for c in carts]
+        logs = [read_log(self.out / "balance.csv"), read_log(self.out / "cart.csv")]
         with np.errstate(all="ignore"), warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            cd = self.state["data"]["cart"]
-            res = identify(logs, p, n_boot=40 if self.fast else 100,
-                           cart_options={"max_res_counts": MAX_RES_COUNTS_DRY, "deadband": cd.get("deadband_held")})
+            res = identify(logs, p, n_boot=40 if self.fast else 100)
         e = res["estimates"]
         bad = [k for k, v in e.items() if not math.isfinite(v)]
         if bad or not (e["I"] > 0 and e["mL"] > 0 and e["kt"] > 0):
@@ -422,11 +354,6 @@ class Commission:
 
         pid = self._params("robot_id")
         res = self.state["data"]["identify"]
-        if self._dry():  # the drive's estimates biased (_dry): the robot file's, +-15 % (kt) and +-75 % (b)
-            p = self._params("robot_cal")
-            pid = pid.replace(**{"motor.kt": p.kt, "cart.b": p.b})
-            res = {"estimates": {**res["estimates"], "kt": p.kt, "b": p.b},
-                   "ci": {**res["ci"], "kt": [0.9 * p.kt, 1.1 * p.kt], "b": [0.5 * p.b, 1.5 * p.b]}}
         # in-model box: the identification does not measure the plant realism (Coulomb friction,
         # backlash, deadband), and at the realistic set's ranges no linear design settles the
         # step in the 2 % band (the bench's note); the robot's own verification judges it
@@ -438,8 +365,7 @@ class Commission:
             "precise": md.precise,
             "rows": md.rows(pid), "tried": md.tried, "box": {k: list(v) for k, v in box.factors.items()} | {
                 "delay": list(box.delay)}}
-        self._upload("robot_id", md.candidate, f"final design {md.candidate.name} (margin {100 * md.margin:.0f} %)",
-                     deadband=self._deadband())
+        self._upload("robot_id", md.candidate, f"final design {md.candidate.name} (margin {100 * md.margin:.0f} %)")
         self.say(f"  worst ratio over the box {md.worst_ratio:.3f} (margin {100 * md.margin:.0f} %), "
                  f"force row {md.force_lsb:.1f} LSB")
 

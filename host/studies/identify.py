@@ -245,8 +245,7 @@ def _derive(f: dict[str, Any], params: RobotParams, d: int, dt: float,
 
 
 def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float = 10.0, max_delay: float = 0.03,
-             n_boot: int = 100, block_s: float = 0.5, seed: int = 0,
-             cart_options: dict[str, Any] | None = None) -> dict[str, Any]:
+             n_boot: int = 100, block_s: float = 0.5, seed: int = 0) -> dict[str, Any]:
     """Estimate :data:`PARAM_NAMES` with 95 % confidence intervals from excitation logs.
 
     Parameters
@@ -265,9 +264,6 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float = 10.0, m
         Bootstrap block length (s).
     seed : int
         Bootstrap seed.
-    cart_options : dict, optional
-        Keyword arguments of the first stage (:func:`host.studies.identify_cart.identify_cart`:
-        ``max_res_counts``, ``deadband``), as ``upright commission`` gives them for a dry cart.
 
     Returns
     -------
@@ -302,7 +298,7 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float = 10.0, m
     if carts:
         # the first stage (identify_cart): the drive, the friction, the delay and the latency,
         # open loop; the balancing rows then see the same timing and deadband
-        cres = identify_cart(carts, params, max_delay=max_delay, **(cart_options or {}))
+        cres = identify_cart(carts, params, max_delay=max_delay)
         cf = cres["fit"]
         d, fl, db = int(cres["fit_delay"]), float(cf["f"]), float(cf["deadband"])
         sse = list(cres["delay_sse"])

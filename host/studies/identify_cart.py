@@ -45,7 +45,7 @@ from sim.motor import DUTY_MAX
 from sim.params import RobotParams
 
 __all__ = ["cart_sim", "cart_fit", "identify_cart", "CART_NAMES", "CART_UNITS", "BIAS_FLOOR", "min_cart_rows",
-           "drive_of", "MAX_RES_COUNTS", "MAX_RES_COUNTS_DRY"]
+           "drive_of"]
 
 CART_NAMES = ("b", "kt", "ke", "delay", "latency", "deadband")
 """First-stage estimates: viscous friction (N s/m), force and back-EMF constants, sensor
@@ -56,9 +56,6 @@ BIAS_FLOOR = {"b": 0.03, "kt": 0.03, "ke": 0.02, "deadband": 0.0}
 """Fraction of each estimate added (in quadrature) to its interval for the method's own bias."""
 MAX_RES_COUNTS = 1.0
 """Largest rms residual of the cart-only fit, in encoder counts (clean runs: 0.3-0.5)."""
-MAX_RES_COUNTS_DRY = 6.0
-"""The residual ``upright commission`` accepts from a cart with dry friction, gear play and a
-bridge deadband (the realistic set's roughest corners leave 1.5-4 counts rms)."""
 MIN_DRIVEN_S = 1.5
 """Board seconds of excitation a cart-only log needs at least (several drive time constants of
 PRBS bits: fewer fit the delay and the latency into the noise)."""
@@ -321,8 +318,7 @@ def _stage(carts: Sequence[RunLog], params: RobotParams, dmax: int, latency: boo
 
 
 def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: float = 0.03,
-                  latency: bool = True, one_constant: bool = True,
-                  max_res_counts: float = MAX_RES_COUNTS, deadband: float | None = None) -> dict[str, Any]:
+                  latency: bool = True, one_constant: bool = True) -> dict[str, Any]:
     """The first stage: the drive (``kt``, ``ke``), the friction ``b``, the delay and latency from cart-only runs.
 
     Parameters
@@ -344,13 +340,6 @@ def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: flo
         ``ke`` apart) runs too, as a check: ``free`` in the result, and a note when its ``ke``
         differs from the one constant by more than its interval (``motor.R`` or
         ``motor.V_supply`` of ``params`` off, or not a plain DC motor).  False: the free fit is the result.
-    deadband : float, optional
-        The deadband held at this value (fraction of full duty; e.g. the breakaway measured by the
-        excitation's amplitude steps) instead of fitted from two levels or the robot file's.
-    max_res_counts : float
-        Largest rms residual accepted, in encoder counts (default :data:`MAX_RES_COUNTS`, a clean
-        run).  A cart with dry friction and gear play (which the model does not have) leaves
-        more: ``upright commission`` accepts up to :data:`MAX_RES_COUNTS_DRY` and says so in the notes.
 
     Returns
     -------
@@ -375,21 +364,19 @@ def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: flo
     for lg in carts:
         check_cart_log(lg, rate)
     M = float(params.M)
-    fit_db = _levels(carts) >= 2 and deadband is None
-    db_known = float(params.values.get("motor.deadband", 0.0) or 0.0) if deadband is None else float(deadband)
-    db_known *= DUTY_MAX
+    fit_db = _levels(carts) >= 2
+    db_known = float(params.values.get("motor.deadband", 0.0) or 0.0) * DUTY_MAX
     dmax = int(round(max_delay / dt))
     dbk = None if fit_db else db_known
     oc = _coefs(params) if one_constant else None
     d, cf, sse = _stage(carts, params, dmax, latency, dbk, db_known, oc)
     count = 1.0 / float(ssens.enc_counts_per_m(params))
     rms = math.sqrt(cf["sse"])
-    if rms > max_res_counts * count:
+    if rms > MAX_RES_COUNTS * count:
         # nothing to identify from a log the drive's model does not fit: say so, in one line
         raise LogError(", ".join(lg.name for lg in carts), "x",
                        f"the cart's drive model does not fit: residual {1e3 * rms:.3f} mm rms, "
-                       f"{rms / count:.1f} encoder counts (a clean run fits within {MAX_RES_COUNTS:g}, "
-                       f"accepted here {max_res_counts:g}): was the "
+                       f"{rms / count:.1f} encoder counts (a clean run fits within {MAX_RES_COUNTS:g}): was the "
                        "cart held, on its end stop, the pendulum still on, or the driver enabled after the disarm? "
                        "record again")
     dr = drive_of(cf, params)
@@ -415,21 +402,14 @@ def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: flo
         if math.isfinite(lo) and not lo <= est["kt"] <= hi:
             notes.append(f"kt = ke assumed (one motor constant {est['kt']:.4g}); fitted apart, ke is {fe['ke']:.4g} "
                          f"[{lo:.4g}, {hi:.4g}], kt {fe['kt']:.4g}: check motor.R and motor.V_supply of the robot file")
-    if rms > MAX_RES_COUNTS * count:
-        notes.append(f"the drive's model (viscous friction) leaves {rms / count:.1f} encoder counts rms (a clean run: "
-                     f"within {MAX_RES_COUNTS:g}): dry friction or gear play the model does not have; the estimates "
-                     "are those of the best viscous fit")
     if not cf["has_coast"]:
         notes.append("no coast-down in the cart-only runs: b not measured (NaN), ke includes the friction")
-    if deadband is not None:
-        notes.append(f"the deadband held at {deadband:g} of full duty (given: the breakaway of the excitation's steps)")
-    elif not fit_db:
+    if not fit_db:
         notes.append(f"one duty level: the deadband held at the robot file's {db_known / DUTY_MAX:g} "
                      "(two cart-only runs of different --amplitude fit it)")
     return {"estimates": {k: float(v) for k, v in est.items()}, "ci": ci, "units": CART_UNITS,
             "delay_samples": dw, "latency_samples": tau - dw, "fit_delay": d, "delay_sse": [float(v) for v in sse],
             "fit": cf, "free": free, "one_constant": bool(one_constant), "rows": int(cf["n"]),
-            "res_counts": float(rms / count),
             "logs": [{"file": lg.name, "kind": "cart-only", "rows": len(lg.x)} for lg in carts], "notes": notes}
 
 
