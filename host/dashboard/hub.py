@@ -151,7 +151,8 @@ class Hub:
         self.events: collections.deque[dict[str, Any]] = collections.deque(maxlen=200)
         # the commands go through the board library of `upright board` (arming token, refusals
         # as BoardError), on the shared link
-        self.board = Board(self.link, port=str(self.info.get("port", "")), timeout=0.25, retries=3)
+        self.board = Board(self.link, port=str(self.info.get("port", "")), timeout=0.25, retries=3,
+                           feed=False)  # the hub keeps the keepalive (KEEPALIVE_S, only for a live page)
         self._cmd_lock = threading.Lock()
         # recording
         self._rec_fh: Any = None

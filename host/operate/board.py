@@ -221,7 +221,8 @@ class Board:
         Per request.
     """
 
-    def __init__(self, link: Link, *, port: str = "", timeout: float = 0.3, retries: int = 3) -> None:
+    def __init__(self, link: Link, *, port: str = "", timeout: float = 0.3, retries: int = 3,
+                 feed: bool = True) -> None:
         self.link = link
         self.port = port or getattr(link, "url", "") or "board"
         self.timeout = float(timeout)
@@ -241,6 +242,8 @@ class Board:
         self._clock = ClockTrack()
         self._clock_measured = False  # speed followed from the heartbeats once measure_speed ran
         self._feeder: Any = None
+        #: feed the watchdog from a thread while armed (False: the owner keeps its own keepalive, as the dashboard's hub)
+        self.feed = bool(feed)
 
     # ---- opening ----
     @classmethod
@@ -458,7 +461,7 @@ class Board:
         # 1.3 s of wall, 190 ms of board time, the watchdog latched at 250)
         import threading
 
-        if on and self._feeder is None:
+        if on and self._feeder is None and self.feed:
             stop = threading.Event()
 
             def run() -> None:
