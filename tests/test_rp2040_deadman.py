@@ -58,7 +58,7 @@ N = [0]
 motor = app._set_motor
 enc = app._read_enc
 U = machine.UART(1, 9600, tx=machine.Pin(4), rx=machine.Pin(5))
-BIG = bytes(20000)
+BIG = bytes(4000)  # 4 s of line: a hang far past the watchdog (20 kB no longer fits in one piece beside the App)
 
 
 def m_step(d):
@@ -100,7 +100,7 @@ class Stuck:
     def poll(s):
         if N[0] == AT:
             led.value(1)
-            U.write(BIG)  # 20 s of line at 9600 baud: blocks in C
+            U.write(BIG)  # 4 s of line at 9600 baud: blocks in C
 """
 
 INJECT = {
