@@ -42,8 +42,7 @@ import numpy as np
 from host.operate.board import BoardError
 from sim.params import RobotParams, load_params
 
-__all__ = ["STAGES", "CommissionError", "Commission", "telemetry_metrics", "PHI_BOUND", "STATE_FILE", "weighed",
-           "identify_cart"]
+__all__ = ["STAGES", "CommissionError", "Commission", "telemetry_metrics", "PHI_BOUND", "STATE_FILE", "weighed"]
 
 STAGES = ("identity", "sensors", "calibrate", "cart", "design1", "balance", "identify", "design2", "verify", "save")
 STATE_FILE = "commission.json"
@@ -105,26 +104,6 @@ def weighed(design: RobotParams, plant: RobotParams) -> RobotParams:
     keys = ("cart.M", "pendulum.m", "pendulum.m_cam", "pendulum.m_shaft")
     ch = {k: plant.values[k] for k in keys if k in plant.values and not math.isnan(float(plant.values[k]))}
     return design.replace(**ch)
-
-
-def identify_cart(log: Any, params: RobotParams, max_delay: float = 0.03) -> dict[str, Any]:
-    """The drive from a cart-only log alone: ``kt``, ``ke``, ``b``, the delay (adapter around
-    :func:`host.studies.identify.cart_fit` until :mod:`host.studies.identify` has ``identify_cart``)."""
-    from host.studies import identify as idm
-
-    if hasattr(idm, "identify_cart"):
-        return idm.identify_cart([log], params)  # type: ignore[attr-defined]
-    from sim.motor import DUTY_MAX
-
-    dt = 1.0 / float(params.rate)
-    fits = [idm.cart_fit([log], params.M, dt, d) for d in range(int(round(max_delay / dt)) + 1)]
-    d = int(np.argmin([f["sse"] for f in fits]))
-    f = fits[d]
-    v = params.values
-    n, gear, r, R, V = (v["motor.n_motors"], v["motor.gear"], v["motor.r_wheel"], v["motor.R"], v["motor.V_supply"])
-    kt = f["a"] * DUTY_MAX * R * r / (n * gear * V)
-    ke = f["D"] * R * r**2 / (n * gear**2 * kt)
-    return {"estimates": {"kt": float(kt), "ke": float(ke), "b": float(f["b"]), "delay": d * dt}, "delay_samples": d}
 
 
 class Commission:
@@ -252,6 +231,7 @@ class Commission:
             self.say(f"  resumed: uploaded the table in force ({t['label']})")
 
     def _cart(self) -> None:
+        from host.studies.identify_cart import identify_cart
         from host.studies.identify_log import read_log
 
         p = self._params("robot_cal")
@@ -267,7 +247,7 @@ class Commission:
                                   "stuck cart or unwired encoder)")
         path = _write_csv(run.columns, self.out / "cart.csv")
         lg = read_log(path)
-        res = identify_cart(lg, p)
+        res = identify_cart([lg], p)
         e = res["estimates"]
         if not (e["kt"] > 0 and math.isfinite(e["kt"])):
             raise CommissionError(f"cart: no usable drive from the cart-only run (kt {e['kt']:.3g})")
