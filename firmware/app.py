@@ -15,7 +15,7 @@
 #             any msgtable PARAMS name (e.g. watchdog_ms), not range-checked, so
 #             watchdog_ms=0 switches the watchdog off (bench/tests only).
 #             stall_ms/stall_duty: the no-motion check (F_STALL), on by default: STALL_MS at
-#             |duty| >= STALL_DUTY; stall_ms=0: off.
+#             |duty| >= STALL_DUTY beyond the table's deadband compensation; stall_ms=0: off.
 #   app.attach_store(store)  at start-up: load the newest valid saved configuration
 #                (firmware/store.py); copies there but none valid -> defaults, F_CONFIG.
 #   SAVE_CONFIG (cmd_save) is queued and run by service_save() between ticks, motor off.
@@ -110,7 +110,7 @@ CONFIG = (
     ("vsup_nom_mv", 12000, 1, 100000),  # the supply the table's motor constants assume
     ("vsup_min_mv", 0, 0, 100000),  # undervoltage threshold (F_UNDERVOLT), 0: none
     ("stall_ms", STALL_MS, 0, 60000),  # no-motion check (F_STALL) time, 0: off
-    ("stall_duty", STALL_DUTY, 0, _I16),  # ... at |duty| at least this
+    ("stall_duty", STALL_DUTY, 0, _I16),  # ... at |duty| at least this beyond the deadband compensation
 )
 # the arming token's generator (App._new_token): a = 0x41C64E6D mod 2**30 in 15-bit limbs, c
 _LCG_AL = const(0x4E6D)
@@ -281,8 +281,10 @@ class App:
         # count (stall_ms=0: off).  800 duty (~2 N at rest, 3/4 of the default design's
         # force clamp) for 100 ms moves the cart by centimetres; in ticks at the active
         # table's rate (_apply_params: again whenever the table changes)
+        # (beyond the table's deadband compensation, which every nonzero force adds and which
+        # moves nothing on a bridge with that deadband: _apply_params)
         self.stall_ms = cfg_value(cfg, "stall_ms")
-        self.sup.stall_duty = cfg_value(cfg, "stall_duty")
+        self.stall_duty = cfg_value(cfg, "stall_duty")
         self._apply_params()
         # readiness of the flashed table: the firmware's own check and its CRC (gains.CRC);
         # a table that fails either is never run (F_GAINS on every tick, arm refused)
@@ -344,6 +346,7 @@ class App:
         # 5/4 held frames back 225 ticks in a burst on the predicted Pico)
         self.link_budget_us = self.period_us + (self.period_us >> 1) - (self.period_us >> 3)
         sup.stall_ticks = (self.stall_ms * rate) // 1000
+        sup.stall_duty = self.stall_duty + self.motor.deadband
         t = self.table
         # track fault at 1.25 x the reference limit (encoder counts)
         qx = t[self.off["FMT"]]

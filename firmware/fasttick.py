@@ -320,9 +320,9 @@ def motor_duty(S: ptr32, u: int, vh: int) -> int:
     if S[_MO_BACKEMF]:
         acc += (((S[_MO_KDV] + sb) & msk) - sb) * vh
     d = acc >> S[_MO_SD]
-    if u > 0:
+    if d > 0 or (d == 0 and u > 0):
         d += (((S[_MO_DEADBAND] + sb) & msk) - sb)
-    elif u < 0:
+    elif d < 0 or u < 0:
         d -= (((S[_MO_DEADBAND] + sb) & msk) - sb)
     vs = (((S[_MO_VSCALE] + sb) & msk) - sb)
     if vs != _VS_ONE:

@@ -2,7 +2,7 @@
 #   duty = (F R r/(n gear kt) + kt gear xdot/r) / V_supply * 32767
 # in fixed point: duty = (KDU u + KDV vh) >> SD, where vh is the controller's estimate of
 # the cart speed now (back-EMF compensation), then the deadband compensation in the
-# direction of the force, then -- when the app measures the motor supply -- the correction
+# direction of the duty (of the force at duty 0), then -- when the app measures the motor supply -- the correction
 # duty x V_nominal / V_measured (Q12, 1/4..4), then the clamp to +-max_duty (the supply limit).
 
 try:
@@ -57,9 +57,11 @@ class Motor:
         if self.backemf:
             acc += self.kdv * vh
         d = acc >> self.sd
-        if u > 0:
+        # in the direction of the duty (the bridge takes its deadband off |duty|: with the
+        # back-EMF term the duty can oppose the force), of the force when the duty is 0
+        if d > 0 or (d == 0 and u > 0):
             d += self.deadband
-        elif u < 0:
+        elif d < 0 or u < 0:
             d -= self.deadband
         vs = self.vscale
         if vs != VS_ONE:

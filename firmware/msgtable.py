@@ -432,7 +432,7 @@ FAULTS = (
     (16, "track", "cart beyond the track (1.25 x the reference limit) while balancing"),
     (32, "gains", "the active gain table failed its check or its CRC (boot or upload): the board "
      "is not ready and arm is refused (not_ready) until a good table is uploaded"),
-    (64, "stall", "|duty| >= stall_duty for stall_ms with no encoder count while balancing"),
+    (64, "stall", "|duty| >= stall_duty beyond the table's deadband compensation for stall_ms with no encoder count while balancing"),
     (128, "loop", "the paced loop failed (an allocation with the heap locked); motor off"),
     (256, "deadline", "control deadline missed (ODrive's ERROR_CONTROL_DEADLINE_MISSED): one gap "
      "between step starts longer than 10 periods, or late ticks (gap > 1.5 periods) faster than "

@@ -103,7 +103,9 @@ class RobotPlant(PlantSim):
     pendulum at the hand's angle and at rest, the cart still, rolled, or free -- then the cart
     and the held pendulum move together under the motor force and the friction (exact for the
     linear drive: ``(M + m) xdd = a duty - (c + b) xd``).  Pendulum off (:attr:`pendulum_on`
-    false): the cart alone, ``M xdd = a duty - (c + b) xd``, the pot at its upright reading.
+    false): the cart alone, ``M xdd = a duty - (c + b) xd`` (with the robot file's plant realism --
+    Coulomb and static friction, gear play, deadband, minimum duty -- :class:`PlantSim`'s own
+    integrator with the pendulum's mass off), the pot at its upright reading.
     """
 
     def __init__(self, params: RobotParams, *, seed: int = 0) -> None:
@@ -126,6 +128,17 @@ class RobotPlant(PlantSim):
         e = math.exp(-k * T)
         x[0] += v_inf * T + (x[1] - v_inf) * (1.0 - e) / k
         x[1] = v_inf + (x[1] - v_inf) * e
+
+    def _cart_real(self, duty: int) -> None:
+        # the cart alone with plant realism: PlantSim's integrator with no pendulum (m L = 0:
+        # the cart's row is M xdd = F - b xd, the pendulum's is 0)
+        m, mL = self._m, self._mL
+        self._m = self._mL = 0.0
+        self._x[2] = self._x[3] = 0.0
+        try:
+            self._integrate(duty, self.t)
+        finally:
+            self._m, self._mL = m, mL
 
     def step(self, duty: int, *, u_cmd: float = math.nan, u_sat: float = math.nan, driven: float = 1.0) -> None:
         """Apply ``duty`` for one plant tick (hands and pendulum as they are) and take the next reading.
@@ -150,7 +163,10 @@ class RobotPlant(PlantSim):
         hand = self.hand
         x = self._x
         if not self.pendulum_on:
-            self._cart(d, self._M)
+            if self._real:  # dry friction, gear play, the bridge's deadband: the plant's own
+                self._cart_real(d)  # integrator with the pendulum's mass taken off
+            else:
+                self._cart(d, self._M)
             x[2] = x[3] = 0.0
         elif hand is None:
             self._integrate(d, self.t)
