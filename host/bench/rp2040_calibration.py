@@ -9,22 +9,27 @@ soft-reset raw REPL; the board prints ``time norm result`` and the score is
 ``.exp`` file).  Each test runs once (the emulator is deterministic; the published runs' spread
 was 0.02-0.24 %).
 
-Configurations, each on one booted board (:class:`~host.boards.rp2040.board.EmulatedBoard`):
+Configurations, each on one booted board (:class:`~host.boards.rp2040.board.EmulatedBoard`),
+each without and with the XIP cache model:
 
-* the shipped image (``build/rp2040/firmware.bin``: MicroPython 1.25, pico-sdk 2.1.1, VM, GC
-  and parser in flash), without and with the XIP cache model;
-* the calibration variant (:mod:`host.bench.rp2040_ramvm`: the same source with the VM, GC and
-  parser in SRAM, as MicroPython 1.22 linked them), without and with the model.
+* ``shipped``: the board image (``build/rp2040/firmware.bin``: MicroPython 1.25, pico-sdk 2.1.1,
+  the VM, GC and parser in SRAM by the build's linker patch);
+* ``release``: MicroPython 1.25 as released (the VM, GC and parser in flash;
+  :mod:`host.bench.rp2040_variants`);
+* ``v1.22``: the same source linked as the reference build was -- the VM, GC and parser in SRAM
+  and pico-sdk's bootrom float routines, which MicroPython replaced by its own libm three weeks
+  after the reference run (:mod:`host.bench.rp2040_variants`).
 
 The reference is the published scores of ``rp2040_perfbench_published.toml``: a real Pico at
-125 MHz on MicroPython 1.22-preview (PR #12846), compared with the SRAM variant (the same code
-placement), and the real flash -> SRAM gains of PR #19370 (a Pico W, one source), compared with
-the emulated gain of the variant over the shipped image.  A ratio is emulated / real score:
-above 1 the emulator is optimistic.  The target (issue 26): with the model every published test
-within +-10 %.
+125 MHz on MicroPython 1.22-preview (PR #12846), compared with ``v1.22`` (the like-for-like
+placement and float routines), and the real flash -> SRAM gains of PR #19370 (a Pico W, one
+source, MicroPython's libm), compared with the emulated gain of ``shipped`` over ``release``.  A
+ratio is emulated / real score: above 1 the emulator is optimistic.  The target (issue 26): with
+the model every published test within +-10 %.
 
-``UPRIGHT_RP2040_RAMVM`` names the variant's directory (default ``build/rp2040-ramvm``; built
-there when missing, about a minute).
+``UPRIGHT_RP2040_VARIANTS`` names the directory the variants are built under (default
+``build``: ``build/rp2040-release``, ``build/rp2040-v1.22``; each built when missing, about a
+minute).
 """
 
 from __future__ import annotations
@@ -153,12 +158,13 @@ def run_suite(board: EmulatedBoard, tests: Sequence[Path], truths: dict[str, str
     return out
 
 
-def _ram_vm_image() -> Path | None:
-    from host.bench.rp2040_ramvm import DEFAULT_OUT, build_ram_vm
+def _variant_image(name: str) -> Path | None:
+    from host.bench.rp2040_variants import VARIANTS, build_variant
 
-    out = Path(os.environ.get("UPRIGHT_RP2040_RAMVM", DEFAULT_OUT))
+    base = os.environ.get("UPRIGHT_RP2040_VARIANTS")
+    out = Path(base) / f"rp2040-{name}" if base else VARIANTS[name].default_out
     try:
-        return build_ram_vm(out)
+        return build_variant(name, out)
     except (B.BuildError, OSError):
         return None
 
@@ -180,10 +186,9 @@ def bench(tests: Sequence[str] | None = None) -> dict[str, Any]:
                 "notes": [f"{PERF_BENCH} not found: run `make rp2040` (the build unpacks the MicroPython source)"]}
     paths = [PERF_BENCH / n for n in names]
     truths = {p.name: _truth(p, bench_script(p)) for p in paths}
-    configs: list[tuple[str, Path, bool]] = [("flash", FIRMWARE, False), ("flash", FIRMWARE, True)]
-    ram = _ram_vm_image()
-    if ram is not None:
-        configs += [("sram", ram, False), ("sram", ram, True)]
+    images: dict[str, Path | None] = {"release": _variant_image("release"), "shipped": FIRMWARE,
+                                      "v1.22": _variant_image("v1.22")}
+    configs = [(label, fw, model) for label, fw in images.items() if fw is not None for model in (False, True)]
     res: dict[tuple[str, bool], dict[str, Score]] = {}
     speed: dict[tuple[str, bool], float] = {}
     miss_cycles = 0.0
@@ -198,23 +203,23 @@ def bench(tests: Sequence[str] | None = None) -> dict[str, Any]:
         s = res.get((label, model), {}).get(test)
         return s.score if s else None
 
+    labels = [label for label in images if (label, False) in res]
     rows = []
     for t in names:
         r = real.get(t)
         row: dict[str, Any] = {"test": t, "real v1.22": r if r is not None else "-"}
-        for label in ("flash", "sram"):
-            if (label, False) not in res:
-                continue
+        for label in labels:
             ideal, model = sc(label, False, t), sc(label, True, t)
             row[f"{label} ideal"] = ideal if ideal is not None else res[(label, False)][t].error
             row[f"{label} model"] = model if model is not None else res[(label, True)][t].error
             if r is not None:
                 row[f"{label} ideal/real"] = _ratio(ideal, r) or "-"
                 row[f"{label} model/real"] = _ratio(model, r) or "-"
-        if ("sram", True) in res:
+        if ("release", True) in res:
             g = gains.get(t)
             row["gain real %"] = g if g is not None else "-"
-            gi, gm = _ratio(sc("sram", False, t), sc("flash", False, t)), _ratio(sc("sram", True, t), sc("flash", True, t))
+            gi = _ratio(sc("shipped", False, t), sc("release", False, t))
+            gm = _ratio(sc("shipped", True, t), sc("release", True, t))
             row["gain ideal %"] = 100 * (gi - 1) if gi else "-"
             row["gain model %"] = 100 * (gm - 1) if gm else "-"
         rows.append(row)
@@ -223,10 +228,11 @@ def bench(tests: Sequence[str] | None = None) -> dict[str, Any]:
              f"gains: {pub['pr19370']['board']} ({pub['pr19370']['source']})",
              f"XIP cache model: miss = {miss_cycles:g} cycles (harness.mjs: 28 SCK of a W25Q080 quad read at "
              "clkdiv 2 = 56 cycles + handshake)",
-             "flash = the shipped 1.25 image (VM/GC/parser in flash); sram = the same source with them in SRAM, "
-             "as v1.22 linked them (host/bench/rp2040_ramvm.py); ratio = emulated / real score"]
+             "shipped = the board image (1.25, VM/GC/parser in SRAM); release = 1.25 as released (in flash); "
+             "v1.22 = shipped with pico-sdk's bootrom float routines, as the reference build "
+             "(host/bench/rp2040_variants.py); gain = shipped / release; ratio = emulated / real score"]
     summary = {}
-    for label in ("flash", "sram"):
+    for label in labels:
         for model in (False, True):
             rs = [x for t in real if (x := _ratio(sc(label, model, t), real[t]))]
             if not rs:
@@ -238,11 +244,12 @@ def bench(tests: Sequence[str] | None = None) -> dict[str, Any]:
             notes.append(f"{key}: ratio median {statistics.median(rs):.3f}, range {min(rs):.3f}-{max(rs):.3f}, "
                          f"{summary[key]['within']} of {len(rs)} published tests within +-{100 * TOLERANCE:.0f} %; "
                          f"emulator {speed[(label, model)]:.3f} board s per wall s")
-    if "sram model" in summary:
-        s = summary["sram model"]
-        notes.append(f"target (every published test within +-10 % with the model, same code placement as the "
-                     f"real board): {'met' if s['within'] == s['of'] else 'NOT met'} ({s['within']}/{s['of']})")
+    if "v1.22 model" in summary:
+        s = summary["v1.22 model"]
+        notes.append(f"target (every published test within +-10 % with the model, the reference build's code "
+                     f"placement and float routines): {'met' if s['within'] == s['of'] else 'NOT met'} "
+                     f"({s['within']}/{s['of']})")
     else:
-        notes.append("the SRAM variant could not be built: no like-for-like comparison (see rp2040_ramvm.py)")
+        notes.append("the v1.22 variant could not be built: no like-for-like comparison (see rp2040_variants.py)")
     return {"title": "Emulated Pico vs real Picos (MicroPython perf_bench, N=100 M=100)", "rows": rows,
             "notes": notes, "summary": summary, "wall_s_runs": time.perf_counter() - t_start}
