@@ -143,14 +143,14 @@ class TickPairs:
     def add(self, msg: Any, seq: int | None, t: Any = None) -> tuple[Any, Any, Any] | None:
         """Feed one message (``seq`` None: not numbered, e.g. a reply); ``(state, ctrl, t of the
         state)`` when it completes a tick's pair, else ``None``."""
-        typ = type(msg)
-        if typ is _TELEM_STATE:
+        name = msg.NAME
+        if name == "telem_state":
             if self._pending is not None:
                 self.unpaired += 1
             self.seqs.add(msg, seq)
             self._pending = (msg, seq, t)
             return None
-        if typ is not _TELEM_CTRL:
+        if name != "telem_ctrl":
             self.seqs.add(msg, seq)
             return None
         p, self._pending = self._pending, None
