@@ -21,6 +21,7 @@ import time
 
 import pytest
 
+import tool_helpers as TH
 from test_board_cli import ROOT, UPRIGHT, board, relay  # noqa: F401 - the fixture
 
 pytestmark = pytest.mark.slow
@@ -124,10 +125,8 @@ def test_tools_share_one_board_through_the_owners_hub(relay, tmp_path):  # noqa:
         out = tmp_path / "shared.csv"
         p = board(relay, "log", "--seconds", "2", "--out", str(out))
         assert p.returncode == 0, p.stderr
-        last = [ln for ln in p.stderr.splitlines() if "rows (" in ln][-1]
+        n, frames, last = TH.log_summary(p.stderr)
         assert last.endswith("0 lost"), last
-        n = int(last.split("upright board: ")[1].split()[0])
-        frames = int(last.split("(")[1].split()[0])
         # every tick's pair through the hub (the rate itself, 50 rows/s of a board in real time
         # on a loaded machine, is test_board_cli's business)
         assert n == frames // 2 and n > 20, last
