@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from firmware import msgtable as T
-from host.hil.accounting import SeqAccount, TickPairs
+from host.hil.accounting import TickPairs
 from host.link import messages as M
 from host.link.clients import Link, LinkError
 from host.operate.board import Board, BoardError, fault_table
@@ -212,20 +212,15 @@ class Hub:
             self.link.deliver(m, seq)
 
     @property
-    def seqs(self) -> SeqAccount:
-        """The sequence account of the periodic frames (:class:`~host.hil.accounting.TickPairs`)."""
-        return self.pairs.seqs
-
-    @property
     def half_pairs(self) -> int:
-        """Halves of a tick whose other half did not come."""
+        """Halves of a tick whose other half did not come (:class:`~host.hil.accounting.TickPairs`)."""
         return self.pairs.unpaired
 
     @property
     def lost(self) -> int:
-        """Periodic frames missing by the board's sequence number (telemetry pairs and
-        heartbeats share its counter; :class:`~host.hil.accounting.SeqAccount`)."""
-        return self.seqs.lost
+        """Periodic frames missing by the board's sequence number (telemetry pairs and heartbeats
+        share its counter; :class:`~host.hil.accounting.SeqAccount`)."""
+        return self.pairs.seqs.lost
 
     def _row(self, s: M.Message, c: M.Message, t_rx: float, seq: int | None) -> None:
         hb = self.heartbeat or {"state": -1, "faults": 0}
