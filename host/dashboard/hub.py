@@ -41,7 +41,7 @@ from firmware import msgtable as T
 from host.hil.accounting import TickPairs
 from host.link import messages as M
 from host.link.clients import Link, LinkError
-from host.operate.board import Board, BoardError, fault_table
+from host.operate.board import Board, BoardError, fault_names, fault_table
 from host.operate.record import TELEMETRY, telemetry_values
 
 __all__ = [
@@ -249,7 +249,7 @@ class Hub:
         hb = self.heartbeat or {}
         st = hb.get("state")
         return {**hb, "state_name": M.STATES.get(st, "unknown") if st is not None else "no heartbeat yet",
-                "fault_names": [n for b, (n, _) in fault_table().items() if hb.get("faults", 0) & b]}
+                "fault_names": fault_names(hb.get("faults", 0))}
 
     # ------------------------------------------------------------------ pages
     def connect(self) -> Client:

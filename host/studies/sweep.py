@@ -92,7 +92,8 @@ class SweepInterrupted(KeyboardInterrupt):
 
 @dataclass(frozen=True)
 class Uncertainty:
-    """Ranges of the Monte Carlo (each run draws uniformly within them).
+    """Ranges of the Monte Carlo: the sweep's parametrisation of the one uncertainty model
+    (:meth:`axes`, :class:`host.design.uncertainty.Axis`; ``--ranges FILE``: :mod:`.ranges`).
 
     Parameters
     ----------
