@@ -24,7 +24,7 @@ from typing import Any, Callable
 
 from . import messages as M
 
-__all__ = ["HOST_HEARTBEAT_S", "KEEPALIVE_BOARD_S", "KEEPALIVE_MAX_S", "MIN_SPEED", "keepalive_period",
+__all__ = ["HOST_HEARTBEAT_S", "KEEPALIVE_BOARD_S", "KEEPALIVE_MAX_S", "MIN_SPEED", "clip_speed", "keepalive_period",
            "ClockTrack", "Keepalive"]
 
 #: host heartbeat period (s of wall time) at full speed: well inside the smallest watchdog_ms the
