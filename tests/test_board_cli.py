@@ -243,22 +243,9 @@ def test_calibrate_scripted(relay, tmp_path):
     proc = subprocess.Popen([*UPRIGHT, "board", "--port", relay.port, "calibrate", "--out", str(out), "--no-motor"],
                             cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
-    hands = {"Step 1/4: hold": (2100, 0), "Step 2/4": (2252, 0), "Step 3/4: back upright": (2100, 1000),
-             "Step 3/4: roll": (2100, 1000 - 637)}
-    lines = []
+    lines: list[str] = []
     try:
-        while True:
-            line = proc.stdout.readline()
-            if not line:
-                break
-            lines.append(line)
-            for key, (adc, enc) in hands.items():
-                if line.startswith(key):
-                    for _ in range(3):
-                        relay.sensors(adc, enc)
-                    time.sleep(0.2)
-                    proc.stdin.write("\n")
-                    proc.stdin.flush()
+        lines, _ = TH.answer_prompts(proc, relay, TH.CALIBRATE_HANDS)
         proc.wait(timeout=60)
     finally:
         if proc.poll() is None:
