@@ -11,7 +11,8 @@
 The test helpers live in modules of this folder, imported by name (the folder is on the path):
 ``fwharness`` (the firmware run in an interpreter: the stand-in HAL ``StandInHal``/``FAKE_HAL``,
 print-and-parse ``CHK_SRC``/``parse_ints``, allocation probes), ``proto_helpers`` (the protocol's
-boards and bridges), ``hil_probe``, ``mpy_proto_board``.  Which test covers which behaviour:
+boards and bridges), ``hil_probe``, ``mpy_proto_board``, ``tool_helpers`` (the board tools' summary
+line, the dashboard's HTTP requests).  Which test covers which behaviour:
 ``tests/README.md``.
 """
 

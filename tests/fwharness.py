@@ -53,6 +53,22 @@ def run(name, fn):
 """
 
 
+# whether fn() allocated on the unix port (micropython.heap_lock(): an allocation raises
+# MemoryError), printed as "name 0" (none) or "name 1"
+UNIX_LOCK_RUN = """
+import micropython
+def run(name, fn):
+    micropython.heap_lock()
+    try:
+        fn()
+        ok = 0
+    except MemoryError:
+        ok = 1
+    micropython.heap_unlock()
+    print(name, ok)
+"""
+
+
 def parse_ints(out: str) -> dict[str, int]:
     """The ``name value`` lines of an interpreter's output as a dict (blank lines skipped)."""
     return {k: int(v) for k, v in (line.split() for line in out.splitlines() if line.strip())}

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pytest
 
+import tool_helpers as TH
 from host.boards.vport import PTMX, VirtualBoard, slave_of
 from host.link import messages as M
 
@@ -154,9 +155,7 @@ def test_log_csv_rows_match_telemetry(relay, tmp_path):
     assert p.returncode == 0, p.stderr
     rows = list(csv.DictReader(out.open()))
     # "N rows (M telemetry frames)": each row is one TELEM_STATE + TELEM_CTRL pair
-    line = [s for s in p.stderr.splitlines() if "rows (" in s][-1]
-    n_rows = int(line.split("upright board: ")[1].split()[0])
-    frames = int(line.split("(")[1].split()[0])
+    n_rows, frames, line = TH.log_summary(p.stderr)
     assert len(rows) == n_rows == frames // 2
     assert 60 < len(rows) < 140  # 500 Hz / telem_div 10 = 50 rows/s
     assert line.endswith("0 lost")
@@ -244,22 +243,9 @@ def test_calibrate_scripted(relay, tmp_path):
     proc = subprocess.Popen([*UPRIGHT, "board", "--port", relay.port, "calibrate", "--out", str(out), "--no-motor"],
                             cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
-    hands = {"Step 1/4: hold": (2100, 0), "Step 2/4": (2252, 0), "Step 3/4: back upright": (2100, 1000),
-             "Step 3/4: roll": (2100, 1000 - 637)}
-    lines = []
+    lines: list[str] = []
     try:
-        while True:
-            line = proc.stdout.readline()
-            if not line:
-                break
-            lines.append(line)
-            for key, (adc, enc) in hands.items():
-                if line.startswith(key):
-                    for _ in range(3):
-                        relay.sensors(adc, enc)
-                    time.sleep(0.2)
-                    proc.stdin.write("\n")
-                    proc.stdin.flush()
+        lines, _ = TH.answer_prompts(proc, relay, TH.CALIBRATE_HANDS)
         proc.wait(timeout=60)
     finally:
         if proc.poll() is None:

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import pytest
 
+import tool_helpers as TH
 from host.boards.rp2040.board import ROOT
 
 pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
@@ -186,9 +187,7 @@ def test_log_csv_rows(port, tmp_path):
     p = board(port, "log", "--seconds", "1", "--out", str(out))
     assert p.returncode == 0, p.stderr
     rows = list(csv.DictReader(out.open()))
-    line = [s for s in p.stderr.splitlines() if "rows (" in s][-1]
-    n_rows = int(line.split("upright board: ")[1].split()[0])
-    frames = int(line.split("(")[1].split()[0])
+    n_rows, frames, line = TH.log_summary(p.stderr)
     assert line.endswith("; 0 lost"), line
     # each row is one TELEM_STATE + TELEM_CTRL pair; 50 rows per board second, ~0.15-0.2 board s here
     assert len(rows) == n_rows == frames // 2

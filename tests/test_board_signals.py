@@ -21,6 +21,7 @@ import time
 
 import pytest
 
+import tool_helpers as TH
 from test_board_cli import ROOT, UPRIGHT, board, relay  # noqa: F401 - the fixture
 
 pytestmark = pytest.mark.slow
@@ -124,10 +125,8 @@ def test_tools_share_one_board_through_the_owners_hub(relay, tmp_path):  # noqa:
         out = tmp_path / "shared.csv"
         p = board(relay, "log", "--seconds", "2", "--out", str(out))
         assert p.returncode == 0, p.stderr
-        last = [ln for ln in p.stderr.splitlines() if "rows (" in ln][-1]
+        n, frames, last = TH.log_summary(p.stderr)
         assert last.endswith("0 lost"), last
-        n = int(last.split("upright board: ")[1].split()[0])
-        frames = int(last.split("(")[1].split()[0])
         # every tick's pair through the hub (the rate itself, 50 rows/s of a board in real time
         # on a loaded machine, is test_board_cli's business)
         assert n == frames // 2 and n > 20, last
@@ -161,26 +160,13 @@ def test_sigterm_during_calibrates_motor_step_disarms(relay, tmp_path):  # noqa:
     proc = subprocess.Popen([*UPRIGHT, "board", "--port", relay.port, "calibrate", "--out", str(out)], cwd=ROOT,
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     # the user's hands, as in test_board_cli.test_calibrate_scripted
-    hands = {"Step 1/4: hold": (2100, 0), "Step 2/4": (2252, 0), "Step 3/4: back upright": (2100, 1000),
-             "Step 3/4: roll": (2100, 1000 - 637), "Step 4/4: WHEELS": (2100, 363)}
-    lines = []
+    hands = {**TH.CALIBRATE_HANDS, "Step 4/4: WHEELS": (2100, 363)}
+    lines: list[str] = []
     try:
-        while True:
-            line = proc.stdout.readline()
-            if not line:
-                break
-            lines.append(line)
-            if line.startswith("Step 4/4: tilt"):
-                time.sleep(0.3)  # armed, the host heartbeat running
-                proc.send_signal(signal.SIGTERM)
-                break
-            for key, (adc, enc) in hands.items():
-                if line.startswith(key):
-                    for _ in range(3):
-                        relay.sensors(adc, enc)
-                    time.sleep(0.2)
-                    proc.stdin.write("\n")
-                    proc.stdin.flush()
+        lines, tilt = TH.answer_prompts(proc, relay, hands, until="Step 4/4: tilt")
+        if tilt:
+            time.sleep(0.3)  # armed, the host heartbeat running
+            proc.send_signal(signal.SIGTERM)
         rest, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:

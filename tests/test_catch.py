@@ -146,19 +146,7 @@ def control(n):
         y = [k]
 """
 
-UNIX_RUN = """
-import micropython
-def run(name, fn):
-    micropython.heap_lock()
-    try:
-        fn()
-        ok = 0
-    except MemoryError:
-        ok = 1
-    micropython.heap_unlock()
-    print(name, ok)
-"""
-
+UNIX_RUN = H.UNIX_LOCK_RUN
 WASM_RUN = H.WASM_ALLOC_RUN
 
 PHASES = """
@@ -177,12 +165,8 @@ def _alloc_code(run: str) -> str:
     return ALLOC % (fd.tables["HDR"][0], fd.crc(), layout, " ".join(map(str, fd.flat()))) + run + PHASES
 
 
-def _parse(out: str) -> dict[str, int]:
-    return {a: int(b) for a, b in (ln.split() for ln in out.splitlines() if len(ln.split()) == 2)}
-
-
 def test_no_allocation_with_catch_mode_active_unix() -> None:
-    res = _parse(run_unix(_alloc_code(UNIX_RUN), timeout=120))
+    res = H.parse_ints(run_unix(_alloc_code(UNIX_RUN), timeout=120))
     assert res["control"] == 1  # the lock is real: a list allocation raised
     assert res["entries"] >= 5  # catch mode entered (and left) many times under the lock
     assert res["ticks"] == 0 and res["extremes"] == 0, res
@@ -191,7 +175,7 @@ def test_no_allocation_with_catch_mode_active_unix() -> None:
 @pytest.mark.wasm
 def test_no_allocation_with_catch_mode_32bit_wasm_small_ints() -> None:
     # 32-bit small ints: an intermediate of schedule() outside +-2**30 would be a heap big int
-    res = _parse(run_wasm(_alloc_code(WASM_RUN), timeout=300))
+    res = H.parse_ints(run_wasm(_alloc_code(WASM_RUN), timeout=300))
     assert res["control"] > 0
     assert res["entries"] >= 5
     assert res["ticks"] == 0 and res["extremes"] == 0, res

@@ -29,6 +29,7 @@ from urllib.parse import urlsplit
 
 import pytest
 
+import tool_helpers as TH
 from host.dashboard import gains as G
 from host.dashboard.hub import COLUMNS, PAGE_TIMEOUT_S, Hub
 from host.dashboard.server import PAGE_HEADER, TOKEN_HEADER, split_url
@@ -222,13 +223,7 @@ def test_the_heartbeat_crc_byte_confirms_an_upload_and_flags_another_table(tmp_p
 
 
 # ---------------------------------------------------------------- the server, over HTTP
-def _req(url: str, data: bytes | None = None, headers: dict | None = None) -> tuple[int, dict]:
-    r = urllib.request.Request(url, data=data, headers=headers or {}, method="POST" if data is not None else "GET")
-    try:
-        with urllib.request.urlopen(r, timeout=10) as res:
-            return res.status, json.loads(res.read() or b"{}")
-    except urllib.error.HTTPError as exc:
-        return exc.code, json.loads(exc.read() or b"{}")
+_req = TH.http_json
 
 
 class _Served:

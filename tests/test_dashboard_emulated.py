@@ -32,6 +32,7 @@ from pathlib import Path
 
 import pytest
 
+import tool_helpers as TH
 from host.boards.rp2040.board import ROOT
 from host.dashboard.hub import COLUMNS
 from host.dashboard.server import PAGE_HEADER, TOKEN_HEADER, split_url
@@ -48,12 +49,7 @@ def _req(url: str, data: bytes | None = None, page: str | None = None, token: bo
         headers[PAGE_HEADER] = page
     if token:
         headers[TOKEN_HEADER] = TOKEN[""]
-    r = urllib.request.Request(url, data=data, headers=headers, method="POST" if data is not None else "GET")
-    try:
-        with urllib.request.urlopen(r, timeout=30) as res:
-            return res.status, json.loads(res.read() or b"{}")
-    except urllib.error.HTTPError as exc:
-        return exc.code, json.loads(exc.read() or b"{}")
+    return TH.http_json(url, data, headers, timeout=30)
 
 
 class _Page:

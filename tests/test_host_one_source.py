@@ -18,8 +18,9 @@ from host.dashboard.hub import Hub
 from host.hil.accounting import SeqAccount
 from host.link import messages as M
 from host.link.clients import Keepalive, Link
-from host.operate.board import fault_names, fault_table
-from host.operate.record import Recorder
+from host.link.keepalive import KEEPALIVE_BOARD_S, KEEPALIVE_MAX_S
+from host.operate.board import Board, fault_names, fault_table
+from host.operate.record import COLUMNS, TELEMETRY, Recorder
 
 TS, TC, HB = M.BY_NAME["telem_state"], M.BY_NAME["telem_ctrl"], M.BY_NAME["heartbeat"]
 
@@ -60,6 +61,60 @@ def test_the_keepalive_sends_the_host_heartbeat_once_a_period() -> None:
     k.fed(10.3125)  # a set-point fed the watchdog: the next heartbeat is a period after it
     assert [k.tick(t) for t in (10.375, 10.4375)] == [False, True]
     assert link.names == ["host_heartbeat"] * 4 and k.sent == 4
+
+
+def test_one_keepalive_per_link_beats_in_the_boards_time(tmp_path: Path) -> None:
+    link = _Sent()
+    board = Board(link, feed=False)
+    hub = Hub(link, {"mode": "test"}, tmp_path)
+    try:
+        k = link.keepalive
+        assert board._keepalive is k and hub._keepalive is k and hub.board._keepalive is k  # one object
+    finally:
+        hub.close()
+    k = Keepalive(link.send, period=0.0625)
+    assert k.period == 0.0625  # no board heartbeat seen: full speed
+    for i in range(9):  # a board at 0.1x: 125 ms of its clock every 1.25 s of wall
+        k.observe(125 * i, 10.0 + 1.25 * i)
+    assert k.clock.speed == 0.1 and k.period == KEEPALIVE_BOARD_S / 0.1
+    k.fed(30.0)
+    assert [k.tick(t) for t in (30.125, 30.25, 30.375, 30.5)] == [False, True, False, True]  # every 250 ms of wall
+    for i in range(9):  # a board that nearly stopped: never rarer than KEEPALIVE_MAX_S
+        k.observe(1000 + i, 40.0 + i)
+    assert k.period == KEEPALIVE_MAX_S
+    # the link shows its keepalive every board heartbeat it reads
+    n = len(link.keepalive.clock._seen)
+    link._ingest([(HB(**{f.name: 0 for f in HB.FIELDS}), 7)])
+    assert len(link.keepalive.clock._seen) == n + 1
+
+
+def test_the_recorder_and_the_dashboard_record_the_same_columns(tmp_path: Path) -> None:
+    from host.dashboard.hub import COLUMNS as DASH
+
+    assert set(COLUMNS) <= set(DASH) and DASH[2:-1] == TELEMETRY == COLUMNS[2:]
+    st, ct = TS(x=1000, xdot=0, phi=-20, phidot=0), TC(ref=2000, force=150, duty=-300, step_us=90)
+
+    class _B:
+        listeners: list = []
+
+    rec = Recorder(_B(), tmp_path / "r.csv")
+    hub = Hub(_Sent(), {"mode": "test"}, tmp_path)
+    try:
+        for seq in (1, 2, 4):
+            for m in (st, ct):
+                rec.board.listeners[0](m, seq, seq * 0.02)
+                hub.on_message(m, seq)
+        rec.close()
+        assert rec.lost == hub.pairs.lost == 1 and rec.rows == hub.n == 3
+        mine = dict(zip(DASH, hub.rows[-1]))
+        import csv
+
+        with open(tmp_path / "r.csv", newline="") as fh:
+            last = list(csv.DictReader(fh))[-1]
+        assert {k: float(last[k]) for k in COLUMNS if k != "t" and k not in ("state", "faults")} \
+            == {k: float(mine[k]) for k in COLUMNS if k != "t" and k not in ("state", "faults")}
+    finally:
+        hub.close()
 
 
 def test_the_loss_counter_is_bounded_and_exact_over_long_runs() -> None:

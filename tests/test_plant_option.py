@@ -119,6 +119,7 @@ def test_hil_plant_runs_the_shipped_firmware_on_another_robot(soft: Path, tmp_pa
     assert b["dphi_vs_float"] is not None and b["dphi_vs_float"] < 0.01
 
 
+@pytest.mark.slow  # 3-5 s on the loaded 2-core machine: out of the fast loop
 def test_hil_plant_prints_the_precedence_when_a_scenario_overrides(soft: Path, tmp_path: Path) -> None:
     sc = tmp_path / "heavy.toml"
     sc.write_text('name = "heavy"\nduration = 1.0\n[initial]\nphi = 0.05\n[params]\nM = 0.55\n[expect]\nsettle = "any"\n')

@@ -115,21 +115,11 @@ def test_since_boot_figures_survive_a_timing_report():
     assert arr[0] >= 5000 and arr[1] >= 1
 
 
-_LOCKED = """
+_LOCKED = H.FAKE_HAL + """
 import gc, micropython
 from array import array
 from firmware import codec, commands, framing
 from firmware.app import App
-from firmware.hal_base import Hal as HalBase
-
-class Hal(HalBase):
-    t = 0
-    def read_angle_raw(self): return 2048
-    def read_encoder(self): return 0
-    def set_motor(self, d): pass
-    def ticks_us(self):
-        self.t = (self.t + 2000) & 0x3FFFFFFF
-        return self.t
 
 class Sink:
     n = 0
@@ -137,7 +127,9 @@ class Sink:
         self.n += 1
 
 layout = codec.Layout()
-app = App(Hal(), config={"pot_offset": 2048})
+hal = Hal()
+hal.inc = 2000
+app = App(hal, config={"pot_offset": 2048})
 sink = Sink()
 dec = framing.Decoder(layout)
 disp = commands.Dispatcher(app, layout, framing.SerialTx(framing.Encoder(layout), sink.write))

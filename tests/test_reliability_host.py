@@ -84,6 +84,7 @@ def _crash_a_host(fd: int) -> None:
     assert proc.returncode == -signal.SIGKILL
 
 
+@pytest.mark.slow  # 3-5 s on the loaded 2-core machine: out of the fast loop
 def test_host_crash_fails_safe_and_new_host_reconnects_without_reset(line) -> None:
     ser, board = line
     fd = ser.fileno()

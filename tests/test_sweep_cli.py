@@ -14,6 +14,7 @@ from host.design.discrete import Q_DEFAULT
 from sim.scenario import load_scenario
 
 
+@pytest.mark.slow  # 3-5 s on the loaded 2-core machine: out of the fast loop
 def test_robustness_writes_tables_plots_and_replayable_scenarios(tmp_path, capsys) -> None:
     out = tmp_path / "rob"
     rc = cli.main(["sweep", "robustness", "--n", "6", "--chunk", "4", "--seed", "5", "--duration", "1.0",

@@ -206,7 +206,7 @@ def render_status(st: dict[str, Any]) -> str:
         lines.append("  identity: this firmware has no VERSION message" +
                      (f"; gains CRC low byte {crc8:#04x}" if isinstance(crc8, int) else ""))
     lines.append(f"  state {st['state']}  boot {hb.get('boot')}{_mod_text('boot')}  {uptime_text(st)}"
-                 + (f"  arming epoch {hb['epoch']}" if "epoch" in hb else ""))
+                 + f"  arming epoch {hb.get('epoch', '-')}")
     bst = st.get("board_status", {})
     if bst:
         extra = []

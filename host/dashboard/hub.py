@@ -14,8 +14,9 @@ message it reads to :meth:`Hub.on_message` with the time it arrived.  The hub
   ``param_get``... with their retries and refusals, by the board library
   :class:`~host.operate.board.Board` on that same link), and the hub delivers every received
   frame but telemetry to them (:meth:`~host.link.clients.Link.deliver`);
-* applies the watchdog policy: the host heartbeat (:class:`~host.link.clients.Keepalive`,
-  every :data:`KEEPALIVE_S`) is sent only while at least one page is
+* applies the watchdog policy: the host heartbeat (the link's one
+  :class:`~host.link.keepalive.Keepalive`, every :data:`KEEPALIVE_S` to a board at full speed and
+  in the board's time to a slower one) is sent only while at least one page is
   live (its event stream open and a ping within :data:`PAGE_TIMEOUT_S`) *and* the arm was
   requested from a live page; when the last live page goes, feeding stops and the board is
   disarmed.  A closed page therefore never keeps a board armed: its watchdog
@@ -37,10 +38,11 @@ from pathlib import Path
 from typing import Any, Callable
 
 from firmware import msgtable as T
-from host.hil.accounting import SeqAccount
+from host.hil.accounting import TickPairs
 from host.link import messages as M
-from host.link.clients import Keepalive, Link, LinkError
-from host.operate.board import Board, BoardError, fault_table
+from host.link.clients import Link, LinkError
+from host.operate.board import Board, BoardError, fault_names, fault_table
+from host.operate.record import TELEMETRY, telemetry_values
 
 __all__ = [
     "KEEPALIVE_S",
@@ -52,21 +54,24 @@ __all__ = [
 ]
 
 KEEPALIVE_S = 0.1
-"""Host heartbeat period while feeding (the board's watchdog default is 250 ms)."""
+"""Host heartbeat period while feeding a board at full speed (the board's watchdog default is 250 ms);
+a slower board gets one every :data:`host.link.keepalive.KEEPALIVE_BOARD_S` of its clock, at most
+this often."""
 PAGE_TIMEOUT_S = 1.0
 """A page that has not pinged for this long is not live (pages ping every 250 ms)."""
 
-COLUMNS = ("n", "t", "x", "xdot", "phi", "phidot", "ref", "force", "duty", "step_us", "state", "faults")
+COLUMNS = ("n", "t", *TELEMETRY, "seq")
 """Columns of a telemetry row (and of the recorded CSV): ``n`` the row's number since the dashboard
-started, ``t`` its receive time in s since then, the two telemetry frames in physical units, and
-the state and fault flags of the last heartbeat."""
+started, ``t`` its receive time in s since then, the recorders' telemetry columns
+(:data:`host.operate.record.TELEMETRY`: the two frames in physical units, the state and fault flags
+of the last heartbeat) and the board's sequence number ``seq`` -- every column of
+:data:`host.operate.record.COLUMNS`, so a dashboard recording reads as a board recording."""
 
 _TS = M.BY_NAME["telem_state"]
 _TC = M.BY_NAME["telem_ctrl"]
 _HB = M.BY_NAME["heartbeat"]
 _ACT = M.BY_NAME["hil_actuator"]
 _REQUEST = M.BY_NAME["request"]
-_SCALE = {f.name: f.scale for f in (*_TS.FIELDS, *_TC.FIELDS)}
 _PERIODIC = (_TS, _TC, _HB)
 _ARMED_STATES = {s[0] for s in T.STATES if s[1] in ("armed", "balancing")}
 
@@ -139,15 +144,14 @@ class Hub:
         self.n = 0
         self.heartbeat: dict[str, int] | None = None
         self.hb_count = 0
-        self.seqs = SeqAccount()
+        self.pairs = TickPairs()  # the recorder's pairing and loss count
         self._had_live = False
-        self._pending: tuple[M.Message, int | None] | None = None
-        self.half_pairs = 0
         self.clients: dict[str, Client] = {}
         self._next_client = 0
         self.arm_requested = False
         self.feeding = False
-        self._keepalive = Keepalive(self.link.send, KEEPALIVE_S)
+        self._keepalive = self.link.keepalive  # the link's one keepalive, at the dashboard's cadence
+        self._keepalive.fastest = KEEPALIVE_S
         self.events: collections.deque[dict[str, Any]] = collections.deque(maxlen=200)
         # the commands go through the board library of `upright board` (arming token, refusals
         # as BoardError), on the shared link
@@ -177,20 +181,12 @@ class Hub:
         t = type(m)
         if t is _ACT:
             return
-        if seq is not None and t in _PERIODIC and not (t is _HB and self.link.is_reply(seq)):
-            self.seqs.add(m, seq)
-        if t is _TS:
-            if self._pending is not None:
-                self.half_pairs += 1
-            self._pending = (m, seq)
-        elif t is _TC:
-            p = self._pending
-            self._pending = None
-            if p is None or (seq is not None and p[1] is not None and p[1] != seq):
-                self.half_pairs += 1
-                return
-            self._row(p[0], m, t_rx)
-        elif t is _HB:
+        if t in _PERIODIC:
+            numbered = seq is not None and not (t is _HB and self.link.is_reply(seq))
+            pair = self.pairs.add(m, seq if numbered else None, t_rx)
+            if pair is not None:
+                self._row(pair[0], pair[1], t_rx, seq)
+        if t is _HB:
             hb = {"state": m.state, "faults": m.faults, "boot": m.boot, "uptime_ms": m.uptime_ms}
             changed = self.heartbeat is None or (hb["state"], hb["faults"]) != (self.heartbeat["state"], self.heartbeat["faults"])
             self.heartbeat = hb
@@ -216,16 +212,20 @@ class Hub:
             self.link.deliver(m, seq)
 
     @property
-    def lost(self) -> int:
-        """Periodic frames missing by the board's sequence number (telemetry pairs and
-        heartbeats share its counter; :class:`~host.hil.accounting.SeqAccount`)."""
-        return self.seqs.lost
+    def half_pairs(self) -> int:
+        """Halves of a tick whose other half did not come (:class:`~host.hil.accounting.TickPairs`)."""
+        return self.pairs.unpaired
 
-    def _row(self, s: M.Message, c: M.Message, t_rx: float) -> None:
+    @property
+    def lost(self) -> int:
+        """Periodic frames missing by the board's sequence number (telemetry pairs and heartbeats
+        share its counter; :class:`~host.hil.accounting.SeqAccount`)."""
+        return self.pairs.seqs.lost
+
+    def _row(self, s: M.Message, c: M.Message, t_rx: float, seq: int | None) -> None:
         hb = self.heartbeat or {"state": -1, "faults": 0}
-        row = [self.n, round(t_rx - self.t0_wall, 4),
-               s.x * _SCALE["x"], s.xdot * _SCALE["xdot"], s.phi * _SCALE["phi"], s.phidot * _SCALE["phidot"],
-               c.ref * _SCALE["ref"], c.force * _SCALE["force"], c.duty, c.step_us, hb["state"], hb["faults"]]
+        row = [self.n, round(t_rx - self.t0_wall, 4), *telemetry_values(s, c, hb["state"], hb["faults"]),
+               -1 if seq is None else seq]
         row = [round(v, 6) if isinstance(v, float) else v for v in row]
         self.n += 1
         with self._lock:
@@ -249,7 +249,7 @@ class Hub:
         hb = self.heartbeat or {}
         st = hb.get("state")
         return {**hb, "state_name": M.STATES.get(st, "unknown") if st is not None else "no heartbeat yet",
-                "fault_names": [n for b, (n, _) in fault_table().items() if hb.get("faults", 0) & b]}
+                "fault_names": fault_names(hb.get("faults", 0))}
 
     # ------------------------------------------------------------------ pages
     def connect(self) -> Client:
@@ -453,7 +453,7 @@ class Hub:
             self._rec_writer.writerow(COLUMNS)
             self.rec_path = path
             self.rec_rows = 0
-            self.rec_lost_at_start = self.lost + self.half_pairs
+            self.rec_lost_at_start = self.pairs.lost
         self.note(f"recording to {path}")
         return path
 
@@ -470,7 +470,7 @@ class Hub:
 
     def record_status(self) -> dict[str, Any]:
         return {"recording": self._rec_writer is not None, "path": str(self.rec_path) if self.rec_path else None,
-                "rows": self.rec_rows, "lost": self.lost + self.half_pairs - self.rec_lost_at_start}
+                "rows": self.rec_rows, "lost": self.pairs.lost - self.rec_lost_at_start}
 
     def record_bytes(self) -> bytes | None:
         with self._lock:
@@ -492,7 +492,7 @@ class Hub:
     def status(self) -> dict[str, Any]:
         link = self.link
         return {"info": self.info, "heartbeat": self._hb_payload(), "heartbeats": self.hb_count,
-                "telemetry_rows": self.n, "telemetry_lost": self.lost + self.half_pairs,
+                "telemetry_rows": self.n, "telemetry_lost": self.pairs.lost,
                 "link": {"sent": link.sent, "received": link.received, "drops": link.drops},
                 "pages": len(self.clients), "live_pages": len(self.live_pages()),
                 "arm_requested": self.arm_requested, "feeding": self.feeding, "keepalives": self.keepalives,

@@ -11,6 +11,12 @@ factors (the ideal model's are 0).  The nominal point takes every realism value 
 its range, each vertex at its high end (``realism_vertices = "hi"``, the default: the roughest
 robot at every corner of the box; ``"all"`` makes each realism range one more axis of the box),
 and the random points draw them uniformly.
+
+Every range is an :class:`Axis` that carries its law -- uniform, log-uniform or symmetric about a
+centre -- and, for a coupled axis, the axis it multiplies (the sweep's inertia rides on the
+pendulum mass).  The box's random points and the Monte Carlo of :mod:`host.studies.sweep`
+(:meth:`host.studies.sweep.Uncertainty.axes`) both draw through :meth:`Axis.draw`; the sweep makes
+its robots with :func:`scaled_values`: one model of what is uncertain and how it is drawn.
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ import numpy as np
 
 from sim.params import SCHEMA, RobotParams, read_toml
 
-__all__ = ["UNCERTAINTY_FILE", "FACTORS", "UncertaintyError", "Point", "UncertaintySet", "uncertainty_from_dict",
+__all__ = ["UNCERTAINTY_FILE", "FACTORS", "LAWS", "ROBOT_KEYS", "Axis", "scaled_values", "UncertaintyError", "Point", "UncertaintySet", "uncertainty_from_dict",
            "load_uncertainty", "REALISM", "UNCERTAINTY_REALISTIC"]
 
 UNCERTAINTY_FILE = Path(__file__).resolve().parents[2] / "sim" / "uncertainty.toml"
@@ -49,6 +55,98 @@ REALISM: dict[str, str] = {"coulomb": "cart.coulomb", "stiction": "cart.stiction
                            "deadband": "motor.deadband", "duty_min": "motor.duty_min", "pot_inl": "sensors.pot_inl"}
 """Keys of an uncertainty file's ``[realism]`` table -> robot-file key (the batch parameter is the bare
 name, :data:`sim.batch.REALISM_KEYS`); ranges in the robot file's units."""
+
+ROBOT_KEYS: dict[str, tuple[str, ...]] = {
+    "inertia": ("I",), "cart_mass": ("M",), "pendulum_mass": ("m_cam", "m_shaft"), "friction": ("b",),
+    "supply": ("V_supply",), "motor_constant": ("kt",), "resistance": ("R",),
+}
+"""Factor keys -> the robot-file values (bare names) they scale; ``resistance`` is the sweep's
+(the box leaves the winding resistance at the robot file's value)."""
+
+LAWS = ("uniform", "log-uniform", "symmetric")
+"""How an :class:`Axis` maps a uniform ``u`` in [0, 1) to a value."""
+
+
+@dataclass(frozen=True)
+class Axis:
+    """One uncertain quantity, its range and its law.
+
+    Parameters
+    ----------
+    key : str
+        A factor key (:data:`ROBOT_KEYS`), ``"delay"`` (s), ``"tilt"`` (rad) or a realism key.
+    law : {"uniform", "log-uniform", "symmetric"}
+        ``uniform``: ``a + (b - a) u``; ``log-uniform``: ``exp(log a + (log b - log a) u)``;
+        ``symmetric``: ``a + b (2u - 1)``, centre ``a`` and half-range ``b`` (about 0: ``b (2u - 1)``).
+    a, b : float
+        The law's two numbers: ``lo, hi`` or ``centre, half``.
+    times : str
+        Coupled axis: the quantity is scaled by that axis's factor first, then by this one's
+        (mass-coupled inertia: ``I x f_pendulum_mass x f_inertia``); ``""``: independent.
+    """
+
+    key: str
+    law: str
+    a: float
+    b: float
+    times: str = ""
+
+    def __post_init__(self) -> None:
+        if self.law not in LAWS:
+            raise UncertaintyError(self.key, f"unknown law {self.law!r} (known: {', '.join(LAWS)})")
+        if self.law == "log-uniform" and not 0 < self.a <= self.b:
+            raise UncertaintyError(self.key, f"a log-uniform range needs 0 < lo <= hi, got [{self.a:g}, {self.b:g}]")
+
+    @classmethod
+    def uniform(cls, key: str, lo: float, hi: float, times: str = "") -> "Axis":
+        """``lo + (hi - lo) u``."""
+        return cls(key, "uniform", float(lo), float(hi), times)
+
+    @classmethod
+    def log_uniform(cls, key: str, lo: float, hi: float, times: str = "") -> "Axis":
+        """Uniform in ``log``: a factor as likely halved as doubled."""
+        return cls(key, "log-uniform", float(lo), float(hi), times)
+
+    @classmethod
+    def symmetric(cls, key: str, centre: float, half: float, times: str = "") -> "Axis":
+        """``centre + half (2u - 1)``: a relative half-range about 1, an absolute one about 0."""
+        return cls(key, "symmetric", float(centre), float(half), times)
+
+    @property
+    def bounds(self) -> tuple[float, float]:
+        """``lo, hi`` of the values drawn."""
+        if self.law == "symmetric":
+            return self.a - self.b, self.a + self.b
+        return self.a, self.b
+
+    def draw(self, u: Any) -> Any:
+        """The value of uniform(s) ``u`` in [0, 1) (a float or an array, elementwise)."""
+        if self.law == "log-uniform":
+            return np.exp(np.log(self.a) + (np.log(self.b) - np.log(self.a)) * u)
+        if self.law == "symmetric":
+            s = 2.0 * u - 1.0
+            return self.b * s if self.a == 0.0 else self.a + self.b * s
+        return self.a + (self.b - self.a) * u
+
+
+def scaled_values(params: RobotParams, axes: "Mapping[str, Axis]", factors: Mapping[str, Any]) -> dict[str, Any]:
+    """Robot-file values (bare names, :data:`ROBOT_KEYS`) of drawn factors.
+
+    Each value is the robot's times the coupled axis's factor (if any) times its own, in that
+    order; a factor key without an axis leaves its values at the robot's.
+    """
+    out: dict[str, Any] = {}
+    for k, names in ROBOT_KEYS.items():
+        ax = axes.get(k)
+        if ax is None:
+            continue
+        for name in names:
+            v = getattr(params, name)
+            if ax.times:
+                v = v * factors[ax.times]
+            out[name] = v * factors[k]
+    return out
+
 
 _OTHER_KEYS = ("delay", "random", "seed", "push_points", "supply_measured", "realism", "realism_vertices")
 
@@ -159,6 +257,10 @@ class UncertaintySet:
             out.append(int(round(t)))
         return out[0], out[1]
 
+    def axes(self) -> dict[str, Axis]:
+        """The box's axes: every factor and realism range, uniform and independent."""
+        return {k: Axis.uniform(k, lo, hi) for k, (lo, hi) in (*self.factors.items(), *self.realism.items())}
+
     def points(self, rate: float, nominal_delay: float) -> list[Point]:
         """The nominal robot, the vertices of the box (duplicates removed), then the random points."""
         d_lo, d_hi = self.delay_ticks(rate)
@@ -177,10 +279,11 @@ class UncertaintySet:
             pts.append(Point(dict(zip(keys, combo[:nf])), int(combo[nf]), True, real))
         rng = np.random.default_rng(self.seed)
         rng_r = np.random.default_rng([self.seed, 1])  # realism from its own stream: the box's draws stay today's
+        ax = self.axes()
         for _ in range(self.random):
-            f = {k: float(lo + (hi - lo) * rng.random()) for k, (lo, hi) in self.factors.items()}
-            d = int(rng.integers(d_lo, d_hi + 1))
-            real = {k: float(lo + (hi - lo) * rng_r.random()) for k, (lo, hi) in self.realism.items()}
+            f = {k: float(ax[k].draw(rng.random())) for k in self.factors}
+            d = int(rng.integers(d_lo, d_hi + 1))  # whole ticks: the bounds are (delay_ticks)
+            real = {k: float(ax[k].draw(rng_r.random())) for k in self.realism}
             pts.append(Point(f, d, False, real))
         return pts
 

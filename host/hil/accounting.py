@@ -16,7 +16,7 @@ from firmware import msgtable as T
 from host.hil.errors import HilError
 from host.link import messages as M
 
-__all__ = ["SeqAccount", "Sink"]
+__all__ = ["TickPairs", "SeqAccount", "Sink"]
 
 _TELEM_STATE = M.BY_NAME["telem_state"]
 _TELEM_CTRL = M.BY_NAME["telem_ctrl"]
@@ -113,6 +113,58 @@ class SeqAccount:
         return {"seq_events": self.events, "seq_span": self.span, "seq_lost": self.lost,
                 "telemetry": self.telemetry, "heartbeats": self.heartbeats, "duplicates": self.duplicates,
                 "reordered": self.reordered, "half_pairs": self.half_pairs}
+
+
+class TickPairs:
+    """The two telemetry frames of one tick (``telem_state`` then ``telem_ctrl``, one seq) paired,
+    every periodic frame accounted (:class:`SeqAccount`) and every broken pair counted: the one
+    pairing of the board recorder (:class:`host.operate.record.Recorder`) and the dashboard
+    (:class:`host.dashboard.hub.Hub`).
+
+    Attributes
+    ----------
+    seqs : SeqAccount
+        The sequence numbers of the periodic frames fed.
+    unpaired : int
+        Halves of a tick whose other half did not come (a ``telem_ctrl`` before any frame at all
+        is not one: the feed started between the two halves).
+    """
+
+    def __init__(self) -> None:
+        self.seqs = SeqAccount()
+        self.unpaired = 0
+        self._pending: tuple[Any, int | None, Any] | None = None
+
+    @property
+    def lost(self) -> int:
+        """Periodic frames lost (sequence gaps) plus halves of ticks whose pair was broken."""
+        return self.seqs.lost + self.unpaired
+
+    def add(self, msg: Any, seq: int | None, t: Any = None) -> tuple[Any, Any, Any] | None:
+        """Feed one message (``seq`` None: not numbered, e.g. a reply); ``(state, ctrl, t of the
+        state)`` when it completes a tick's pair, else ``None``."""
+        name = msg.NAME
+        if name == "telem_state":
+            if self._pending is not None:
+                self.unpaired += 1
+            self.seqs.add(msg, seq)
+            self._pending = (msg, seq, t)
+            return None
+        if name != "telem_ctrl":
+            self.seqs.add(msg, seq)
+            return None
+        p, self._pending = self._pending, None
+        if p is None or (seq is not None and p[1] is not None and seq != p[1]):
+            if self.seqs.events or p is not None:
+                self.unpaired += 1
+            self.seqs.add(msg, seq)
+            return None
+        self.seqs.add(msg, seq)
+        return p[0], msg, p[2]
+
+    def drop(self) -> None:
+        """Forget a half-received tick (the end of a recording cuts it: not a loss)."""
+        self._pending = None
 
 
 class Sink:

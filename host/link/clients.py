@@ -46,6 +46,7 @@ from firmware import msgtable as T
 from firmware.board import UART_BAUD as _UART_BAUD
 from host.link import identity as ID
 from host.link import messages as M
+from host.link.keepalive import HOST_HEARTBEAT_S, Keepalive
 
 __all__ = [
     "LinkError",
@@ -157,54 +158,9 @@ def _exclusive_ok(url: str) -> bool:
 # reply class wanted by a request, by request message name (default: ACK)
 _REPLY: dict[str, str] = {"param_get": "param_value", "param_set": "param_value"}
 _HEARTBEAT = M.BY_NAME["heartbeat"]
-_HOST_HEARTBEAT = M.BY_NAME["host_heartbeat"]
 _VERSION = M.BY_NAME["version"]
-#: host heartbeat period (s) of :meth:`Link.start_heartbeat`: well inside the smallest
-#: watchdog_ms the board accepts (msgtable PARAMS) times 3
-HOST_HEARTBEAT_S = 0.05
 #: board heartbeats that may be missing before :attr:`Link.board_silent` is set
 SILENT_PERIODS = 3
-
-
-class Keepalive:
-    """The host heartbeat, the one frame that feeds the board's link watchdog: every tool that
-    keeps a board armed sends it through this (a thread in :meth:`Link.start_heartbeat`, a
-    poll loop in :meth:`host.operate.board.Board.keepalive`, the dashboard's pump).
-
-    Parameters
-    ----------
-    send : callable
-        Sends one message (a link's ``send``; thread-safe where several threads send).
-    period : float
-        Seconds between heartbeats for :meth:`tick`.
-    """
-
-    def __init__(self, send: Callable[[M.Message], Any], period: float = HOST_HEARTBEAT_S) -> None:
-        if period <= 0:
-            raise ValueError(f"period must be > 0, got {period!r}")
-        self._send = send
-        self.period = float(period)
-        self.last = -float("inf")
-        #: host heartbeats sent
-        self.sent = 0
-
-    def beat(self, now: float | None = None) -> None:
-        """Send one host heartbeat now (the next is due a period later even if this one failed)."""
-        self.fed(now)
-        self._send(_HOST_HEARTBEAT())
-        self.sent += 1
-
-    def fed(self, now: float | None = None) -> None:
-        """The watchdog was fed at ``now`` (a heartbeat, or another frame that feeds it)."""
-        self.last = time.monotonic() if now is None else now
-
-    def tick(self, now: float | None = None) -> bool:
-        """Send a host heartbeat if ``period`` s passed since the last feed; True if sent."""
-        now = time.monotonic() if now is None else now
-        if now - self.last < self.period:
-            return False
-        self.beat(now)
-        return True
 
 
 class Link:
@@ -238,6 +194,9 @@ class Link:
         self.silences = 0
         #: called with the silence in seconds when :attr:`board_silent` becomes True
         self.on_silent: Callable[[float], None] | None = None
+        #: the host heartbeat of this link, beating in the board's time: every tool sends it through
+        #: this one object (:mod:`host.link.keepalive`); :meth:`_ingest` shows it every board heartbeat
+        self.keepalive = Keepalive(self.send)
         self._hb_thread: threading.Thread | None = None
         self._hb_stop = threading.Event()
         self._board_period: float | None = None
@@ -389,6 +348,7 @@ class Link:
                 self.last_heartbeat = m
                 self.last_heartbeat_at = time.monotonic()
                 self.board_silent = False
+                self.keepalive.observe(m.uptime_ms, self.last_heartbeat_at)
         self.received += len(got)
         self._queue.extend(got)
 
@@ -540,7 +500,10 @@ class Link:
         return v
 
     def start_heartbeat(self, period: float = HOST_HEARTBEAT_S, board_period: float | None = None) -> None:
-        """Send HOST_HEARTBEAT every ``period`` s from a thread until :meth:`close` / :meth:`stop_heartbeat`.
+        """Send HOST_HEARTBEAT from a thread until :meth:`close` / :meth:`stop_heartbeat`: every
+        ``period`` s of wall time to a board at full speed, every
+        :data:`~host.link.keepalive.KEEPALIVE_BOARD_S` of its clock to a slower one
+        (:attr:`keepalive`).
 
         While it runs, a board heartbeat missing for :data:`SILENT_PERIODS` periods sets
         :attr:`board_silent` (and calls :attr:`on_silent`).  ``board_period``: the board's
@@ -559,7 +522,8 @@ class Link:
         self._board_period = board_period or None
         self.last_heartbeat_at = time.monotonic()
         self._hb_stop.clear()
-        keep = Keepalive(self.send, period)
+        keep = self.keepalive
+        keep.fastest = float(period)
         keep.beat()
         self._hb_thread = threading.Thread(target=self._heartbeat_loop, args=(keep,), daemon=True,
                                            name="upright-host-heartbeat")
@@ -580,9 +544,9 @@ class Link:
         return self._hb_thread is not None
 
     def _heartbeat_loop(self, keep: Keepalive) -> None:
-        while not self._hb_stop.wait(keep.period):
+        while not self._hb_stop.wait(max(0.002, keep.due_in())):
             try:
-                keep.beat()
+                keep.tick()
                 # nobody reading: take what arrived (board heartbeats) into the queue (never
                 # while shared: the pump reads, and notes the board's heartbeats itself)
                 if self._background_reads and not self._shared and self._rx_lock.acquire(blocking=False):

@@ -34,7 +34,7 @@ def table_canon() -> str:
     msgs = [(m[0], m[1], m[2], [tuple(f[:4]) for f in m[4]]) for m in T.MESSAGES]
     reasons = [tuple(r[:2]) for r in T.REASONS]
     states = [tuple(s[:2]) for s in T.STATES]
-    faults = [tuple(f[:2]) for f in getattr(T, "FAULTS", ())]
+    faults = [tuple(f[:2]) for f in T.FAULTS]
     consts = [(c, getattr(T, c)) for c in _CONSTANTS]
     return repr((msgs, reasons, states, faults, consts))
 

@@ -26,7 +26,7 @@ from typing import Any, Callable, Iterable
 from firmware import msgtable as T
 from host.link import messages as M
 from host.link import identity as I  # noqa: N812
-from host.link.clients import CommandRefused, Keepalive, Link, LinkError, LinkTimeout, open_link
+from host.link.clients import CommandRefused, Link, LinkError, LinkTimeout, open_link
 
 __all__ = [
     "BoardError", "NotSupported", "ParamInputError", "IdentityMismatch",
@@ -231,15 +231,13 @@ class Board:
         self.hb_times: collections.deque[float] = collections.deque(maxlen=64)
         self.identity: dict[str, Any] = {}
         self.armed_by_us = False
-        self._keepalive = Keepalive(self.send)
+        #: the link's one host heartbeat (beats in the board's time: :mod:`host.link.keepalive`)
+        self._keepalive = link.keepalive
         self._closed = False
         self.listeners: list[Callable[[Any, int | None, float], None]] = []
         #: board seconds per wall second (:meth:`measure_speed`; 1 until measured)
         self.speed = 1.0
         self._first: tuple[int, float] | None = None
-        from host.hil.answer_time import ClockTrack
-
-        self._clock = ClockTrack()
         self._clock_measured = False  # speed followed from the heartbeats once measure_speed ran
         self._feeder: Any = None
         #: feed the watchdog from a thread while armed (False: the owner keeps its own keepalive, as the dashboard's hub)
@@ -351,20 +349,14 @@ class Board:
         except HilError as exc:
             raise BoardError(f"{self.port}: {exc}") from None
         self._first = None
-        self._clock = type(self._clock)(speed=self.speed)
+        self._keepalive.restart(self.speed)
         self._clock_measured = True
-        from host.hil.answer_time import keepalive_period
-
-        self._keepalive.period = keepalive_period(self.speed)
         return self.speed
 
-    def _clock_seen(self, uptime_ms: int, t: float) -> None:
-        from host.hil.answer_time import keepalive_period
-
-        sp = self._clock.observe(uptime_ms, t)
+    def _clock_seen(self) -> None:
+        # the link showed its keepalive the heartbeat (Link._ingest): the speed it follows
         if self._clock_measured:
-            self.speed = sp
-        self._keepalive.period = keepalive_period(sp)
+            self.speed = self._keepalive.clock.speed
 
     def wall(self, board_s: float) -> float:
         """Wall seconds in which the board lives ``board_s`` seconds at its measured :attr:`speed`."""
@@ -378,7 +370,7 @@ class Board:
             self.heartbeat = msg
             self.hb_times.append(t)
             if seq is not None:  # a periodic one (a reply's time is the request's)
-                self._clock_seen(int(msg.uptime_ms), t)
+                self._clock_seen()
         for fn in self.listeners:
             fn(msg, seq, t)
 
@@ -447,12 +439,15 @@ class Board:
 
     # ---- the host heartbeat ----
     def keepalive(self) -> bool:
-        """Feed the board's link watchdog (:class:`host.link.clients.Keepalive`: the host
+        """Feed the board's link watchdog (the link's :class:`host.link.keepalive.Keepalive`: the host
         heartbeat) if its period passed since the last feed.  Returns True if it was sent.
 
-        The period is in the board's time (:func:`host.hil.answer_time.keepalive_period` of the
+        The period is in the board's time (:func:`host.link.keepalive.keepalive_period` of the
         speed followed from its heartbeats): a board slower than real time is not flooded."""
-        return self._keepalive.tick()
+        try:
+            return self._keepalive.tick()
+        except LinkError as exc:
+            raise _link_error(self.port, exc) from exc
 
     def _feed(self, on: bool) -> None:
         # while this host has the board armed, a thread ticks the same keepalive: a request waiting

@@ -19,11 +19,16 @@ import time
 from pathlib import Path
 from typing import Any
 
-from host.hil.accounting import SeqAccount
+from host.hil.accounting import SeqAccount, TickPairs
 
-__all__ = ["COLUMNS", "UNITS", "Recorder", "format_of"]
+__all__ = ["TELEMETRY", "COLUMNS", "UNITS", "Recorder", "format_of", "telemetry_values"]
 
-COLUMNS = ("t", "seq", "x", "xdot", "phi", "phidot", "ref", "force", "duty", "step_us", "state", "faults")
+TELEMETRY = ("x", "xdot", "phi", "phidot", "ref", "force", "duty", "step_us", "state", "faults")
+"""The columns of one control tick, the same in every recording (this recorder's, the dashboard's
+:data:`host.dashboard.hub.COLUMNS`): the two telemetry frames in physical units and the state and
+fault flags of the latest heartbeat (:func:`telemetry_values`)."""
+
+COLUMNS = ("t", "seq", *TELEMETRY)
 UNITS: dict[str, str] = {
     "t": "s", "seq": "", "x": "m", "xdot": "m/s", "phi": "rad", "phidot": "rad/s", "ref": "m", "force": "N",
     "duty": "count", "step_us": "us", "state": "", "faults": "",
@@ -32,6 +37,12 @@ UNITS: dict[str, str] = {
 }
 """Unit of each recorded column ('' for codes and counters; docs/logs.md says what each means).
 Parquet files carry it as the field metadata ``unit``."""
+
+
+def telemetry_values(st: Any, ct: Any, state: int, faults: int) -> tuple[Any, ...]:
+    """The :data:`TELEMETRY` values of a tick's TELEM_STATE ``st`` and TELEM_CTRL ``ct``."""
+    a, b = st.physical(), ct.physical()
+    return (a["x"], a["xdot"], a["phi"], a["phidot"], b["ref"], b["force"], b["duty"], b["step_us"], state, faults)
 
 
 def format_of(path: str | Path) -> str:
@@ -68,11 +79,8 @@ class Recorder:
         self.flush_s = float(flush_s)
         self.rows = 0
         self.telemetry_frames = 0  # TELEM_STATE and TELEM_CTRL received
-        self.unpaired = 0  # a half of a tick whose other half did not come
-        self.seqs = SeqAccount()
+        self.pairs = TickPairs()  # the one pairing and loss count (the dashboard's too)
         self.t0: float | None = None
-        self._pending: Any = None
-        self._pending_seq: int | None = None
         self._buf: list[tuple[Any, ...]] = []
         self._last_flush = time.monotonic()
         self._state = None
@@ -116,9 +124,19 @@ class Recorder:
         return x[1] > x[0] or phi[1] > phi[0]
 
     @property
+    def seqs(self) -> SeqAccount:
+        """The sequence account of the periodic frames."""
+        return self.pairs.seqs
+
+    @property
+    def unpaired(self) -> int:
+        """Halves of a tick whose other half did not come."""
+        return self.pairs.unpaired
+
+    @property
     def lost(self) -> int:
         """Periodic frames lost (sequence gaps) plus halves of ticks whose pair was broken."""
-        return self.seqs.lost + self.unpaired
+        return self.pairs.lost
 
     def _on(self, msg: Any, seq: int | None, t: float) -> None:
         if self._closed:
@@ -128,30 +146,15 @@ class Recorder:
             self.t0 = t
         if name == "heartbeat":
             self._state, self._faults = msg.state, msg.faults
-            self.seqs.add(msg, seq)
-        elif name == "telem_state":
+        elif name in ("telem_state", "telem_ctrl"):
             self.telemetry_frames += 1
-            if self._pending is not None:
-                self.unpaired += 1
-            self.seqs.add(msg, seq)
-            self._pending, self._pending_seq = (msg, t), seq
-        elif name == "telem_ctrl":
-            self.telemetry_frames += 1
-            if self._pending is None or (seq is not None and seq != self._pending_seq):
-                # (the second half of a tick before the first TELEM_STATE: the recording
-                # started between the two, nothing was lost)
-                if self.seqs.events or self._pending is not None:
-                    self.unpaired += 1
-                self.seqs.add(msg, seq)
-                self._pending = None
-                return
-            self.seqs.add(msg, seq)
-            st, ts = self._pending
-            self._pending = None
-            a, b = st.physical(), msg.physical()
-            row = (round(ts - self.t0, 6), -1 if seq is None else seq, a["x"], a["xdot"], a["phi"], a["phidot"],
-                   b["ref"], b["force"], b["duty"], b["step_us"],
-                   -1 if self._state is None else self._state, -1 if self._faults is None else self._faults,
+        pair = self.pairs.add(msg, seq, t) if name in ("heartbeat", "telem_state", "telem_ctrl") else None
+        if pair is not None:
+            st, ct, ts = pair
+            a = st.physical()
+            row = (round(ts - self.t0, 6), -1 if seq is None else seq,
+                   *telemetry_values(st, ct, -1 if self._state is None else self._state,
+                                     -1 if self._faults is None else self._faults),
                    *(self.extra_values[k] for k in self.columns[len(COLUMNS):]))
             self._buf.append(row)
             self.rows += 1
@@ -186,7 +189,7 @@ class Recorder:
         self._closed = True
         try:
             # a tick cut in half by the end of the recording is not a loss
-            self._pending = None
+            self.pairs.drop()
             self.flush()
         finally:
             if self._pq is not None:

@@ -10,7 +10,9 @@ keeps its default, an unknown key or a bad value is refused with the key named::
     delay = [0.005, 0.020]  # s, measurement delay range (each run: the nearest whole tick)
     tilt = 0.03             # rad, initial tilt range +-tilt (robustness)
 
-``sim/sweep_ranges.toml`` is an example (the issue's wider set).
+``sim/sweep_ranges.toml`` is an example (the issue's wider set).  The ranges are the sweep's
+parametrisation of the one uncertainty model: :meth:`host.studies.sweep.Uncertainty.axes` turns
+them into :class:`host.design.uncertainty.Axis` objects with their laws, which make the draw.
 """
 
 from __future__ import annotations

@@ -20,6 +20,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from host.design.uncertainty import Axis, scaled_values
 from sim.batch import METRICS, RunSet, simulate_batch
 from sim.params import SCHEMA, RobotParams
 from sim.scenario import Expectation, Scenario, dump_scenario
@@ -91,7 +92,8 @@ class SweepInterrupted(KeyboardInterrupt):
 
 @dataclass(frozen=True)
 class Uncertainty:
-    """Ranges of the Monte Carlo (each run draws uniformly within them).
+    """Ranges of the Monte Carlo: the sweep's parametrisation of the one uncertainty model
+    (:meth:`axes`, :class:`host.design.uncertainty.Axis`; ``--ranges FILE``: :mod:`.ranges`).
 
     Parameters
     ----------
@@ -131,6 +133,23 @@ class Uncertainty:
             raise SweepError(f"delay range must satisfy 0 <= lo <= hi <= 0.1 s, got {self.delay!r}")
         if not 0 <= self.tilt < math.pi / 2:
             raise SweepError(f"tilt must be in [0, pi/2), got {self.tilt!r}")
+
+    def axes(self) -> dict[str, Axis]:
+        """The Monte Carlo in the one uncertainty model (:class:`host.design.uncertainty.Axis`).
+
+        In the order of a run's uniforms: cart mass, pendulum masses, inertia (coupled to the
+        pendulum masses), friction (log-uniform), resistance, torque constant, delay (s), tilt (rad).
+        """
+        return {a.key: a for a in (
+            Axis.symmetric("cart_mass", 1.0, self.mass),
+            Axis.symmetric("pendulum_mass", 1.0, self.mass),
+            Axis.symmetric("inertia", 1.0, self.inertia, times="pendulum_mass"),
+            Axis.log_uniform("friction", *self.friction),
+            Axis.symmetric("resistance", 1.0, self.motor),
+            Axis.symmetric("motor_constant", 1.0, self.motor),
+            Axis.uniform("delay", *self.delay),
+            Axis.symmetric("tilt", 0.0, self.tilt),
+        )}
 
     @classmethod
     def none(cls) -> "Uncertainty":
@@ -306,32 +325,14 @@ def sample_runs(cfg: SweepConfig, start: int, stop: int) -> tuple[RunSet, dict[s
         rows: list[dict[str, float]] = [{} for _ in range(n)]
         dticks = np.full(n, delay_steps(p.delay, rate), dtype=np.int64)
     else:
-        un = cfg.uncertainty
-        sym = 2.0 * u - 1.0  # uniform in [-1, 1]
-        f_M = 1.0 + un.mass * sym[:, 0]
-        f_m = 1.0 + un.mass * sym[:, 1]
-        f_I = 1.0 + un.inertia * sym[:, 2]
-        lo, hi = un.friction
-        f_b = np.exp(np.log(lo) + (np.log(hi) - np.log(lo)) * u[:, 3])
-        f_R = 1.0 + un.motor * sym[:, 4]
-        f_k = 1.0 + un.motor * sym[:, 5]
-        dl = un.delay[0] + (un.delay[1] - un.delay[0]) * u[:, 6]
+        ax = cfg.uncertainty.axes()
+        f = {k: a.draw(u[:, j]) for j, (k, a) in enumerate(ax.items())}  # column j of the uniforms: axis j
         # the draw is continuous; the simulated delay is the nearest whole tick (the sensors
         # are sampled once per tick) and the table's "delay" column is that simulated delay
-        dticks = np.rint(dl * rate).astype(np.int64)
-        phi0 = un.tilt * sym[:, 7]
-        rows = []
-        for j in range(n):
-            m_cam, m_shaft = p.m_cam * f_m[j], p.m_shaft * f_m[j]
-            rows.append({
-                "M": float(p.M * f_M[j]),
-                "m_cam": float(m_cam),
-                "m_shaft": float(m_shaft),
-                "I": float(p.I * f_m[j] * f_I[j]),
-                "b": float(p.b * f_b[j]),
-                "R": float(p.R * f_R[j]),
-                "kt": float(p.kt * f_k[j]),
-            })
+        dticks = np.rint(f["delay"] * rate).astype(np.int64)
+        phi0 = f["tilt"]
+        robot = scaled_values(p, ax, f)
+        rows = [{k: float(robot[k][j]) for k in _SAMPLED} for j in range(n)]
     robots = [_true_robot(p, r) for r in rows]
     values = {k: np.array([getattr(r, k) for r in robots]) for k in ("M", "m", "L", "I", "b", "R", "kt")}
     x0 = np.zeros((n, 4))
