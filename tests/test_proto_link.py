@@ -221,3 +221,50 @@ def test_late_reply_to_an_earlier_request_is_not_taken_as_the_answer():
             assert host.recv(timeout=1.0) == M.ParamValue(index=0, value=1)
     finally:
         br.close()
+
+
+def test_frames_that_came_before_a_reply_are_observed_before_it(tmp_path):
+    # the board's stream is in order on the wire: telemetry and a periodic heartbeat (disarmed) sent
+    # before the reply to a host's request (balancing) must reach a board tool's listeners -- a
+    # recorder labelling each row with the latest heartbeat -- before the reply does; they were once
+    # queued behind it, and an excitation log recorded the ticks of before the arm as balancing and
+    # excited (tests/test_readme_robot.py test_7)
+    import threading
+
+    from host.operate.board import Board
+    from host.operate.record import Recorder
+
+    br = PtyBridge()
+    try:
+        with L.SerialLink(br.a, check_identity=False) as host, L.SerialLink(br.b) as board:
+            def serve():
+                board.recv(timeout=5.0)
+                seq = board.last_seq
+                s0 = (seq + 50) & 0xFF  # periodic numbers that are not the request's
+                frames = [(M.BY_NAME["telem_state"](x=10, xdot=0, phi=0, phidot=0), s0),
+                          (M.BY_NAME["telem_ctrl"](ref=0, force=0, duty=0, step_us=199), s0),
+                          (M.BY_NAME["heartbeat"](state=0, faults=0, boot=1, epoch=1, gains_crc=0, uptime_ms=100),
+                           (s0 + 1) & 0xFF),
+                          (M.BY_NAME["telem_state"](x=20, xdot=0, phi=0, phidot=0), (s0 + 2) & 0xFF),
+                          (M.BY_NAME["telem_ctrl"](ref=0, force=0, duty=0, step_us=199), (s0 + 2) & 0xFF),
+                          (M.BY_NAME["heartbeat"](state=2, faults=0, boot=1, epoch=1, gains_crc=0, uptime_ms=102), seq)]
+                board.write_raw(b"".join(M.encode_serial(m, s) for m, s in frames))  # one write: one read
+
+            t = threading.Thread(target=serve)
+            t.start()
+            b = Board(host, feed=False)
+            seen: list[tuple[str, int | None]] = []
+            b.listeners.append(lambda m, s, _t: seen.append((m.NAME, s)))
+            rec = Recorder(b, tmp_path / "rows.csv")
+            assert b.state(fresh=True)["state_name"] == "balancing"
+            t.join()
+            rec.close()
+            assert [n for n, _ in seen] == ["telem_state", "telem_ctrl", "heartbeat", "telem_state", "telem_ctrl",
+                                            "heartbeat"]
+            assert seen[-1][1] is None and all(s is not None for _, s in seen[:-1])  # the reply last
+            assert b.poll(0.2) == []  # nothing left queued to be observed a second time
+            rows = (tmp_path / "rows.csv").read_text().splitlines()[1:]
+            state = [int(r.split(",")[rec.columns.index("state")]) for r in rows]
+            assert state == [-1, 0], rows  # no heartbeat yet, then the disarmed one: none says balancing
+    finally:
+        br.close()

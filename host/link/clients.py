@@ -209,6 +209,10 @@ class Link:
         self._inbox_cv = threading.Condition()
         self._inbox_seq: int | None = None
         self._last_seq: int | None = None
+        #: messages queued ahead of the last reply :meth:`expect` / :meth:`request` returned: they
+        #: arrived before it (the first ones :meth:`recv` returns), so a reader that must see the
+        #: board's stream in order takes them before it looks at the reply (Board.request)
+        self.queued_before_reply = 0
         # seq -> time of the requests sent while shared: their replies carry the request's seq,
         # not the board's periodic counter (is_reply)
         self._requests: dict[int, float] = {}
@@ -390,6 +394,7 @@ class Link:
                     item = q.popleft()
                     if match(*item):
                         self.last_seq = item[1]
+                        self.queued_before_reply = len(held)
                         return item[0]
                     held.append(item)
                 left = deadline - time.monotonic()

@@ -374,6 +374,18 @@ class Board:
         for fn in self.listeners:
             fn(msg, seq, t)
 
+    def _observe_before_reply(self) -> None:
+        # the frames that arrived while a request waited for its answer are queued ahead of it: the
+        # listeners (a recorder labelling rows with the latest heartbeat, an excitation's column that
+        # starts at the board's ACK) see them before the reply and what the caller does next -- else
+        # the board's telemetry of before an arm is recorded after the heartbeat that says balancing
+        n, self.link.queued_before_reply = self.link.queued_before_reply, 0
+        for _ in range(n):
+            msg = self.link.recv(timeout=0)
+            if msg is None:
+                break
+            self._observe(msg, self.link.last_seq, time.monotonic())
+
     def poll(self, timeout: float = 0.0) -> list[tuple[Any, int | None, float]]:
         """Every message that arrives within ``timeout`` s (at least what is already waiting).
 
@@ -412,8 +424,11 @@ class Board:
         kw.setdefault("timeout", self.timeout)
         kw.setdefault("retries", self.retries)
         try:
-            return self.link.request(msg, **kw)
+            reply = self.link.request(msg, **kw)
+            self._observe_before_reply()
+            return reply
         except CommandRefused as exc:
+            self._observe_before_reply()
             if exc.reason == T.R_NOT_SUPPORTED or exc.reason_name == "unknown":
                 raise NotSupported(f"{self.port}: {exc}") from exc
             raise BoardError(f"{self.port}: {exc}") from exc

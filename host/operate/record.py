@@ -83,8 +83,11 @@ class Recorder:
         self.t0: float | None = None
         self._buf: list[tuple[Any, ...]] = []
         self._last_flush = time.monotonic()
-        self._state = None
-        self._faults = None
+        # the latest heartbeat the board tool has seen: the rows still queued in its link came after it
+        # (Board observes the board's stream in order, replies included), -1 in a row: none yet
+        hb = getattr(board, "heartbeat", None)
+        self._state = None if hb is None else int(hb.state)
+        self._faults = None if hb is None else int(hb.faults)
         self._closed = False
         #: smallest and largest x (m) and phi (rad) of the rows since :meth:`reset_span`
         self.span: dict[str, list[float]] = {}
