@@ -18,7 +18,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -33,59 +32,23 @@ UPRIGHT = [sys.executable, "-m", "host.cli.main"]
 SLOW = ["--timeout", "3", "--answer-timeout", "60"]
 
 
-def _descendants(pid: int) -> set[int]:
-    """Every process below ``pid`` (children of all its threads, recursively)."""
-    out: set[int] = set()
-    todo = [pid]
-    while todo:
-        p = todo.pop()
-        try:
-            tids = os.listdir(f"/proc/{p}/task")
-        except OSError:
-            continue
-        for tid in tids:
-            try:
-                kids = Path(f"/proc/{p}/task/{tid}/children").read_text().split()
-            except OSError:
-                continue
-            for k in map(int, kids):
-                if k not in out:
-                    out.add(k)
-                    todo.append(k)
-    return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] != "Z"
-
-
-def _default_sigint() -> None:
-    # a pytest started from a non-interactive shell's background job inherits SIGINT ignored;
-    # the emulator must see Ctrl-C as a terminal would deliver it
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 @pytest.fixture(scope="module")
 def port():
     """The emulated board's pty; at the end Ctrl-C to the command's process group (as a terminal's)."""
     p = subprocess.Popen(UPRIGHT + ["emulate", "rp2040", "--pty"], cwd=ROOT, stdin=subprocess.PIPE,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
-                         preexec_fn=_default_sigint)
+                         preexec_fn=TH.default_sigint)
     try:
         path = p.stdout.readline().strip()
         assert path.startswith("/dev/pts/"), p.stderr.read() if p.poll() is not None else path
         yield path
-        kids = _descendants(p.pid)
+        kids = TH.descendants(p.pid)
         assert kids, "the emulator runs in a child process (node)"
         os.killpg(p.pid, signal.SIGINT)
         _, err = p.communicate(timeout=30)
         assert p.returncode == 130, err
         assert "interrupted" in err and "Traceback" not in err, err
-        left = [k for k in kids if _alive(k)]
+        left = [k for k in kids if TH.alive(k)]
         assert not left, f"processes left behind: {left}"
     finally:
         if p.poll() is None:

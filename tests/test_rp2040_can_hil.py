@@ -18,7 +18,6 @@ build/rp2040/firmware.bin.  Wall time of the module: about 80-100 s on 2 cores.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import re
@@ -29,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+import tool_helpers as TH
 
 from host.boards.rp2040.board import ROOT
 from sim.plantsim import read_csv
@@ -132,40 +133,6 @@ def test_hil_emulate_takes_the_plant_file(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------- upright emulate rp2040 --can
-def _descendants(pid: int) -> set[int]:
-    out: set[int] = set()
-    todo = [pid]
-    while todo:
-        p = todo.pop()
-        try:
-            tids = os.listdir(f"/proc/{p}/task")
-        except OSError:
-            continue
-        for tid in tids:
-            try:
-                kids = Path(f"/proc/{p}/task/{tid}/children").read_text().split()
-            except OSError:
-                continue
-            for k in map(int, kids):
-                if k not in out:
-                    out.add(k)
-                    todo.append(k)
-    return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] != "Z"
-
-
-def _default_sigint() -> None:
-    # the emulator must see Ctrl-C as from a terminal (a background job inherits SIGINT ignored)
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 def test_emulate_can_serves_board_status_over_udp_multicast() -> None:
     from firmware import identity
 
@@ -174,7 +141,7 @@ def test_emulate_can_serves_board_status_over_udp_multicast() -> None:
     env = dict(os.environ, CAN_CONFIG=json.dumps({"port": 40000 + os.getpid() % 20000}))
     p = subprocess.Popen(UPRIGHT + ["emulate", "rp2040", "--can"], cwd=ROOT, env=env, stdin=subprocess.PIPE,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
-                         preexec_fn=_default_sigint)
+                         preexec_fn=TH.default_sigint)
     try:
         line = p.stdout.readline().strip()
         assert line.startswith("can:udp_multicast:"), p.stderr.read() if p.poll() is not None else line
@@ -193,13 +160,13 @@ def test_emulate_can_serves_board_status_over_udp_multicast() -> None:
         # the board's own CAN decoder saw the tool's frames and dropped none
         assert st["board_stats"]["frames"]["frames_in"] > 0
         assert not any(st["board_stats"]["decode"].values()), st["board_stats"]
-        kids = _descendants(p.pid)
+        kids = TH.descendants(p.pid)
         assert kids, "the emulator runs in a child process (node)"
         os.killpg(p.pid, signal.SIGINT)
         _, err = p.communicate(timeout=30)
         assert p.returncode == 130, err
         assert "interrupted" in err and "Traceback" not in err, err
-        left = [k for k in kids if _alive(k)]
+        left = [k for k in kids if TH.alive(k)]
         assert not left, f"processes left behind: {left}"
     finally:
         if p.poll() is None:

@@ -1,13 +1,16 @@
 """What the tests of the board tools and the dashboard share: reading a tool's summary line, the
-user's hands at ``calibrate``'s prompts, and asking the dashboard's HTTP API (imported by name:
-``import tool_helpers as TH``)."""
+user's hands at ``calibrate``'s prompts, asking the dashboard's HTTP API, and the process tree of an
+emulator stopped by Ctrl-C (imported by name: ``import tool_helpers as TH``)."""
 
 from __future__ import annotations
 
 import json
+import os
+import signal
 import time
 import urllib.error
 import urllib.request
+from pathlib import Path
 from typing import Any
 
 
@@ -56,3 +59,40 @@ def answer_prompts(proc: Any, relay: Any, hands: dict[str, tuple[int, int]],
                 time.sleep(0.2)
                 proc.stdin.write("\n")
                 proc.stdin.flush()
+
+
+def descendants(pid: int) -> set[int]:
+    """Every process below ``pid`` (children of all its threads, recursively)."""
+    out: set[int] = set()
+    todo = [pid]
+    while todo:
+        p = todo.pop()
+        try:
+            tids = os.listdir(f"/proc/{p}/task")
+        except OSError:
+            continue
+        for tid in tids:
+            try:
+                kids = Path(f"/proc/{p}/task/{tid}/children").read_text().split()
+            except OSError:
+                continue
+            for k in map(int, kids):
+                if k not in out:
+                    out.add(k)
+                    todo.append(k)
+    return out
+
+
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def default_sigint() -> None:
+    """``preexec_fn`` of an emulator that must see Ctrl-C as a terminal would deliver it (a pytest
+    started from a non-interactive shell's background job inherits SIGINT ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
