@@ -42,14 +42,7 @@ def port():
         path = p.stdout.readline().strip()
         assert path.startswith("/dev/pts/"), p.stderr.read() if p.poll() is not None else path
         yield path
-        kids = TH.descendants(p.pid)
-        assert kids, "the emulator runs in a child process (node)"
-        os.killpg(p.pid, signal.SIGINT)
-        _, err = p.communicate(timeout=30)
-        assert p.returncode == 130, err
-        assert "interrupted" in err and "Traceback" not in err, err
-        left = [k for k in kids if TH.alive(k)]
-        assert not left, f"processes left behind: {left}"
+        TH.ctrl_c_leaves_nothing(p)
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)

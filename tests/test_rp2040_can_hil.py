@@ -160,14 +160,7 @@ def test_emulate_can_serves_board_status_over_udp_multicast() -> None:
         # the board's own CAN decoder saw the tool's frames and dropped none
         assert st["board_stats"]["frames"]["frames_in"] > 0
         assert not any(st["board_stats"]["decode"].values()), st["board_stats"]
-        kids = TH.descendants(p.pid)
-        assert kids, "the emulator runs in a child process (node)"
-        os.killpg(p.pid, signal.SIGINT)
-        _, err = p.communicate(timeout=30)
-        assert p.returncode == 130, err
-        assert "interrupted" in err and "Traceback" not in err, err
-        left = [k for k in kids if TH.alive(k)]
-        assert not left, f"processes left behind: {left}"
+        TH.ctrl_c_leaves_nothing(p)
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)

@@ -96,3 +96,16 @@ def default_sigint() -> None:
     """``preexec_fn`` of an emulator that must see Ctrl-C as a terminal would deliver it (a pytest
     started from a non-interactive shell's background job inherits SIGINT ignored)."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def ctrl_c_leaves_nothing(p: Any) -> None:
+    """Ctrl-C to the emulator ``p`` (a Popen started in its own session, its node child running):
+    it exits 130 saying "interrupted", without a traceback, and leaves no process behind."""
+    kids = descendants(p.pid)
+    assert kids, "the emulator runs in a child process (node)"
+    os.killpg(p.pid, signal.SIGINT)
+    _, err = p.communicate(timeout=30)
+    assert p.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err, err
+    left = [k for k in kids if alive(k)]
+    assert not left, f"processes left behind: {left}"
