@@ -22,6 +22,16 @@ from host.boards.mpyrun import run_unix, run_wasm
 from host.design.export import FixedDesign, export
 from sim.params import RobotParams
 
+#: the report's four closed-loop cases as :func:`measurements` keywords: the 0.1 rad tilt (report
+#: section 3), the 0.2 m reference step (section 3.3), the square wave 0 <-> 0.2 m every 2.2 s (Fig. 3.11)
+#: and a constant 0.2 N push for 4 s, then released (Fig. 3.6)
+REPORT_SCENARIOS: dict[str, dict] = {
+    "tilt_0.1": dict(x0=[0, 0, 0.1, 0], duration=4.0),
+    "ref_step_0.2": dict(x0=[0, 0, 0, 0], duration=4.0, x_ref=0.2),
+    "ref_square": dict(x0=[0, 0, 0, 0], duration=5.0, x_ref=lambda t: 0.2 if int(t / 2.2) % 2 else 0.0),
+    "push_0.2N": dict(x0=[0, 0, 0, 0], duration=5.0, disturbance=lambda t: 0.2 if t < 4.0 else 0.0),
+}
+
 _NS: dict = {}
 exec(compile(FAKE_HAL, "<FAKE_HAL>", "exec"), _NS)
 

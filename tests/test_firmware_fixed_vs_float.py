@@ -39,16 +39,7 @@ PHI_TOL = 2 * PHI_COUNT
 #   (4.2 LSB, ref_step_0.2, peak 0.33 m/s).  Six LSB.
 V_TOL = 6 * FD.lsb["xdot"]
 
-SCENARIOS = {
-    # report §3: balance from a 0.1 rad tilt
-    "tilt_0.1": dict(x0=[0, 0, 0.1, 0], duration=4.0),
-    # report §3.3: 0.2 m reference step
-    "ref_step_0.2": dict(x0=[0, 0, 0, 0], duration=4.0, x_ref=0.2),
-    # report Fig. 3.11: square wave 0 <-> 0.2 m every 2.2 s
-    "ref_square": dict(x0=[0, 0, 0, 0], duration=5.0, x_ref=lambda t: 0.2 if int(t / 2.2) % 2 else 0.0),
-    # report Fig. 3.6: a constant 0.2 N push for 5 s (then released)
-    "push_0.2N": dict(x0=[0, 0, 0, 0], duration=5.0, disturbance=lambda t: 0.2 if t < 4.0 else 0.0),
-}
+SCENARIOS = H.REPORT_SCENARIOS
 
 
 @pytest.fixture(scope="module")

@@ -40,12 +40,7 @@ U_TOL = 0.015 * force_clamp(P)
 PHI_TOL = 2 * P.pot_range / 2**P.adc_bits
 V_TOL = 6 * FD.lsb["xdot"]
 
-SCENARIOS = {
-    "tilt_0.1": dict(x0=[0, 0, 0.1, 0], duration=4.0),
-    "ref_step_0.2": dict(x0=[0, 0, 0, 0], duration=4.0, x_ref=0.2),
-    "ref_square": dict(x0=[0, 0, 0, 0], duration=5.0, x_ref=lambda t: 0.2 if int(t / 2.2) % 2 else 0.0),
-    "push_0.2N": dict(x0=[0, 0, 0, 0], duration=5.0, disturbance=lambda t: 0.2 if t < 4.0 else 0.0),
-}
+SCENARIOS = H.REPORT_SCENARIOS
 
 
 @pytest.fixture(scope="module")
