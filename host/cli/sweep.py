@@ -58,32 +58,12 @@ def parse_noise(spec: str) -> Any:
     return NoiseModel(kind, amplitude=v) if kind == "uniform" else NoiseModel(kind, power=v)
 
 
-def _positive_int(s: str) -> int:
-    try:
-        v = int(s)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from exc
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
-    return v
-
-
-def _seed(s: str) -> int:
-    try:
-        v = int(s)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from exc
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
-    return v
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``upright sweep``."""
     parser.add_argument("kind", choices=KINDS, help="which sweep")
-    parser.add_argument("--n", type=_positive_int, default=None,
+    parser.add_argument("--n", type=A.positive_int, default=None,
                         help="runs (robustness, default 1000) or runs per design (tune, default 100)")
-    parser.add_argument("--seed", type=_seed, default=0, help="base seed (runs are seeded per run)")
+    parser.add_argument("--seed", type=A.nonneg_int, default=0, help="base seed (runs are seeded per run)")
     parser.add_argument("--scheduler", default=None, metavar="ADDR", type=A.scheduler_address,
                         help="Dask scheduler, e.g. tcp://host:8786")
     parser.add_argument("--out", default="out/sweep", help="output directory (CSV, Parquet, PNG, scenarios)")
@@ -91,7 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from host.cli.plant import add_plant_argument
 
     add_plant_argument(parser)
-    parser.add_argument("--chunk", type=_positive_int, default=500, help="runs per task")
+    parser.add_argument("--chunk", type=A.positive_int, default=500, help="runs per task")
     parser.add_argument("--duration", type=float, default=5.0, help="simulated seconds per run")
     parser.add_argument("--noise", default="uniform:0.001", metavar="SPEC",
                         help="measurement noise: none | uniform:AMPLITUDE | white:POWER (default uniform:0.001)")
@@ -104,7 +84,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "delay, tilt; e.g. sim/sweep_ranges.toml) instead of the defaults")
     parser.add_argument("--scenario", default="tilt_0p1", metavar="NAME|TOML",
                         help="hil: the scenario every run closes through the firmware (default tilt_0p1)")
-    parser.add_argument("--workers", type=_positive_int, default=None,
+    parser.add_argument("--workers", type=A.positive_int, default=None,
                         help="hil: start a local Dask cluster of N worker processes (one MicroPython board each)")
     parser.add_argument("--u-max", type=A.positive, default=None, dest="u_max", help="controller force saturation (N)")
     parser.add_argument("--q-x", type=A.nonneg, default=None, dest="q_x", help="design: LQR weight on x (robustness, tilt)")
@@ -114,7 +94,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="design: observer speed factor (>1 faster; default the shipped design's)")
     parser.add_argument("--worst", type=A.nonneg_int, default=5, help="robustness: worst runs exported as scenarios")
     parser.add_argument("--search", choices=("grid", "random"), default="grid", help="tune: grid or random search")
-    parser.add_argument("--designs", type=_positive_int, default=20, help="tune --search random: number of designs")
+    parser.add_argument("--designs", type=A.positive_int, default=20, help="tune --search random: number of designs")
     parser.add_argument("--step", type=A.in_range(0.0, 1.0, lo_open=True, unit="rad"), default=0.005,
                         help="tilt: tilt grid step (rad)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
