@@ -20,6 +20,7 @@ time per commissioning.  ``n`` robots (default 50; ``UPRIGHT_BENCH_COMMISSION_N`
 
 from __future__ import annotations
 
+import collections
 import math
 import os
 import tempfile
@@ -97,6 +98,7 @@ def bench(n: int | None = None) -> dict[str, Any]:
                     refused = ""
                 except CommissionError as exc:
                     data, refused = c.state["data"], str(exc).split(":")[0]
+                    row["why"] = str(exc)[:300]  # the stage's one line: what fails where
                     lost = "fell" in str(exc)
                 row["seconds"] = time.monotonic() - t1
                 ver = data.get("verify", {})
@@ -121,6 +123,8 @@ def bench(n: int | None = None) -> dict[str, Any]:
              f"after commissioning {sum(r['after'] for r in rows)}/{k} (target >= 95 %)",
              f"lost the pendulum during commissioning: {sum(r['lost'] for r in rows)} (target 0); "
              f"stages refused: {sum(bool(r['refused']) for r in rows)}",
+             "refused at: " + (", ".join(f"{st} {n}" for st, n in sorted(collections.Counter(
+                 r["refused"] for r in rows if r["refused"]).items())) or "none"),
              f"time per commissioning: median {np.median(secs):.1f} s, max {max(secs):.1f} s (lockstep HIL, unix port)"]
     return {"title": "commission: robots of the realistic set, end to end in lockstep HIL", "rows": rows, "notes": notes,
             "summary": {"robots": k, "shipped_pass": sum(r["shipped"] for r in rows),

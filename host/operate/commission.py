@@ -39,7 +39,9 @@ from typing import Any, Callable
 
 import numpy as np
 
+from firmware.supervisor import F_STALL
 from host.operate.board import BoardError
+from sim.motor import DUTY_MAX
 from sim.params import RobotParams, load_params
 
 __all__ = ["STAGES", "CommissionError", "Commission", "telemetry_metrics", "PHI_BOUND", "STATE_FILE", "weighed"]
@@ -49,7 +51,11 @@ STATE_FILE = "commission.json"
 PHI_BOUND = 0.15
 """rad: a balancing excitation that tilts the pendulum beyond this is stopped (half the report's 0.3)."""
 AMP0 = 0.2  # N, the first balancing amplitude
-CART_AMP = 1.0  # N, the cart-only PRBS amplitude
+CART_AMP = 1.0  # N, the cart-only PRBS amplitude to start from
+CART_A_CMD = 25.0
+"""m/s^2: the force clamp (from upright) of the cart-only run's table; the PRBS takes up to half of it."""
+CART_MOVED_M = 0.02  # m: a cart-only run that moved the cart less is not a drive's log
+CART_DB_MAX = 0.25  # fraction of full duty: the largest deadband compensation the cart-only run tries
 CART_S, COAST_S, BAL_TRY_S, BAL_S = 8.0, 3.0, 2.0, 15.0
 BAL_DIV = 8  # control ticks per PRBS bit of the balancing run (16 ms: slow enough to move the pendulum)
 
@@ -231,28 +237,84 @@ class Commission:
             self.say(f"  resumed: uploaded the table in force ({t['label']})")
 
     def _cart(self) -> None:
+        from host.design.margin import candidates
         from host.studies.identify_cart import identify_cart
         from host.studies.identify_log import read_log
 
         p = self._params("robot_cal")
-        amp = CART_AMP
-        for _ in range(4):
-            run = self.robot.excite(2, amp, seconds=CART_S * (0.6 if self.fast else 1.0), coast_s=COAST_S)
-            if np.ptp(run.columns["x"]) > 0.02:
+        # the run's table: a wide force clamp (the excitation alone drives, open loop; the firmware
+        # takes at most half the table's clamp, and the shipped clamp's half, 1.4 N on the report's
+        # robot, is below the breakaway of a geared drive with a deadband on a dry cart)
+        wide = candidates(ki=(0.0,), a_cmd=(CART_A_CMD,), names=("shipped",))[0]
+        amp_max = 0.49 * wide.u_max(p)
+        db = float(p.values.get("motor.deadband", 0.0) or 0.0)
+        amp, tries = CART_AMP, []
+        runs: list[tuple[float, Any]] = []
+        pc = self._cart_table(p, wide, db)
+        while True:
+            moved, run = self._cart_run(amp)
+            tries.append({"amplitude_n": amp, "deadband": db, "moved_mm": 1e3 * moved if run is not None else 0.0,
+                          "stalled": run is None})
+            if run is not None and moved > CART_MOVED_M:
+                runs.append((amp, run))
                 break
-            self.say(f"  the cart moved {1e3 * np.ptp(run.columns['x']):.1f} mm at {amp:g} N: more")
-            amp *= 1.6
-        else:
-            raise CommissionError("cart: the cart did not move under the cart-only excitation (dead drive, "
-                                  "stuck cart or unwired encoder)")
-        path = _write_csv(run.columns, self.out / "cart.csv")
-        lg = read_log(path)
-        res = identify_cart([lg], p)
+            why = "the drive stalled (F_STALL)" if run is None else f"the cart moved {1e3 * moved:.1f} mm"
+            if amp < amp_max:
+                # more force: the PRBS amplitude up to the table's limit
+                self.say(f"  {why} at {amp:g} N: more")
+                amp = min(amp * 1.6, amp_max)
+            elif db < CART_DB_MAX:
+                # the limit reached and nothing moved (or the stall check cut the drive): the duty that
+                # moved nothing is the drive's deadband at least -- compensated from here on, so the
+                # stall check counts only the duty beyond it (firmware: stall_duty + deadband)
+                db = min(CART_DB_MAX, db + 0.5 * amp_max * _duty_per_newton(pc) / DUTY_MAX)
+                amp = CART_AMP
+                self.say(f"  {why} at {tries[-1]['amplitude_n']:g} N: deadband compensation {db:.3f} of full duty")
+                pc = self._cart_table(p, wide, db)
+            else:
+                raise CommissionError("cart: the cart did not move under the cart-only excitation (dead drive, "
+                                      f"stuck cart or unwired encoder; up to {amp:g} N with a deadband compensation "
+                                      f"of {db:.3f})")
+        # a second level: the deadband separable from the force constant (identify_cart)
+        amp2 = min(amp * 1.6, amp_max)
+        if amp2 > 1.2 * amp:
+            moved2, run2 = self._cart_run(amp2)
+            if run2 is not None and moved2 > CART_MOVED_M:
+                runs.append((amp2, run2))
+        paths = [_write_csv(r.columns, self.out / ("cart.csv" if i == 0 else f"cart_{i + 1}.csv"))
+                 for i, (_, r) in enumerate(runs)]
+        res = identify_cart([read_log(q) for q in paths], pc)
         e = res["estimates"]
         if not (e["kt"] > 0 and math.isfinite(e["kt"])):
             raise CommissionError(f"cart: no usable drive from the cart-only run (kt {e['kt']:.3g})")
-        self.state["data"]["cart"] = {"log": "cart.csv", "amplitude_n": amp, "estimates": e}
-        self.say(f"  drive: kt {e['kt']:.4g} N m/A, b {e['b']:.3g} N s/m, delay {1e3 * e['delay']:.0f} ms")
+        self.state["data"]["cart"] = {"log": paths[0].name, "logs": [q.name for q in paths], "amplitude_n": amp,
+                                      "amplitudes_n": [a for a, _ in runs], "tries": tries,
+                                      "deadband_compensation": db, "estimates": e}
+        self.say(f"  drive: kt {e['kt']:.4g} N m/A, b {e['b']:.3g} N s/m, deadband {e.get('deadband', math.nan):.3f}, "
+                 f"delay {1e3 * e['delay']:.0f} ms")
+
+    def _cart_table(self, p: RobotParams, wide: Any, db: float) -> RobotParams:
+        # the cart-only table for robot file p with deadband compensation db: DIR/robot_cart.toml, uploaded
+        from host.studies.identify import robot_toml
+
+        pc = p.replace(**{"motor.deadband": db})
+        (self.out / "robot_cart.toml").write_text(robot_toml(pc, "upright commission: the cart-only run's robot "
+                                                                 "file (its deadband: the compensation tried)"))
+        self.state["data"]["robot_cart"] = "robot_cart.toml"
+        self._upload("robot_cart", wide, f"cart-only run, force clamp {wide.u_max(pc):.2f} N, deadband {db:.3f}")
+        return self._params("robot_cart")
+
+    def _cart_run(self, amp: float) -> tuple[float, Any]:
+        # one cart-only run: (how far the cart went, m; the run) -- run None: the stall check cut it
+        try:
+            run = self.robot.excite(2, amp, seconds=CART_S * (0.6 if self.fast else 1.0), coast_s=COAST_S)
+        except BoardError as exc:
+            if "stall" in str(exc):
+                return 0.0, None
+            raise
+        if int(np.bitwise_or.reduce(np.nan_to_num(run.columns["faults"]).astype(np.int64))) & F_STALL:
+            return 0.0, None
+        return float(np.ptp(run.columns["x"])), run
 
     def _design1(self) -> None:
         from host.design.margin import candidates, design_with_margin, confidence_box
@@ -265,6 +327,9 @@ class Commission:
         ch: dict[str, float] = {"motor.kt": e["kt"]}
         if math.isfinite(e.get("b", math.nan)):
             ch["cart.b"] = max(0.0, e["b"])
+        if math.isfinite(e.get("deadband", math.nan)):
+            # fitted from two amplitudes, else the cart-only run's compensation (the table compensates it)
+            ch["motor.deadband"] = min(CART_DB_MAX, max(0.0, e["deadband"]))
         p1 = p.replace(**ch)
         (self.out / "robot_stage1.toml").write_text(robot_toml(p1, "upright commission: after the cart-only run"))
         self.state["data"]["robot_stage1"] = "robot_stage1.toml"
@@ -374,6 +439,13 @@ class Commission:
         (self.out / "robot.toml").write_text((self.out / "robot_id.toml").read_text())
         write_report(self.out, self.state["data"])
         self.say(f"  wrote {self.out / 'robot.toml'} and {self.out / 'report.html'}")
+
+
+def _duty_per_newton(p: RobotParams) -> float:
+    """Duty counts per newton of cart force at rest (the firmware's KDU row: supply, resistance, kt, gear)."""
+    from sim.motor import duty_from_force
+
+    return float(duty_from_force(10.0, 0.0, p)) / 10.0
 
 
 def _nominal(p: RobotParams) -> dict[str, float]:
