@@ -199,3 +199,19 @@ def test_commission_a_realistic_cart_refuses_or_verifies(tmp_path) -> None:
         stage = str(err).split(":")[0]
         assert stage in STAGES and stage not in st["done"] and "\n" not in str(err)
         assert st["done"] == list(STAGES[:STAGES.index(stage)])
+
+
+def test_the_lockstep_robot_says_when_the_board_refuses_the_excitation() -> None:
+    # the firmware takes at most half the table's force clamp (OUT_OF_RANGE beyond): a refused EXCITE
+    # is an error naming the reason, never a log of zero duty taken for a cart that does not move
+    # (the commissioning's cart stage once grew its amplitude into refusals and reported a stuck cart)
+    from host.operate.board import BoardError
+    from host.operate.commission_lockstep import LockstepRobot
+
+    p = load_params()
+    with LockstepRobot(p) as r:
+        r.fw_params = p  # the shipped table: its clamp's half is 1.4 N
+        with pytest.raises(BoardError, match="refused EXCITE.*out_of_range"):
+            r.excite(2, 2.0, seconds=0.5, coast_s=0.2)
+        run = r.excite(2, 1.0, seconds=0.5, coast_s=0.2)
+        assert 0 < max(abs(run.columns["duty"])) <= 420  # 1 N: about 410 duty counts on the report's drive

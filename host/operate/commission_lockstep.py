@@ -29,6 +29,7 @@ from host.hil.accounting import Sink
 from host.hil.session import HilSession
 from host.hil.virtual_robot import RobotPlant
 from host.link import messages as M
+from host.operate.board import BoardError
 from sim import sensors as ssens
 from sim.params import RobotParams
 
@@ -185,6 +186,11 @@ class LockstepRobot:
         loop = Lockstep(s, sim, sink=sink, depth=0, on_tick=on_tick, after_tick=after_tick)
         loop.run()
         s.finish()
+        refused = [m for _, m in sink.replies if m.NAME == "nack" and m.msg_id == _EXCITE.ID]
+        if refused:
+            # as the board tools do (upright board excite exits 1): never a log of an excitation that did not run
+            raise BoardError(f"the board refused EXCITE(mode {mode}, {amp_n:g} N, div {div}): "
+                             f"{M.REASON_NAMES.get(refused[0].reason, refused[0].reason)}")
         x, phi = sensor_xphi(loop.adc_sent, loop.enc_sent, fw)
         cols = {"t": np.arange(n) / rate, "x": x, "phi": phi, "duty": loop.duty_fw.astype(float),
                 "state": loop.fw_state.astype(float), "faults": loop.fw_faults.astype(float), "excite": exc,
