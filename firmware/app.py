@@ -10,12 +10,11 @@
 #     link    optional object with poll(): called once per tick after the control step by
 #             run() (serve the host link: decode commands, send telemetry); or set_link(link).
 #     gains   optional gain module/object with LAYOUT and FLAT (default firmware.gains).
-#     config  optional dict: the keys of CONFIG below (default, range, meaning), each checked
-#             (cfg_value: an unknown key or a value out of range -> ValueError naming it), and
-#             any msgtable PARAMS name (e.g. watchdog_ms), not range-checked, so
-#             watchdog_ms=0 switches the watchdog off (bench/tests only).
-#             stall_ms/stall_duty: the no-motion check (F_STALL), on by default: STALL_MS at
-#             |duty| >= STALL_DUTY beyond the table's deadband compensation; stall_ms=0: off.
+#     config  optional dict: the keys of firmware/appconfig.py CONFIG (default, range,
+#             meaning; cfg_value: an unknown key or a value out of range -> ValueError naming
+#             it) and msgtable PARAMS names (the parameters' start values; the DRIVE_PARAMS
+#             ones range-checked, the others not: watchdog_ms=0 switches the watchdog off,
+#             bench/tests only).  The no-motion check (F_STALL): appconfig STALL_MS, STALL_DUTY.
 #   app.attach_store(store)  at start-up: load the newest valid saved configuration
 #                (firmware/store.py); copies there but none valid -> defaults, F_CONFIG.
 #   SAVE_CONFIG (cmd_save) is queued and run by service_save() between ticks, motor off.
@@ -69,13 +68,12 @@ from . import crc16
 from . import emitter
 from . import fixmath
 from . import msgtable as T
+from .appconfig import cfg_check, cfg_params, cfg_value, epoch0
 from .controller import Controller
 from .excite import EXC_OPEN, Excite
 from .supervisor import ARMED, BALANCING, DISARMED, FAULT, F_ADC_OPEN, F_CONFIG, F_GAINS, F_LOOP, F_UNDERVOLT
 from .supervisor import F_DEADLINE, F_ESTOP, F_RESET
 
-STALL_MS = const(100)  # no-motion check (F_STALL) default: this long without a count
-STALL_DUTY = const(800)  # ... at |duty| at least this
 # deadline rule (F_DEADLINE, see above) and timing readiness
 _LATE_W = const(25)
 _LATE_MAX = const(100)
@@ -86,32 +84,6 @@ _SAVE_WDT_MS = const(5000)
 _I16 = const(32767)
 _U16 = const(65535)
 _TICKS_MASK = const(0x3FFFFFFF)  # tick/uptime counters wrap to 0 after this (fixmath)
-# App(config=...): every key, its default and its valid range (lo..hi, inclusive), read
-# only through cfg_value(); a default None means "the table's" (pot_offset, deadband) or
-# "see __init__" (epoch, reset_cause_boot), lo None: checked elsewhere (emitter.check).  A
-# config may also name a msgtable PARAMS entry (e.g. watchdog_ms): it overrides that
-# parameter's default and is not range-checked (watchdog_ms=0: the watchdog off, tests/bench)
-CONFIG = (
-    ("emitter", "bytecode", None, None),  # how the hot parts are compiled (firmware/emitter.py)
-    ("adc_sign", 1, -1, 1),  # angle sign (+-1)
-    ("enc_sign", 1, -1, 1),  # encoder sign (+-1)
-    ("pot_offset", None, -1, 65535),  # ADC counts upright (-1: the table's; as msgtable)
-    ("deadband", None, 0, _I16),  # duty counts added in the force's direction
-    ("backemf", True, 0, 1),  # back-EMF compensation on
-    ("boot", 0, 0, 255),  # boot counter (firmware/boot.py: mod 256)
-    ("uptime_ms", 0, 0, _TICKS_MASK),  # board time at this start (main.py)
-    ("wdt_ms", 0, 0, 8388),  # hardware watchdog timeout, 0: none (8388: the RP2040's longest)
-    ("reset_cause", T.RC_POWER_ON, T.RC_POWER_ON, T.RC_EXCEPTION),  # what main.py found at boot
-    ("reset_cause_boot", None, T.RC_POWER_ON, T.RC_EXCEPTION),  # VERSION.reset_cause after a MODE switch
-    ("deadline", True, 0, 1),  # False: late ticks counted, never F_DEADLINE
-    ("epoch", None, 0, _TICKS_MASK),  # a fixed first arming token (tests)
-    ("seed", 0, 0, _TICKS_MASK),  # mixed into the first arming token (firmware/session.py)
-    ("starts", 1, 1, _TICKS_MASK),  # loop starts since the board started (main.py)
-    ("vsup_nom_mv", 12000, 1, 100000),  # the supply the table's motor constants assume
-    ("vsup_min_mv", 0, 0, 100000),  # undervoltage threshold (F_UNDERVOLT), 0: none
-    ("stall_ms", STALL_MS, 0, 60000),  # no-motion check (F_STALL) time, 0: off
-    ("stall_duty", STALL_DUTY, 0, _I16),  # ... at |duty| at least this beyond the deadband compensation
-)
 # the arming token's generator (App._new_token): a = 0x41C64E6D mod 2**30 in 15-bit limbs, c
 _LCG_AL = const(0x4E6D)
 _LCG_AH = const(0x038C)
@@ -121,62 +93,9 @@ _DERIVED = (T.P_TILT_LIMIT, T.P_ARM_TILT, T.P_WATCHDOG_MS, T.P_MAX_DUTY, T.P_POT
             T.P_ENC_SIGN, T.P_MOTOR_SIGN)
 
 
-def cfg_value(cfg, key):
-    # config key's value (its CONFIG default when absent); outside the range, or a key
-    # CONFIG lacks: a one-line ValueError naming the key.  __init__ only (a linear search)
-    for k, d, lo, hi in CONFIG:
-        if k == key:
-            if key not in cfg:
-                return d
-            v = cfg[key]
-            if lo is None or (v is None and d is None):
-                return v
-            if not isinstance(v, (int, bool)) or v < lo or v > hi:  # MicroPython: a bool is no int
-                raise ValueError("config %s: %r is outside %d..%d" % (key, v, lo, hi))
-            return v
-    raise ValueError("config %s: unknown key (none of App CONFIG or msgtable PARAMS)" % (key,))
-
-
-def cfg_check(cfg):
-    # every key of a config: a CONFIG key in its range, or a msgtable PARAMS name
-    for key in cfg:
-        if _in_config(key) or not _is_param(key):
-            cfg_value(cfg, key)
-
-
-def _in_config(key):
-    for c in CONFIG:
-        if c[0] == key:
-            return True
-    return False
-
-
-def _is_param(key):
-    for p in T.PARAMS:
-        if p[1] == key:
-            return True
-    return False
-
-
-def _epoch0(cfg, boot):
-    # the arming token a start begins with (30 bits): os.urandom where the port has it, mixed
-    # with config "seed" (main.py: firmware/session.py, which also mixes the RP2040's ring
-    # oscillator and a seed persisted across starts -- an emulated board's urandom is the
-    # same at every power-up) and the boot counter; config "epoch" fixes it (tests)
-    e = cfg_value(cfg, "epoch")
-    if e is not None:
-        return e & _TICKS_MASK
-    v = (cfg_value(cfg, "seed") ^ (boot << 22)) & _TICKS_MASK
-    try:
-        import os
-        b = os.urandom(4)
-        v ^= ((b[0] & 0x3F) << 24) | (b[1] << 16) | (b[2] << 8) | b[3]
-    except (ImportError, AttributeError, OSError):
-        pass
-    return v & _TICKS_MASK
-
-
 class App:
+    _hal_motor = None  # the HAL's set_motor, bound in __init__ after the parameters are applied
+
     def __init__(self, hal, link=None, gains=None, config=None):
         if gains is None:
             from . import gains as _g
@@ -200,7 +119,8 @@ class App:
         self._tel_fast = emitter.telemetry(em)
         self.table = array("i", flat)
         self.rate = flat[off["RATE"]]
-        self.sensors = Sn(flat, off, cfg_value(cfg, "adc_sign"), cfg_value(cfg, "enc_sign"), cfg_value(cfg, "pot_offset"))
+        # the sensors' offset and signs are parameters (_apply_params sets them)
+        self.sensors = Sn(flat, off)
         self.motor = Mo(flat, off, cfg_value(cfg, "deadband"), cfg_value(cfg, "backemf"))
         self.sup = Su()
         # identification excitation (EXCITE; firmware/excite.py)
@@ -237,7 +157,7 @@ class App:
         self._ext = 0
         # arming epoch (HEARTBEAT.epoch; ARM must carry it): changes on every disarm,
         # clear_faults and entry into FAULT (step() watches the state)
-        self.epoch = _epoch0(cfg, self.boot)
+        self.epoch = epoch0(cfg, self.boot)
         self._st = -1
         # heap statistics (STATS_LOOP): gc.mem_free()/mem_alloc() walk the heap (~9 ms each
         # on a Pico), so they are sampled only outside the control tick -- at start-up, when
@@ -271,16 +191,12 @@ class App:
         self._has_frames = hal.n_sensor is not None
         # parameters: defaults from msgtable, then config overrides by name
         self.params = array("i", [0] * T.N_PARAMS)
-        for p in T.PARAMS:
-            self.params[p[0]] = p[5]
-        for p in T.PARAMS:
-            if p[1] in cfg:
-                self.params[p[0]] = cfg[p[1]]
+        cfg_params(cfg, self.params)
         self.params[T.P_LOOP_RATE] = self.rate
         # no-motion check (F_STALL): |duty| >= stall_duty for stall_ms without one encoder
-        # count (stall_ms=0: off).  800 duty (~2 N at rest, 3/4 of the default design's
-        # force clamp) for 100 ms moves the cart by centimetres; in ticks at the active
-        # table's rate (_apply_params: again whenever the table changes)
+        # count (stall_ms=0: off).  The defaults (appconfig STALL_DUTY for STALL_MS) move a
+        # free cart by centimetres; in ticks at the active table's rate (_apply_params: again
+        # whenever the table changes)
         # (beyond the table's deadband compensation, which every nonzero force adds and which
         # moves nothing on a bridge with that deadband: _apply_params)
         self.stall_ms = cfg_value(cfg, "stall_ms")
@@ -291,7 +207,7 @@ class App:
         n = len(self.table)
         self.gains_crc = self._table_crc(self.table, n)
         ok = self.ctrl.validate(self.table, n, self.version) == T.OK
-        self.sup.ready = ok and self.gains_crc == getattr(gains, "CRC", -1)
+        self.sup.ready = ok and self.gains_crc == gains.CRC
         if not self.sup.ready:
             self.sup.faults |= F_GAINS
             self.sup.state = FAULT
@@ -317,8 +233,6 @@ class App:
         self._set_motor = hal.set_motor if self._msign > 0 else self._motor_neg
         self._ticks = hal.ticks_us
         self._drive(0)
-        if not hasattr(self, "reset_cause"):
-            self.reset_cause = 0
 
     # ---- parameters -> derived integers (outside the loop) ----
     def _counts_from_mrad(self, mrad):
@@ -377,7 +291,7 @@ class App:
             self.sensors.enc_sign = -1 if p[i] < 0 else 1
         elif i == T.P_MOTOR_SIGN:
             self._msign = -1 if p[i] < 0 else 1
-            if hasattr(self, "_hal_motor"):
+            if self._hal_motor is not None:  # (None until __init__ binds the motor output)
                 self._set_motor = self._hal_motor if self._msign > 0 else self._motor_neg
 
     # ---- the loop ----

@@ -10,7 +10,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from firmware import app
+from firmware import appconfig
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -23,14 +23,14 @@ def test_the_stall_thresholds_quoted_are_the_firmwares() -> None:
     readme = _text("README.md")
     m = re.search(r"a duty of at least (\d+) counts \(about [\d.]+ N at rest\) moves nothing for (\d+) ms", readme)
     assert m, "README no longer states the stall thresholds"
-    assert (int(m.group(1)), int(m.group(2))) == (app.STALL_DUTY, app.STALL_MS)
+    assert (int(m.group(1)), int(m.group(2))) == (appconfig.STALL_DUTY, appconfig.STALL_MS)
     fw = _text("docs/firmware.md")
     m = re.search(r"`stall_ms` \(default (\d+);.*?`stall_duty` \(default (\d+)\)", fw)
     assert m, "docs/firmware.md no longer gives the config defaults"
-    assert (int(m.group(1)), int(m.group(2))) == (app.STALL_MS, app.STALL_DUTY)
+    assert (int(m.group(1)), int(m.group(2))) == (appconfig.STALL_MS, appconfig.STALL_DUTY)
     for doc in ("docs/firmware.md", "docs/reliability.md"):
         for n in re.findall(r"`stall_duty` \(default (\d+)", _text(doc)) + re.findall(r"`stall_duty` \((\d+),", _text(doc)):
-            assert int(n) == app.STALL_DUTY, (doc, n)
+            assert int(n) == appconfig.STALL_DUTY, (doc, n)
 
 
 def test_the_default_design_quoted_is_the_shipped_one() -> None:
@@ -55,12 +55,12 @@ def test_every_stall_duty_in_prose_is_the_firmwares() -> None:
     fw = _text("docs/firmware.md")
     m = re.search(r"\*\*No-motion check \(F_STALL\), on by default\.\*\* (\d+) duty .*? held for (\d+) ms", fw)
     assert m, "docs/firmware.md no longer explains the no-motion check"
-    assert (int(m.group(1)), int(m.group(2))) == (app.STALL_DUTY, app.STALL_MS)
+    assert (int(m.group(1)), int(m.group(2))) == (appconfig.STALL_DUTY, appconfig.STALL_MS)
     rel = _text("docs/reliability.md")
     m = re.search(r"`stall_duty` \((\d+), ~2 N at rest\) for `stall_ms` \((\d+) ms\)", rel)
     assert m, "docs/reliability.md no longer gives the stall thresholds"
-    assert (int(m.group(1)), int(m.group(2))) == (app.STALL_DUTY, app.STALL_MS)
-    header = (ROOT / "firmware" / "app.py").read_text().split("\nSTALL_MS", 1)[0]
+    assert (int(m.group(1)), int(m.group(2))) == (appconfig.STALL_DUTY, appconfig.STALL_MS)
+    header = (ROOT / "firmware" / "appconfig.py").read_text().split("\nSTALL_MS", 1)[0]
     # the header names the constants instead of restating them (it once said 2000)
     assert "STALL_DUTY" in header and not re.search(r"\|duty\| >= \d", header)
 

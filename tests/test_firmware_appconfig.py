@@ -1,5 +1,5 @@
 """App's two contracts declared once: the HAL's optional capabilities (``firmware/hal_base.Hal``,
-``None``: absent) and the config keys with their defaults and ranges (``firmware.app.CONFIG``, read
+``None``: absent) and the config keys with their defaults and ranges (``firmware.appconfig.CONFIG``, read
 through ``cfg_value``).  An unknown key or a value out of range is refused with one line naming the
 key, under CPython and the MicroPython unix port alike; a HAL with only the required methods runs."""
 
@@ -13,7 +13,8 @@ import pytest
 import fwharness as H
 from firmware import board
 from firmware import msgtable as T
-from firmware.app import CONFIG, App, cfg_value
+from firmware.app import App
+from firmware.appconfig import CONFIG, cfg_value
 from firmware.hal_base import Hal
 from firmware.hal_hil import HilHal
 from firmware.supervisor import DISARMED
