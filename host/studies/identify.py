@@ -423,7 +423,9 @@ def identified_params(result: dict[str, Any], params: RobotParams) -> RobotParam
     rounded to whole control ticks, the pot offset to whole counts; ``pendulum.L_cm`` and
     ``pendulum.I`` are set explicitly (``L_cm = mL / m``).  A first-stage result
     (:func:`identify_cart`: no ``I``, ``mL``, pot offset) sets only the drive, the friction and
-    the delay; a deadband fitted (two amplitudes) goes to ``motor.deadband``.
+    the delay; a deadband fitted (two amplitudes) goes to ``motor.deadband``; the dry cart's
+    Coulomb friction, stiction and gear play (``identify_cart(..., dry=True)``) to
+    ``cart.coulomb``, ``cart.stiction`` and ``motor.backlash``.
     """
     e = result["estimates"]
     ch: dict[str, float] = {}
@@ -440,6 +442,10 @@ def identified_params(result: dict[str, Any], params: RobotParams) -> RobotParam
     if not any("deadband held" in n for n in result.get("notes", ())) and math.isfinite(e.get("deadband", math.nan)) \
             and "motor.deadband" in params.values:
         ch["motor.deadband"] = max(0.0, e["deadband"])
+    # the dry cart's (identify_cart(dry=True)): Coulomb friction, breakaway, gear play
+    for k, key in (("coulomb", "cart.coulomb"), ("stiction", "cart.stiction"), ("backlash", "motor.backlash")):
+        if math.isfinite(e.get(k, math.nan)):
+            ch[key] = max(0.0, e[k])
     return params.replace(**ch)
 
 
