@@ -62,6 +62,9 @@ DRY_COUNTS = 0.5
 dry cart (:mod:`host.studies.identify_dry`); the dry fit is the result when it fits better."""
 MIN_TRAVEL_COUNTS = 20.0
 """Fewest encoder counts the cart must travel under the excitation for its drive to be identified."""
+DRY_B_RANGE = (0.5, 2.0)
+"""Factors on the robot file's ``b`` the dry fit is repeated at for its intervals (``b`` is held:
+the realistic set's friction range, sim/uncertainty_realistic.toml)."""
 DRY_NAMES = ("coulomb", "stiction", "backlash")
 """The dry cart's estimates besides :data:`CART_NAMES` (in the result only when it was fitted):
 Coulomb friction and the breakaway force (N, ``cart.coulomb``, ``cart.stiction``), the total gear
@@ -332,7 +335,7 @@ def _stage(carts: Sequence[RunLog], params: RobotParams, dmax: int, latency: boo
 
 
 def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: float = 0.03,
-                  latency: bool = True, one_constant: bool = True, dry: bool = False) -> dict[str, Any]:
+                  latency: bool = True, one_constant: bool = True, dry: bool = True) -> dict[str, Any]:
     """The first stage: the drive (``kt``, ``ke``), the friction ``b``, the delay and latency from cart-only runs.
 
     Parameters
@@ -355,12 +358,13 @@ def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: flo
         differs from the one constant by more than its interval (``motor.R`` or
         ``motor.V_supply`` of ``params`` off, or not a plain DC motor).  False: the free fit is the result.
     dry : bool
-        Experimental, off by default: where the linear cart does not fit (rms residual over
-        :data:`DRY_COUNTS`), fit the dry cart (:mod:`host.studies.identify_dry`: Coulomb friction,
-        gear play, deadband) and return it when it fits better (``model`` "dry", the estimates
-        of :data:`DRY_NAMES` besides).  Its global search is not reliable yet: on robots of
-        sim/uncertainty_realistic.toml it lands in wrong minima that fit as well as the truth,
-        with intervals that miss it -- hence not the default (the linear fit refuses those logs).
+        Where the linear cart does not fit (rms residual over :data:`DRY_COUNTS`) and the runs
+        have two duty levels or more, fit the dry cart (:mod:`host.studies.identify_dry`:
+        Coulomb friction, gear play, deadband; ``b`` held) and return it when it fits better
+        (``model`` "dry", the estimates of :data:`DRY_NAMES` besides).  With one level the dry
+        cart is not identifiable (``a (|u| - deadband)`` and the Coulomb friction are one number:
+        fitted anyway, ``kt`` came out up to 20 % off with intervals that missed it): the linear
+        result or its refusal, with a note asking for a second amplitude.  False: the linear cart only.
 
     Returns
     -------
@@ -402,7 +406,12 @@ def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: flo
                        "deadband or under the breakaway force: record again with a larger --amplitude")
     rms = math.sqrt(cf["sse"])
     lin_rms = rms
-    if dry and rms > DRY_COUNTS * count:
+    dry_note = ""
+    if dry and rms > DRY_COUNTS * count and not fit_db:
+        # one duty level: a (|u| - deadband) - Coulomb is one number, the dry cart not identifiable
+        dry_note = (" -- a dry cart (Coulomb friction, gear play, deadband) needs cart-only runs at two "
+                    "amplitudes or more (--amplitude A and 1.6 A) for its model")
+    if dry and rms > DRY_COUNTS * count and fit_db:
         # the linear cart does not explain the log: the dry one (Coulomb friction, gear play,
         # deadband; host.studies.identify_dry), at the linear fit's delay and its neighbours
         dry = _dry_stage(carts, params, d, dmax, cf, oc)
@@ -416,7 +425,7 @@ def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: flo
                        f"the cart's drive model does not fit: residual {1e3 * rms:.3f} mm rms, "
                        f"{rms / count:.1f} encoder counts (a clean run fits within {MAX_RES_COUNTS:g}): was the "
                        "cart held, on its end stop, the pendulum still on, or the driver enabled after the disarm? "
-                       "record again")
+                       "record again" + dry_note)
     if cf.get("model") == "dry":
         return _dry_result(carts, params, d, cf, oc, sse, lin_rms, count, max_delay)
     dr = drive_of(cf, params)
@@ -430,6 +439,8 @@ def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: flo
     ci["delay"] = [max(0.0, (dw - 1) * dt), (dw + 1) * dt]
     ci["latency"] = [-0.25 * dt, 0.75 * dt]
     notes = []
+    if dry_note:
+        notes.append(f"the linear cart fits to {rms / count:.2f} encoder counts rms only{dry_note}")
     free = None
     if one_constant:
         d2, ff, _ = _stage(carts, params, dmax, latency, dbk, db_known, None)
@@ -508,7 +519,7 @@ def _dry_stage(carts: Sequence[RunLog], params: RobotParams, d0: int, dmax: int,
     kt = float(v["motor.kt"])
     start = {"a": ca * kt, "D": cd * kt * kt, "b": float(v["cart.b"]), "f": d0 + float(cf["f"]), "brake": 0.5,
              "deadband": float(v.get("motor.deadband", 0.0) or 0.0) * DUTY_MAX}
-    ff = dry_fit(carts, M, dt, dmax, start, one_constant=oc, duty_min=dmin, fit_deadband=_levels(carts) >= 2)
+    ff = dry_fit(carts, M, dt, dmax, start, one_constant=oc, duty_min=dmin)
     return int(ff["d"]), ff
 
 
@@ -544,10 +555,13 @@ def _dry_result(carts: Sequence[RunLog], params: RobotParams, d: int, cf: dict[s
     start = {k: float(cf[k]) for k in ("a", "D", "b", "brake", "deadband", "coulomb", "hp")}
     start["f"] = float(cf["tau"])
     dmax = int(round(max_delay / dt))
-    for part in (0, 1, 2):
+    # the method's bias: each half of the excitation alone, and b (held at the robot file's: not
+    # in a dry cart's log) at the ends of the realistic set's friction range (x0.5 .. x2)
+    b_file = float(cf["b"])
+    for part, bb in ((0, b_file), (1, b_file), (2, b_file), (None, DRY_B_RANGE[0] * b_file),
+                     (None, DRY_B_RANGE[1] * b_file)):
         try:
-            ph = dry_fit(carts, M, dt, dmax, start, one_constant=oc, duty_min=dmin, half=part,
-                         fit_deadband=_levels(carts) >= 2)
+            ph = dry_fit(carts, M, dt, dmax, {**start, "b": bb}, one_constant=oc, duty_min=dmin, half=part)
         except (ValueError, np.linalg.LinAlgError):
             continue
         pe = est_of(ph)
@@ -560,6 +574,7 @@ def _dry_result(carts: Sequence[RunLog], params: RobotParams, d: int, cf: dict[s
         ci[k] = [est[k] - w, est[k] + w]
     for k in ("coulomb", "backlash", "deadband"):
         ci[k][0] = max(0.0, ci[k][0])
+    ci["b"] = [DRY_B_RANGE[0] * b_file, DRY_B_RANGE[1] * b_file]  # held, not measured
     # the stiction: not seen by a PRBS that breaks the cart loose at every reversal -- bounded
     # by the Coulomb level below and by the smallest drive force that moved the cart above
     u_min = min(float(np.min(np.abs(lg.duty[~lg.coast][lg.duty[~lg.coast] != 0]))) for lg in carts)
@@ -573,6 +588,8 @@ def _dry_result(carts: Sequence[RunLog], params: RobotParams, d: int, cf: dict[s
     notes = [f"the linear cart did not fit ({lin_rms / count:.1f} encoder counts rms): the dry cart fitted "
              f"({math.sqrt(cf['sse']) / count:.2f} counts) -- Coulomb friction {est['coulomb']:.3g} N, gear play "
              f"{1e3 * est['backlash']:.2f} mm, deadband {100 * est['deadband']:.2f} % of full duty",
+             f"b held at the robot file's {b_file:.3g} N s/m (a dry cart's coast-down stops under the Coulomb "
+             "friction before b shows), its interval the realistic set's x0.5 .. x2",
              f"the stiction is not resolved by a cart-only PRBS (every reversal breaks the cart loose): "
              f"between the Coulomb level and the drive's {f_break:.3g} N; {est['stiction']:.3g} N written"]
     order = (*CART_NAMES, *DRY_NAMES)

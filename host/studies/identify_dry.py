@@ -41,11 +41,13 @@ from host.studies.identify_log import RunLog
 
 __all__ = ["dry_cart_sim", "dry_fit", "SUBSTEPS"]
 
-SUBSTEPS = 4
+SUBSTEPS = 8
 """Sub-steps a control tick in the fit (the simulators: 2 at the 500 Hz loop; the decisions at
 each sub-step's start make the finer cut the better model of a continuous cart)."""
-NFEV_START = 25
-"""Function evaluations of each start's short fit before the best is polished."""
+DE_ITER = 60
+"""Generations of the global search (differential evolution, 10 x the unknowns a generation)."""
+LOCAL_NFEV = 40
+"""Most evaluations of the local fit after it (its Jacobian's not counted)."""
 DIFF_STEP = 1e-2
 """Relative step of the fit's finite-difference Jacobian: the model is piecewise smooth (the
 stuck / sliding and contact decisions at sub-step starts), a step of 1e-4 sees its steps."""
@@ -197,9 +199,13 @@ _LO = np.array([1e-6, 1e-3, 0.0, 0.0, 0.0, 0.0, 0.0, -1.5])
 _HI = np.array([1e3, 1e3, 10.0, 20.0, 20.0, 100.0, 1.0, 3.0])
 
 
+def _sq(r: np.ndarray) -> float:
+    return float(r @ r)
+
+
 def dry_fit(logs: Sequence[RunLog], M: float, dt: float, d: int, start: dict[str, float], *,
             one_constant: tuple[float, float] | None = None, duty_min: float = 0.0, half: int | None = None,
-            fit_deadband: bool = True, substeps: int = SUBSTEPS) -> dict[str, Any]:
+            fit_deadband: bool = True, fit_b: bool = False, substeps: int = SUBSTEPS) -> dict[str, Any]:
     """Output-error fit of the dry cart (:func:`dry_cart_sim`) to cart-only runs at whole delay ``d``.
 
     Parameters
@@ -223,6 +229,11 @@ def dry_fit(logs: Sequence[RunLog], M: float, dt: float, d: int, start: dict[str
         Fit the deadband (two duty levels or more: with one, ``a (|u| - deadband)`` is one
         number, and ``b`` takes up the back-EMF damping the one motor constant would tie to
         ``a``); else held at ``start``'s.
+    fit_b : bool
+        Fit the viscous friction ``b``; default held at ``start``'s (the robot file's): on a dry
+        cart the coast-down ends within tens of milliseconds under the Coulomb friction, where
+        ``b v`` is a hundredth of it -- ``b`` is not in the log, and fitted it wanders off,
+        taking the back-EMF damping and with it ``kt`` along.
     half : int, optional
         The split-half checks of :func:`host.studies.identify_cart.cart_fit` (0, 1: that half of
         the driven rows and the coast-down; 2: the driven rows and the coast-down's first half).
@@ -258,7 +269,7 @@ def dry_fit(logs: Sequence[RunLog], M: float, dt: float, d: int, start: dict[str
                 m_ = dr.copy()
                 m_[off[:len(off) // 2]] = True
         data.append((np.asarray(lg.duty, dtype=float), ~lg.coast, lg.x, n, m_))
-    free = np.array([True, one_constant is None, True, True, True, fit_deadband, True, True])
+    free = np.array([True, one_constant is None, fit_b, True, True, fit_deadband, True, True])
 
     def full(th: np.ndarray) -> np.ndarray:
         x = x_hold.copy()
@@ -284,32 +295,30 @@ def dry_fit(logs: Sequence[RunLog], M: float, dt: float, d: int, start: dict[str
     x0 = np.array([start["a"], start["D"], start["b"], start.get("coulomb", 0.1), start.get("hp", 0.5e-3),
                    start["deadband"], start["f"], start["brake"]]) / _SC
     x_hold = x0.copy()
-    if "hp" in start:
-        grid = [x0]
-    else:
-        # a few starts over the physical range around the robot file's drive (play, deadband,
-        # deadband), a short fit from each, the best polished
-        grid = []
-        for tau0 in sorted({x0[6], max(0.0, x0[6] - 1.5)}):
-            for hp0 in (0.3, 1.2):
-                for db0 in ((0.0, 0.03 * 32767 / _SC[5]) if fit_deadband else (0.0,)):
-                    for fa in (0.9, 1.1):
-                        xs = x0.copy()
-                        xs[0] *= fa
-                        xs[1] *= fa * fa
-                        xs[3], xs[4], xs[5], xs[6] = 0.2, hp0, x0[5] + db0, tau0
-                        grid.append(xs)
     hi_all = _HI.copy()
     hi_all[6] = dmax + 0.999
     lo_, hi_ = _LO[free], hi_all[free]
-    tries = []
-    for xs in grid:
-        xs = np.clip(xs, _LO + 1e-9, hi_all - 1e-9)
-        tries.append(least_squares(res, xs[free], bounds=(lo_, hi_), x_scale="jac", diff_step=DIFF_STEP,
-                                   max_nfev=None if len(grid) == 1 else NFEV_START))
-    best = min(tries, key=lambda t: t.cost)
-    if len(grid) > 1:
-        best = least_squares(res, best.x, bounds=(lo_, hi_), x_scale="jac", diff_step=DIFF_STEP)
+    x0 = np.clip(x0, _LO + 1e-9, hi_all - 1e-9)
+    if "hp" not in start:
+        # the global search (the cost is rugged: the play, the stuck / sliding switches and the
+        # lag trade places): differential evolution over the physical range at half the
+        # sub-steps, then the local fit from its best
+        from scipy.optimize import differential_evolution
+
+        sub = substeps
+        substeps = max(2, substeps // 2)
+        box = np.column_stack([_LO, hi_all])
+        box[0] = (0.7 * x0[0], 1.3 * x0[0])  # the drive: the robot file's +-30 %
+        box[1] = (0.25 * x0[1], 4.0 * x0[1])
+        box[3] = (0.0, 3.0)  # N of Coulomb friction
+        box[4] = (0.0, 5.0)  # mm of half play
+        box[5] = (0.0, 0.1 * 32767 / _SC[5])  # deadband: 10 % of full duty
+        de = differential_evolution(lambda th: _sq(res(th)), box[free],
+                                    popsize=10, maxiter=DE_ITER, tol=1e-6, seed=0, polish=False, init="sobol")
+        substeps = sub
+        x0 = x_hold.copy()
+        x0[free] = de.x
+    best = least_squares(res, x0[free], bounds=(lo_, hi_), x_scale="jac", diff_step=DIFF_STEP, max_nfev=LOCAL_NFEV)
     r = best.fun
     k = int(np.count_nonzero(free))
     s2 = float(r @ r) / max(1, len(r) - k)
