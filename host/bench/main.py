@@ -31,6 +31,7 @@ BENCHES: dict[str, str] = {
     "fuzz_states": "host.bench.fuzz_states:bench",
     "catch": "host.bench.catch:bench",
     "identify": "host.bench.identify:bench",
+    "identify_dry": "host.bench.identify:bench_dry",
     "commission": "host.bench.commission:bench",
 }
 

@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         raise A.RunFailed(f"the fit failed: no finite estimate of {', '.join(bad)} (the logs do not excite them)")
     print(f"identified from {len(logs)} log(s), {res['rows']} rows; delay {res['delay_samples']} samples")
     src = res.get("sources", {})
-    for k in (*PARAM_NAMES, *(x for x in STAGE1_EXTRA if x in e)):
+    for k in (*PARAM_NAMES, *(x for x in (*STAGE1_EXTRA, "coulomb", "stiction", "backlash") if x in e)):
         lo, hi = ci.get(k, [math.nan, math.nan])
         tag = "  (from --params)" if src.get(k) == "params" else ""
         print(f"  {k:11s} {e[k]:12.6g} {UNITS[k]:8s} 95% [{lo:.6g}, {hi:.6g}]{tag}")
@@ -116,7 +116,7 @@ def _stage1(args: argparse.Namespace, logs: list, params: object) -> int:
     import numpy as np
 
     from host.studies.identify import LogError, identified_params, robot_toml
-    from host.studies.identify_cart import CART_NAMES, CART_UNITS, identify_cart
+    from host.studies.identify_cart import CART_NAMES, CART_UNITS, DRY_NAMES, identify_cart
 
     try:
         with np.errstate(all="ignore"), warnings.catch_warnings():
@@ -132,7 +132,7 @@ def _stage1(args: argparse.Namespace, logs: list, params: object) -> int:
         raise A.RunFailed(f"the fit failed: no finite estimate of {', '.join(bad)}")
     print(f"first stage (cart-only) from {len(logs)} log(s), {res['rows']} rows; delay {res['delay_samples']} "
           f"samples + latency {res['latency_samples']:.2f}")
-    for k in CART_NAMES:
+    for k in (*CART_NAMES, *(x for x in DRY_NAMES if x in e)):
         lo, hi = ci.get(k, [math.nan, math.nan])
         print(f"  {k:11s} {e[k]:12.6g} {CART_UNITS[k]:8s} 95% [{lo:.6g}, {hi:.6g}]")
     for n in res["notes"]:

@@ -55,7 +55,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy import signal
 
-from host.studies.identify_cart import _eff, identify_cart
+from host.studies.identify_cart import DRY_NAMES, _eff, identify_cart
 from host.studies.identify_log import LogError, RunLog, read_log
 from sim import sensors as ssens
 from sim.motor import DUTY_MAX
@@ -73,7 +73,7 @@ STAGE1_EXTRA = ("latency", "deadband")
 read-to-drive latency (s) and the bridge's deadband (fraction of full duty; held unless fitted)."""
 
 UNITS = {"I": "kg*m^2", "mL": "kg*m", "b": "N*s/m", "kt": "N*m/A", "ke": "V*s/rad", "delay": "s",
-         "pot_offset": "count", "latency": "s", "deadband": "1"}
+         "pot_offset": "count", "latency": "s", "deadband": "1", "coulomb": "N", "stiction": "N", "backlash": "m"}
 BIAS_FLOOR = {"I": 0.05, "mL": 0.04}
 """Fraction of the estimate added (in quadrature) to the bootstrap interval of the balancing stage's
 estimates for the method's bias (the equation-error fit through the low-pass)."""
@@ -322,6 +322,9 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float = 10.0, m
         est.update(kt=ce["kt"], ke=ce["ke"], b=ce["b"], delay=ce["delay"])
         est["latency"] = ce["latency"]
         est["deadband"] = ce["deadband"]
+        # the dry cart's (identify_cart fitted it: the linear cart did not fit the cart-only runs);
+        # the balancing stage below still models the cart's reaction as linear
+        est.update({k: ce[k] for k in DRY_NAMES if k in ce})
     notes = list(cres["notes"]) if cres is not None else []
     sources = {k: "logs" for k in PARAM_NAMES}
     if carts and not has_coast:
@@ -401,7 +404,7 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float = 10.0, m
         ci["delay"] = [max(0.0, (d - 1) * dt), (d + 1) * dt]  # the grid: whole samples
     if cres is not None:
         # the first stage's intervals (noise, split-half bias and its floor) for what it estimates
-        for k in ("b", "kt", "ke", "delay", "latency", "deadband"):
+        for k in ("b", "kt", "ke", "delay", "latency", "deadband", *(x for x in DRY_NAMES if x in cres["ci"])):
             ci[k] = list(cres["ci"][k])
         d = int(cres["delay_samples"])
     return {"estimates": {k: float(v) for k, v in est.items()}, "ci": ci, "units": UNITS, "delay_samples": d,
@@ -423,7 +426,9 @@ def identified_params(result: dict[str, Any], params: RobotParams) -> RobotParam
     rounded to whole control ticks, the pot offset to whole counts; ``pendulum.L_cm`` and
     ``pendulum.I`` are set explicitly (``L_cm = mL / m``).  A first-stage result
     (:func:`identify_cart`: no ``I``, ``mL``, pot offset) sets only the drive, the friction and
-    the delay; a deadband fitted (two amplitudes) goes to ``motor.deadband``.
+    the delay; a deadband fitted (two amplitudes) goes to ``motor.deadband``; the dry cart's
+    Coulomb friction, stiction and gear play (``identify_cart(..., dry=True)``) to
+    ``cart.coulomb``, ``cart.stiction`` and ``motor.backlash``.
     """
     e = result["estimates"]
     ch: dict[str, float] = {}
@@ -440,6 +445,10 @@ def identified_params(result: dict[str, Any], params: RobotParams) -> RobotParam
     if not any("deadband held" in n for n in result.get("notes", ())) and math.isfinite(e.get("deadband", math.nan)) \
             and "motor.deadband" in params.values:
         ch["motor.deadband"] = max(0.0, e["deadband"])
+    # the dry cart's (identify_cart(dry=True)): Coulomb friction, breakaway, gear play
+    for k, key in (("coulomb", "cart.coulomb"), ("stiction", "cart.stiction"), ("backlash", "motor.backlash")):
+        if math.isfinite(e.get(k, math.nan)):
+            ch[key] = max(0.0, e[k])
     return params.replace(**ch)
 
 

@@ -29,6 +29,16 @@ inflated by the residuals' autocorrelation (noise), combined in quadrature with 
 each estimate between the fit and the same fit on each half of the excitation (a model that
 does not fit moves with the data it sees: the method's bias shows there), and with
 :data:`BIAS_FLOOR` of the estimate, the bias measured on the validation's realistic plants.
+
+**Dry carts.**  A geared cart with Coulomb friction, gear play (the encoder on the motor shaft)
+and a deadband is not this linear cart: fitted by it, ``kt`` came out 15-20 % low, and most such
+logs leave residuals of 1-9 encoder counts (refused).  Where the linear fit leaves more than
+:data:`DRY_COUNTS` and the runs have two duty levels, the dry cart of
+:mod:`host.studies.identify_dry` (the simulators' own equations) is fitted and returned when it
+fits better: ``model`` "dry", with ``coulomb``, ``stiction`` (bounded only) and ``backlash``
+(:data:`DRY_NAMES`); ``b`` is held at the robot file's, its interval the realistic set's range.
+Intervals as above (noise, split halves, ``b`` at the ends of its range, :data:`DRY_BIAS_FLOOR`).
+A cart that did not move (:data:`MIN_TRAVEL_COUNTS`) is refused whatever the model.
 """
 
 from __future__ import annotations
@@ -45,16 +55,36 @@ from sim.motor import DUTY_MAX
 from sim.params import RobotParams
 
 __all__ = ["cart_sim", "cart_fit", "identify_cart", "CART_NAMES", "CART_UNITS", "BIAS_FLOOR", "min_cart_rows",
-           "drive_of"]
+           "drive_of", "DRY_NAMES"]
 
 CART_NAMES = ("b", "kt", "ke", "delay", "latency", "deadband")
 """First-stage estimates: viscous friction (N s/m), force and back-EMF constants, sensor
 delay (s, whole ticks), the board's read-to-drive latency (s), the bridge's deadband (fraction
 of full duty; fitted only from two or more amplitudes)."""
-CART_UNITS = {"b": "N*s/m", "kt": "N*m/A", "ke": "V*s/rad", "delay": "s", "latency": "s", "deadband": "1"}
+CART_UNITS = {"b": "N*s/m", "kt": "N*m/A", "ke": "V*s/rad", "delay": "s", "latency": "s", "deadband": "1",
+              "coulomb": "N", "stiction": "N", "backlash": "m"}
 BIAS_FLOOR = {"b": 0.03, "kt": 0.03, "ke": 0.02, "deadband": 0.0}
 """Fraction of each estimate added (in quadrature) to its interval for the method's own bias."""
 MAX_RES_COUNTS = 1.0
+DRY_COUNTS = 0.5
+"""A linear fit whose rms residual exceeds this many encoder counts (clean runs of a linear cart:
+0.3-0.4, the quantisation's own 0.29 and the telemetry's 0.1 mm steps) is fitted again with the
+dry cart (:mod:`host.studies.identify_dry`); the dry fit is the result when it fits better."""
+MIN_TRAVEL_COUNTS = 20.0
+"""Fewest encoder counts the cart must travel under the excitation for its drive to be identified."""
+DRY_ABS_FLOOR = {"coulomb": 0.01, "backlash": 5e-5, "deadband": 5e-4}
+"""Absolute floors of the dry fit's intervals (N, m, fraction of full duty), in quadrature with the
+relative ones: a Coulomb friction of 0.065 N came out 0.0038 N high, outside its 5 % (bench identify_dry)."""
+DRY_B_RANGE = (0.5, 2.0)
+"""Factors on the robot file's ``b`` the dry fit is repeated at for its intervals (``b`` is held:
+the realistic set's friction range, sim/uncertainty_realistic.toml)."""
+DRY_NAMES = ("coulomb", "stiction", "backlash")
+"""The dry cart's estimates besides :data:`CART_NAMES` (in the result only when it was fitted):
+Coulomb friction and the breakaway force (N, ``cart.coulomb``, ``cart.stiction``), the total gear
+play (m of cart travel, ``motor.backlash``)."""
+DRY_BIAS_FLOOR = {"b": 0.05, "kt": 0.02, "ke": 0.02, "deadband": 0.05, "coulomb": 0.05, "backlash": 0.05}
+"""The dry fit's :data:`BIAS_FLOOR`: fraction of each estimate added in quadrature for the method's bias
+(the sub-step decisions of stuck / sliding and of the gear's contact)."""
 """Largest rms residual of the cart-only fit, in encoder counts (clean runs: 0.3-0.5)."""
 MIN_DRIVEN_S = 1.5
 """Board seconds of excitation a cart-only log needs at least (several drive time constants of
@@ -318,7 +348,7 @@ def _stage(carts: Sequence[RunLog], params: RobotParams, dmax: int, latency: boo
 
 
 def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: float = 0.03,
-                  latency: bool = True, one_constant: bool = True) -> dict[str, Any]:
+                  latency: bool = True, one_constant: bool = True, dry: bool = True) -> dict[str, Any]:
     """The first stage: the drive (``kt``, ``ke``), the friction ``b``, the delay and latency from cart-only runs.
 
     Parameters
@@ -340,6 +370,14 @@ def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: flo
         ``ke`` apart) runs too, as a check: ``free`` in the result, and a note when its ``ke``
         differs from the one constant by more than its interval (``motor.R`` or
         ``motor.V_supply`` of ``params`` off, or not a plain DC motor).  False: the free fit is the result.
+    dry : bool
+        Where the linear cart does not fit (rms residual over :data:`DRY_COUNTS`) and the runs
+        have two duty levels or more, fit the dry cart (:mod:`host.studies.identify_dry`:
+        Coulomb friction, gear play, deadband; ``b`` held) and return it when it fits better
+        (``model`` "dry", the estimates of :data:`DRY_NAMES` besides).  With one level the dry
+        cart is not identifiable (``a (|u| - deadband)`` and the Coulomb friction are one number:
+        fitted anyway, ``kt`` came out up to 20 % off with intervals that missed it): the linear
+        result or its refusal, with a note asking for a second amplitude.  False: the linear cart only.
 
     Returns
     -------
@@ -371,14 +409,38 @@ def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: flo
     oc = _coefs(params) if one_constant else None
     d, cf, sse = _stage(carts, params, dmax, latency, dbk, db_known, oc)
     count = 1.0 / float(ssens.enc_counts_per_m(params))
+    moved = max(float(np.ptp(lg.x[~lg.coast])) if (~lg.coast).any() else 0.0 for lg in carts)
+    if moved < MIN_TRAVEL_COUNTS * count:
+        # a cart that did not move fits any drive: nothing to identify (a stuck cart, a dead
+        # drive, an amplitude inside the deadband or under the breakaway force)
+        raise LogError(", ".join(lg.name for lg in carts), "x",
+                       f"the cart moved {moved / count:.0f} encoder counts under the excitation (at least "
+                       f"{MIN_TRAVEL_COUNTS:g} needed): dead drive, stuck cart, or an amplitude inside the bridge's "
+                       "deadband or under the breakaway force: record again with a larger --amplitude")
     rms = math.sqrt(cf["sse"])
+    lin_rms = rms
+    dry_note = ""
+    if dry and rms > DRY_COUNTS * count and not fit_db:
+        # one duty level: a (|u| - deadband) - Coulomb is one number, the dry cart not identifiable
+        dry_note = (" -- a dry cart (Coulomb friction, gear play, deadband) needs cart-only runs at two "
+                    "amplitudes or more (--amplitude A and 1.6 A) for its model")
+    if dry and rms > DRY_COUNTS * count and fit_db:
+        # the linear cart does not explain the log: the dry one (Coulomb friction, gear play,
+        # deadband; host.studies.identify_dry), at the linear fit's delay and its neighbours
+        dry = _dry_stage(carts, params, d, dmax, cf, oc)
+        if dry is not None and dry[1]["sse"] < cf["sse"]:
+            d, cf = dry
+            sse[d] = cf["sse"]
+            rms = math.sqrt(cf["sse"])
     if rms > MAX_RES_COUNTS * count:
         # nothing to identify from a log the drive's model does not fit: say so, in one line
         raise LogError(", ".join(lg.name for lg in carts), "x",
                        f"the cart's drive model does not fit: residual {1e3 * rms:.3f} mm rms, "
                        f"{rms / count:.1f} encoder counts (a clean run fits within {MAX_RES_COUNTS:g}): was the "
                        "cart held, on its end stop, the pendulum still on, or the driver enabled after the disarm? "
-                       "record again")
+                       "record again" + dry_note)
+    if cf.get("model") == "dry":
+        return _dry_result(carts, params, d, cf, oc, sse, lin_rms, count, max_delay)
     dr = drive_of(cf, params)
     # the whole-tick sensor delay and the latency from the total d + f (module docstring):
     # up to 0.75 of a tick is the board's latency, more is one more tick of delay
@@ -390,6 +452,8 @@ def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: flo
     ci["delay"] = [max(0.0, (dw - 1) * dt), (dw + 1) * dt]
     ci["latency"] = [-0.25 * dt, 0.75 * dt]
     notes = []
+    if dry_note:
+        notes.append(f"the linear cart fits to {rms / count:.2f} encoder counts rms only{dry_note}")
     free = None
     if one_constant:
         d2, ff, _ = _stage(carts, params, dmax, latency, dbk, db_known, None)
@@ -409,7 +473,7 @@ def identify_cart(logs: Sequence[RunLog], params: RobotParams, *, max_delay: flo
                      "(two cart-only runs of different --amplitude fit it)")
     return {"estimates": {k: float(v) for k, v in est.items()}, "ci": ci, "units": CART_UNITS,
             "delay_samples": dw, "latency_samples": tau - dw, "fit_delay": d, "delay_sse": [float(v) for v in sse],
-            "fit": cf, "free": free, "one_constant": bool(one_constant), "rows": int(cf["n"]),
+            "fit": cf, "free": free, "one_constant": bool(one_constant), "rows": int(cf["n"]), "model": "linear",
             "logs": [{"file": lg.name, "kind": "cart-only", "rows": len(lg.x)} for lg in carts], "notes": notes}
 
 
@@ -450,3 +514,101 @@ def _intervals(carts: Sequence[RunLog], params: RobotParams, cf: dict[str, Any],
         w = math.sqrt(half[k] ** 2 + moves[k] ** 2 + (BIAS_FLOOR[k] * est[k]) ** 2)
         ci[k] = [est[k] - w, est[k] + w]
     return ci, moves
+
+
+def _dry_stage(carts: Sequence[RunLog], params: RobotParams, d0: int, dmax: int, cf: dict[str, Any],
+               oc: tuple[float, float] | None) -> tuple[int, dict[str, Any]] | None:
+    # the dry cart at the linear fit's whole delay and its neighbours, started from the linear fit
+    from host.studies.identify_dry import dry_fit
+
+    if not all(lg.coast.any() for lg in carts):
+        return None  # the Coulomb friction is told from b by the coast-down only
+    M, dt = float(params.M), 1.0 / float(params.rate)
+    dmin = float(params.values.get("motor.duty_min", 0.0) or 0.0) * DUTY_MAX
+    # started from the robot file's drive, not the linear fit's (biased by the dry friction and
+    # the play, at times by far)
+    v = params.values
+    ca, cd = _coefs(params)
+    kt = float(v["motor.kt"])
+    start = {"a": ca * kt, "D": cd * kt * kt, "b": float(v["cart.b"]), "f": d0 + float(cf["f"]), "brake": 0.5,
+             "deadband": float(v.get("motor.deadband", 0.0) or 0.0) * DUTY_MAX}
+    ff = dry_fit(carts, M, dt, dmax, start, one_constant=oc, duty_min=dmin)
+    return int(ff["d"]), ff
+
+
+def _dry_result(carts: Sequence[RunLog], params: RobotParams, d: int, cf: dict[str, Any],
+                oc: tuple[float, float] | None, sse: list[float], lin_rms: float, count: float,
+                max_delay: float) -> dict[str, Any]:
+    # identify_cart's result from the dry fit: estimates, 95 % intervals (noise, split halves, floor)
+    from host.studies.identify_dry import dry_fit
+
+    M, dt = float(params.M), 1.0 / float(params.rate)
+    dmin = float(params.values.get("motor.duty_min", 0.0) or 0.0) * DUTY_MAX
+    tau = d + cf["f"]
+    dw = int(math.floor(tau + 0.25))
+
+    def est_of(ff: dict[str, Any]) -> dict[str, float]:
+        dd = drive_of(ff, params)
+        return {"b": ff["b"], "kt": dd["kt"], "ke": dd["ke"], "deadband": ff["deadband"] / DUTY_MAX,
+                "coulomb": ff["coulomb"], "backlash": ff["backlash"]}
+
+    est = est_of(cf)
+    # noise: the covariance of (a, D, b, coulomb, play, deadband) propagated by sampling
+    rng = np.random.default_rng(0)
+    idx = [0, 1, 2, 3, 4, 5]
+    mean = np.array([cf["a"], cf["D"], cf["b"], cf["coulomb"], cf["backlash"], cf["deadband"]])
+    draws = rng.multivariate_normal(mean, cf["cov_full"][np.ix_(idx, idx)], 400, check_valid="ignore")
+    samp: dict[str, list[float]] = {k: [] for k in est}
+    for a_, D_, b_, fc_, bl_, db_ in draws:
+        e_ = est_of({"a": a_, "D": D_, "b": b_, "coulomb": fc_, "backlash": bl_, "deadband": db_})
+        for k in est:
+            samp[k].append(e_[k])
+    half = {k: 0.5 * float(np.percentile(v, 97.5) - np.percentile(v, 2.5)) for k, v in samp.items()}
+    moves = {k: 0.0 for k in est}
+    start = {k: float(cf[k]) for k in ("a", "D", "b", "brake", "deadband", "coulomb", "hp")}
+    start["f"] = float(cf["tau"])
+    dmax = int(round(max_delay / dt))
+    # the method's bias: each half of the excitation alone, and b (held at the robot file's: not
+    # in a dry cart's log) at the ends of the realistic set's friction range (x0.5 .. x2)
+    b_file = float(cf["b"])
+    for part, bb in ((0, b_file), (1, b_file), (2, b_file), (None, DRY_B_RANGE[0] * b_file),
+                     (None, DRY_B_RANGE[1] * b_file)):
+        try:
+            ph = dry_fit(carts, M, dt, dmax, {**start, "b": bb}, one_constant=oc, duty_min=dmin, half=part)
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        pe = est_of(ph)
+        for k in moves:
+            if math.isfinite(pe[k]):
+                moves[k] = max(moves[k], abs(pe[k] - est[k]))
+    ci: dict[str, list[float]] = {}
+    for k in est:
+        w = math.sqrt(half[k] ** 2 + moves[k] ** 2 + (DRY_BIAS_FLOOR[k] * est[k]) ** 2
+                      + DRY_ABS_FLOOR.get(k, 0.0) ** 2)
+        ci[k] = [est[k] - w, est[k] + w]
+    for k in ("coulomb", "backlash", "deadband"):
+        ci[k][0] = max(0.0, ci[k][0])
+    ci["b"] = [DRY_B_RANGE[0] * b_file, DRY_B_RANGE[1] * b_file]  # held, not measured
+    # the stiction: not seen by a PRBS that breaks the cart loose at every reversal -- bounded
+    # by the Coulomb level below and by the smallest drive force that moved the cart above
+    u_min = min(float(np.min(np.abs(lg.duty[~lg.coast][lg.duty[~lg.coast] != 0]))) for lg in carts)
+    f_break = cf["a"] * max(u_min - cf["deadband"], 0.0)
+    st_file = float(params.values.get("cart.stiction", 0.0) or 0.0)
+    est["stiction"] = min(max(st_file, est["coulomb"]), f_break)
+    ci["stiction"] = [ci["coulomb"][0], max(f_break, ci["coulomb"][1])]
+    est.update(delay=dw * dt, latency=(tau - dw) * dt)
+    ci["delay"] = [max(0.0, (dw - 1) * dt), (dw + 1) * dt]
+    ci["latency"] = [-0.25 * dt, 0.75 * dt]
+    notes = [f"the linear cart did not fit ({lin_rms / count:.1f} encoder counts rms): the dry cart fitted "
+             f"({math.sqrt(cf['sse']) / count:.2f} counts) -- Coulomb friction {est['coulomb']:.3g} N, gear play "
+             f"{1e3 * est['backlash']:.2f} mm, deadband {100 * est['deadband']:.2f} % of full duty",
+             f"b held at the robot file's {b_file:.3g} N s/m (a dry cart's coast-down stops under the Coulomb "
+             "friction before b shows), its interval the realistic set's x0.5 .. x2",
+             f"the stiction is not resolved by a cart-only PRBS (every reversal breaks the cart loose): "
+             f"between the Coulomb level and the drive's {f_break:.3g} N; {est['stiction']:.3g} N written"]
+    order = (*CART_NAMES, *DRY_NAMES)
+    return {"estimates": {k: float(est[k]) for k in order}, "ci": {k: ci[k] for k in order}, "units": CART_UNITS,
+            "delay_samples": dw, "latency_samples": tau - dw, "fit_delay": d, "delay_sse": [float(v) for v in sse],
+            "fit": cf, "free": None, "one_constant": oc is not None, "rows": int(cf["n"]), "model": "dry",
+            "linear_rms_counts": lin_rms / count,
+            "logs": [{"file": lg.name, "kind": "cart-only", "rows": len(lg.x)} for lg in carts], "notes": notes}

@@ -146,6 +146,9 @@ def cart_log(plant: RobotParams, design: RobotParams, *, seconds: float = 8.0, c
     much after the tick's reading, as on a board (its computation); ``brake`` (ticks): the
     bridge stays enabled at duty 0 that long after the disarm's duty (the enable's delay).
     Without them each tick is exact (the duty held); with them ``substeps`` exact sub-steps.
+    A plant with plant realism (Coulomb and static friction, gear play with the encoder on the
+    motor shaft, the bridge's deadband and minimum duty) runs :class:`sim.plantsim.PlantSim`'s
+    own integrator with the pendulum's mass off, ``substeps`` sub-steps a tick.
     """
     rate = design.rate
     Ts = 1.0 / rate
@@ -164,7 +167,10 @@ def cart_log(plant: RobotParams, design: RobotParams, *, seconds: float = 8.0, c
     S = int(substeps) if (latency or brake) else 1
     h = Ts / S
     t_off = nd + latency + brake  # the enable's edge (ticks)
-    for k in range(n):
+    if not plant.ideal:
+        # plant realism: the simulators' own cart (PlantSim's integrator, pendulum off)
+        x = _cart_real_positions(plant, duty, nd, latency, brake, int(substeps))
+    for k in range(n if plant.ideal else 0):
         xk = x[k]
         for j in range(S):
             t = k + j / S
@@ -188,6 +194,49 @@ def cart_log(plant: RobotParams, design: RobotParams, *, seconds: float = 8.0, c
     force = np.zeros(n)
     force[:nd] = sg * amp
     return _rows(xm, phi, duty, force, state, 2, rate)
+
+
+class _CartAlone(PlantSim):
+    # the cart alone with plant realism, as host.hil.virtual_robot.RobotPlant runs it with the
+    # pendulum off: PlantSim's integrator with the pendulum's mass taken off (m L = 0: the
+    # cart's row is M xdd = F - b xd - Coulomb, the pendulum's 0), one sub-step per plant tick
+
+    def __init__(self, plant: RobotParams, S: int, seconds: float) -> None:
+        p = plant.replace(rate=plant.rate * S)
+        super().__init__(p, Scenario(name="cart_log", duration=seconds), ground_stop=False)
+        self._m = self._mL = 0.0
+        self._ce_on = self._c_emf
+
+    def sub(self, duty: float, on: bool) -> None:
+        # one sub-step: the bridge enabled (duty, back-EMF braking) or off (no current)
+        self._c_emf = self._ce_on if on else 0.0
+        d = min(max(int(duty), -smotor.DUTY_MAX), smotor.DUTY_MAX) if on else 0
+        self._integrate(d, self.t)
+        self._x[2] = self._x[3] = 0.0
+        self.tick += 1
+
+    @property
+    def encoder_x(self) -> float:
+        # the encoder is on the motor shaft: the cart plus the motor side of the gear play
+        return self._x[0] + self._delta
+
+
+def _cart_real_positions(plant: RobotParams, duty: np.ndarray, nd: int, latency: float, brake: float,
+                         S: int) -> np.ndarray:
+    # encoder-side positions at each tick of a cart-only run on a plant with realism: S sub-steps
+    # a tick, each tick's duty from ``latency`` ticks after its reading, the bridge enabled until
+    # ``nd + latency + brake`` ticks (cart_log's timing)
+    n = len(duty)
+    sim = _CartAlone(plant, S, (n + 1) / plant.rate)
+    x = np.zeros(n + 1)
+    t_off = nd + latency + brake
+    for k in range(n):
+        for j in range(S):
+            t = k + j / S
+            u = duty[k] if t >= k + latency else (duty[k - 1] if k else 0.0)
+            sim.sub(u, t < t_off)
+        x[k + 1] = sim.encoder_x
+    return x
 
 
 def write_log(log: dict[str, Any], path: str | Path) -> Path:
