@@ -195,12 +195,13 @@ class MarginDesign:
         return worst_rows(self.evaluation, params)
 
 
-def fixed_design(params: RobotParams, cand: MarginCandidate) -> Any:
-    """The firmware's gain table of ``cand`` for ``params`` (:func:`host.design.export.export`, ``ki`` in)."""
+def fixed_design(params: RobotParams, cand: MarginCandidate, *, deadband: int = 0) -> Any:
+    """The firmware's gain table of ``cand`` for ``params`` (:func:`host.design.export.export`, ``ki`` in;
+    ``deadband``: the duty counts the firmware adds in the force's direction)."""
     from host.design.export import export
 
     inner = cand.controller(params, integral=False)
-    return export(params, inner, ki=float(cand.ki or 0.0))
+    return export(params, inner, ki=float(cand.ki or 0.0), deadband=int(deadband))
 
 
 def _force_lsb(params: RobotParams, cand: MarginCandidate) -> float:

@@ -55,7 +55,8 @@ CART_AMP = 1.0  # N, the cart-only PRBS amplitude to start from
 CART_A_CMD = 25.0
 """m/s^2: the force clamp (from upright) of the cart-only run's table; the PRBS takes up to half of it."""
 CART_MOVED_M = 0.02  # m: a cart-only run that moved the cart less is not a drive's log
-CART_DB_MAX = 0.25  # fraction of full duty: the largest deadband compensation the cart-only run tries
+CART_DB_MAX = 4096 / 32767
+"""Fraction of full duty: the largest deadband compensation a table carries (the export's bound, 4096 counts)."""
 CART_S, COAST_S, BAL_TRY_S, BAL_S = 8.0, 3.0, 2.0, 15.0
 BAL_DIV = 8  # control ticks per PRBS bit of the balancing run (16 ms: slow enough to move the pendulum)
 
@@ -224,7 +225,8 @@ class Commission:
 
         p = self._params(key)
         c = cand if cand is not None else candidates(ki=(0.0,), a_cmd=(4.73,))[0]
-        fd = fixed_design(p, c)
+        # the robot file's drive deadband compensated by the firmware (the stall check counts beyond it)
+        fd = fixed_design(p, c, deadband=deadband_counts(p))
         (self.out / "table.bin").write_bytes(fd.blob())
         self.state["data"]["table"] = {"params": key, "label": label, "crc": fd.crc()}
         self.robot.upload(fd.blob(), p)
@@ -275,9 +277,18 @@ class Commission:
                 raise CommissionError("cart: the cart did not move under the cart-only excitation (dead drive, "
                                       f"stuck cart or unwired encoder; up to {amp:g} N with a deadband compensation "
                                       f"of {db:.3f})")
-        # a second level: the deadband separable from the force constant (identify_cart)
+        # a second duty level: the deadband (and on a dry cart the Coulomb friction) separable from the
+        # force constant (identify_cart) -- 1.6 x the amplitude, or where that is beyond the table's
+        # limit, half the PRBS's duty more of deadband compensation at the same amplitude
         amp2 = min(amp * 1.6, amp_max)
-        if amp2 > 1.2 * amp:
+        if amp2 <= 1.2 * amp and db < CART_DB_MAX:
+            amp2 = amp
+            db2 = min(CART_DB_MAX, db + 0.5 * amp * _duty_per_newton(pc) / DUTY_MAX)
+            self.say(f"  a second duty level: deadband compensation {db2:.3f} at {amp:g} N")
+            pc2 = self._cart_table(p, wide, db2)
+        else:
+            pc2 = pc
+        if amp2 > 1.2 * amp or pc2 is not pc:
             moved2, run2 = self._cart_run(amp2)
             if run2 is not None and moved2 > CART_MOVED_M:
                 runs.append((amp2, run2))
@@ -379,7 +390,8 @@ class Commission:
         from host.studies.identify import identified_params, identify, read_log, robot_toml
 
         p = self._params("robot_cal")
-        logs = [read_log(self.out / "balance.csv"), read_log(self.out / "cart.csv")]
+        cart = self.state["data"]["cart"]
+        logs = [read_log(self.out / "balance.csv"), *(read_log(self.out / n) for n in cart.get("logs", [cart["log"]]))]
         with np.errstate(all="ignore"), warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             res = identify(logs, p, n_boot=40 if self.fast else 100)
@@ -439,6 +451,11 @@ class Commission:
         (self.out / "robot.toml").write_text((self.out / "robot_id.toml").read_text())
         write_report(self.out, self.state["data"])
         self.say(f"  wrote {self.out / 'robot.toml'} and {self.out / 'report.html'}")
+
+
+def deadband_counts(p: RobotParams) -> int:
+    """The robot file's ``motor.deadband`` (fraction of full duty) as the table's compensation, duty counts."""
+    return int(round(min(CART_DB_MAX, max(0.0, float(p.values.get("motor.deadband", 0.0) or 0.0))) * DUTY_MAX))
 
 
 def _duty_per_newton(p: RobotParams) -> float:
