@@ -379,7 +379,7 @@ def test_realtime_loop_timing_over_ten_seconds(link) -> None:
         run = sess.run_realtime(sc, PARAMS)
         # one second run when the first breaks a real-time bound -- the bounds themselves unchanged.
         # Why: on this 2-core VM with no steal reported (steal 0.000 s) a clean run still breaks the
-        # 2 % `late` / 1 % `slow latency` bound about once in four (measured 2026-12-02: 3 of 6 runs
+        # 2 % `late` / 1 % `slow latency` bound often (measured 2026-12-02: 3 of 6 runs
         # of this test failed one link, on this session's code and on the commit before it alike;
         # the CI run of the submission failed both links so). A real regression breaks them on every
         # run (test_the_realtime_bounds_fail_a_regression_even_on_a_noisy_machine), so it fails twice
