@@ -9,7 +9,7 @@
 #             adc_open (True: the wiper test found the angle potentiometer open -> F_ADC_OPEN).
 #     link    optional object with poll(): called once per tick after the control step by
 #             run() (serve the host link: decode commands, send telemetry); or set_link(link).
-#     gains   optional gain module/object with LAYOUT and FLAT (default firmware.gains).
+#     gains   optional gain module/object with LAYOUT, FLAT and CRC (default firmware.gains).
 #     config  optional dict: the keys of firmware/appconfig.py CONFIG (default, range,
 #             meaning; cfg_value: an unknown key or a value out of range -> ValueError naming
 #             it) and msgtable PARAMS names (the parameters' start values; the DRIVE_PARAMS
