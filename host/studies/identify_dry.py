@@ -45,6 +45,7 @@ except ImportError:  # pragma: no cover - exercised only without numba
         return lambda fn: fn
 
 from host.studies.identify_log import RunLog
+from sim.plantsim import PlantSim
 
 __all__ = ["dry_cart_sim", "dry_fit", "SUBSTEPS"]
 
@@ -63,16 +64,8 @@ DIFF_STEP = 1e-2
 stuck / sliding and contact decisions at sub-step starts), a step of 1e-4 sees its steps."""
 
 
-@njit(cache=True)
-def _gate(F: float, eng: int) -> float:
-    # the motor force the gear passes (sim.plantsim.PlantSim._gate)
-    if eng == 2:
-        return F
-    if eng == 1:
-        return F if F > 0.0 else 0.0
-    if eng == -1:
-        return F if F < 0.0 else 0.0
-    return 0.0
+# the motor force the gear passes: the scenario simulator's own function, compiled
+_gate = njit(cache=True)(PlantSim._gate)
 
 
 @njit(cache=True)
