@@ -269,7 +269,7 @@ class Commission:
                 # the limit reached and nothing moved (or the stall check cut the drive): the duty that
                 # moved nothing is the drive's deadband at least -- compensated from here on, so the
                 # stall check counts only the duty beyond it (firmware: stall_duty + deadband)
-                db = min(CART_DB_MAX, db + 0.5 * amp_max * _duty_per_newton(pc) / DUTY_MAX)
+                db = _more_deadband(pc, db, amp_max)
                 amp = CART_AMP
                 self.say(f"  {why} at {tries[-1]['amplitude_n']:g} N: deadband compensation {db:.3f} of full duty")
                 pc = self._cart_table(p, wide, db)
@@ -283,7 +283,7 @@ class Commission:
         amp2 = min(amp * 1.6, amp_max)
         if amp2 <= 1.2 * amp and db < CART_DB_MAX:
             amp2 = amp
-            db2 = min(CART_DB_MAX, db + 0.5 * amp * _duty_per_newton(pc) / DUTY_MAX)
+            db2 = _more_deadband(pc, db, amp)
             self.say(f"  a second duty level: deadband compensation {db2:.3f} at {amp:g} N")
             pc2 = self._cart_table(p, wide, db2)
         else:
@@ -458,11 +458,12 @@ def deadband_counts(p: RobotParams) -> int:
     return int(round(min(CART_DB_MAX, max(0.0, float(p.values.get("motor.deadband", 0.0) or 0.0))) * DUTY_MAX))
 
 
-def _duty_per_newton(p: RobotParams) -> float:
-    """Duty counts per newton of cart force at rest (the firmware's KDU row: supply, resistance, kt, gear)."""
+def _more_deadband(p: RobotParams, db: float, amp_n: float) -> float:
+    """Deadband compensation ``db`` (fraction of full duty) raised by half the duty of ``amp_n`` N at
+    rest (the drive model of ``p``: supply, resistance, kt, gear), at most :data:`CART_DB_MAX`."""
     from sim.motor import duty_from_force
 
-    return float(duty_from_force(10.0, 0.0, p)) / 10.0
+    return min(CART_DB_MAX, db + 0.5 * float(duty_from_force(amp_n, 0.0, p)) / DUTY_MAX)
 
 
 def _nominal(p: RobotParams) -> dict[str, float]:
