@@ -16,6 +16,13 @@ Rows: per robot the verdicts before/after, whether the pendulum was lost during 
 (a stage refused after a fall, or a verification run that fell), the stage that refused, the
 worst design margin and the seconds it took; the summary: counts before and after, losses,
 time per commissioning.  ``n`` robots (default 50; ``UPRIGHT_BENCH_COMMISSION_N``).
+
+Section ``commission_rp2040`` (:func:`bench_rp2040`) is the subset on the emulated RP2040: the
+first ``n`` of the same robots (default 2; ``UPRIGHT_BENCH_COMMISSION_RP2040_N``), each on the
+pins of ``upright emulate rp2040 --pty --plant ROBOT`` (MicroPython's rp2 port in rp2040js, the
+virtual robot on its pins) and commissioned by ``upright commission --port PTY --fast`` as a user
+runs it, from the weighed robot file; the verdict is the commissioning's own (the board's
+telemetry: the emulated board's true state is not the host's to read).
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["bench", "robots", "true_verdict"]
+__all__ = ["bench", "bench_rp2040", "robots", "true_verdict"]
 
 
 def robots(n: int) -> list[tuple[str, Any]]:
@@ -44,7 +51,7 @@ def robots(n: int) -> list[tuple[str, Any]]:
     k_rand = min(len(rand), max(0, n // 3))
     k_vert = max(0, n - 1 - k_rand)
     stride = max(1, len(vert) // max(1, k_vert))
-    chosen = (nominal + vert[::stride][:k_vert] + rand[:k_rand])[:n]
+    chosen = (nominal + vert[::stride][:k_vert] + rand[:k_rand])[:max(0, n)]
     out = []
     for p in chosen:
         ch = dict(p.overrides(base))
@@ -130,3 +137,78 @@ def bench(n: int | None = None) -> dict[str, Any]:
             "summary": {"robots": k, "shipped_pass": sum(r["shipped"] for r in rows),
                         "after_pass": sum(r["after"] for r in rows), "lost": sum(r["lost"] for r in rows),
                         "median_s": float(np.median(secs))}}
+
+
+def _commission_on_emulated_board(plant: Any, design: Any, td: str, timeout: float) -> dict[str, Any]:
+    """``upright commission --port`` against ``upright emulate rp2040 --pty --plant`` with ``plant``."""
+    import json
+    import signal
+    import subprocess
+    import sys
+
+    from host.operate.commission import weighed
+    from host.studies.identify import robot_toml
+
+    plant_file, start, out = (os.path.join(td, f) for f in ("plant.toml", "weighed.toml", "commission"))
+    with open(plant_file, "w") as fh:
+        fh.write(robot_toml(plant, "bench: the robot on the emulated board's pins"))
+    with open(start, "w") as fh:
+        fh.write(robot_toml(weighed(design, plant)))
+    cli = [sys.executable, "-m", "host.cli.main"]
+    env = dict(os.environ, TMPDIR=td)
+    with open(os.path.join(td, "emulate.err"), "w") as err:
+        emu = subprocess.Popen(cli + ["emulate", "rp2040", "--pty", "--plant", plant_file], cwd=td,
+                               stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=err, text=True,
+                               start_new_session=True, env=env)
+    row: dict[str, Any] = {}
+    try:
+        port = emu.stdout.readline().strip()  # type: ignore[union-attr]
+        if not port.startswith("/dev/"):
+            raise RuntimeError("the emulated board did not start: " + open(os.path.join(td, "emulate.err")).read()[-300:])
+        t0 = time.monotonic()
+        try:
+            r = subprocess.run(cli + ["commission", "--port", port, "--out", out, "--params", start, "--fast"],
+                               cwd=td, capture_output=True, text=True, timeout=timeout, env=env)
+            row["exit"] = r.returncode
+            if r.returncode != 0:
+                row["why"] = (r.stderr.strip().splitlines() or ["?"])[-1][:300]
+        except subprocess.TimeoutExpired:
+            row["exit"], row["why"] = -1, f"no end after {timeout:.0f} s"
+        row["seconds"] = time.monotonic() - t0
+        state = os.path.join(out, "commission.json")
+        data = json.load(open(state)).get("data", {}) if os.path.exists(state) else {}
+        ver = data.get("verify", {})
+        row["verified"] = bool(ver) and all(v.get("pass", False) for v in ver.values())
+        row["after_settle"] = max((v.get("settle", math.inf) for v in ver.values()), default=math.nan)
+        row["after_xdd"] = max((v.get("peak_xddot", math.nan) for v in ver.values()), default=math.nan)
+        row["lost"] = "fell" in row.get("why", "") or any(v.get("fell", False) for v in ver.values())
+    finally:
+        if emu.poll() is None:
+            os.killpg(emu.pid, signal.SIGTERM)
+            try:
+                emu.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                os.killpg(emu.pid, signal.SIGKILL)
+                emu.wait()
+    return row
+
+
+def bench_rp2040(n: int | None = None, timeout: float = 1800.0) -> dict[str, Any]:
+    """Commission the first ``n`` robots on the emulated RP2040 (module docstring)."""
+    from sim.params import load_params
+
+    n = int(os.environ.get("UPRIGHT_BENCH_COMMISSION_RP2040_N", "2")) if n is None else int(n)
+    design = load_params()
+    rows: list[dict[str, Any]] = []
+    for label, plant in robots(max(n, 1))[:n]:
+        with tempfile.TemporaryDirectory() as td:
+            rows.append({"robot": label} | _commission_on_emulated_board(plant, design, td, timeout))
+    k = len(rows)
+    secs = [r["seconds"] for r in rows] or [math.nan]
+    return {"title": "commission_rp2040: the same robots commissioned on the emulated RP2040 (upright commission --port)",
+            "rows": rows,
+            "notes": [f"{k} robots: verified on the board's telemetry {sum(r['verified'] for r in rows)}/{k}, "
+                      f"lost the pendulum {sum(r['lost'] for r in rows)}, refused {sum(r['exit'] != 0 for r in rows)}",
+                      f"time per commissioning: median {np.median(secs):.0f} s, max {max(secs):.0f} s "
+                      "(the emulator runs at 0.1-0.4x real time)"],
+            "summary": {"robots": k, "verified": sum(r["verified"] for r in rows), "median_s": float(np.median(secs))}}

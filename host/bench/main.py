@@ -33,6 +33,8 @@ BENCHES: dict[str, str] = {
     "identify": "host.bench.identify:bench",
     "identify_dry": "host.bench.identify:bench_dry",
     "commission": "host.bench.commission:bench",
+    "commission_rp2040": "host.bench.commission:bench_rp2040",
+    "realism": "host.bench.realism:bench",
 }
 
 

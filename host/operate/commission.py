@@ -44,7 +44,8 @@ from host.operate.board import BoardError
 from sim.motor import DUTY_MAX
 from sim.params import RobotParams, load_params
 
-__all__ = ["STAGES", "CommissionError", "Commission", "telemetry_metrics", "PHI_BOUND", "STATE_FILE", "weighed"]
+__all__ = ["STAGES", "CommissionError", "Commission", "telemetry_metrics", "PHI_BOUND", "STATE_FILE", "weighed",
+           "COULOMB_COMP", "compensation_counts", "deadband_counts"]
 
 STAGES = ("identity", "sensors", "calibrate", "cart", "design1", "balance", "identify", "design2", "verify", "save")
 STATE_FILE = "commission.json"
@@ -57,6 +58,14 @@ CART_A_CMD = 25.0
 CART_MOVED_M = 0.02  # m: a cart-only run that moved the cart less is not a drive's log
 CART_DB_MAX = 4096 / 32767
 """Fraction of full duty: the largest deadband compensation a table carries (the export's bound, 4096 counts)."""
+COULOMB_COMP = 0.9
+"""Fraction of the robot file's Coulomb friction (``cart.coulomb``) the uploaded table adds to its deadband
+compensation, as the duty that makes that force at rest: the firmware adds it in the force's direction
+(``firmware/motor.py``), which cancels the friction whenever the cart moves the way it is pushed.
+Slightly under one: a full compensation turns every sign change of the force into a kick the size of
+the friction (``make bench`` section ``realism``, ``upright commission``'s note in docs/parameters.md:
+0.8-1.0 x the friction settle the step at 0.25-0.5 N where no compensation settles none; 1.2 x breaks
+the acceleration limit)."""
 CART_S, COAST_S, BAL_TRY_S, BAL_S = 8.0, 3.0, 2.0, 15.0
 BAL_DIV = 8  # control ticks per PRBS bit of the balancing run (16 ms: slow enough to move the pendulum)
 
@@ -218,15 +227,16 @@ class Commission:
         self.state["data"]["robot_cal"] = "robot_cal.toml"
         self._upload("robot_cal", None, "calibrated robot, shipped weights")
 
-    def _upload(self, key: str, cand: Any, label: str) -> None:
+    def _upload(self, key: str, cand: Any, label: str, coulomb: float = COULOMB_COMP) -> None:
         # design the table of `cand` for the robot file `key` of the state, upload it, keep it in
         # DIR/table.bin (a resumed run uploads it again: the board may have been reset)
         from host.design.margin import candidates, fixed_design
 
         p = self._params(key)
         c = cand if cand is not None else candidates(ki=(0.0,), a_cmd=(4.73,))[0]
-        # the robot file's drive deadband compensated by the firmware (the stall check counts beyond it)
-        fd = fixed_design(p, c, deadband=deadband_counts(p))
+        # the robot file's drive deadband and most of its Coulomb friction compensated by the firmware
+        # (the stall check counts beyond it)
+        fd = fixed_design(p, c, deadband=compensation_counts(p, coulomb))
         (self.out / "table.bin").write_bytes(fd.blob())
         self.state["data"]["table"] = {"params": key, "label": label, "crc": fd.crc()}
         self.robot.upload(fd.blob(), p)
@@ -312,7 +322,9 @@ class Commission:
         (self.out / "robot_cart.toml").write_text(robot_toml(pc, "upright commission: the cart-only run's robot "
                                                                  "file (its deadband: the compensation tried)"))
         self.state["data"]["robot_cart"] = "robot_cart.toml"
-        self._upload("robot_cart", wide, f"cart-only run, force clamp {wide.u_max(pc):.2f} N, deadband {db:.3f}")
+        # the deadband only: the cart-only run's identification knows the table's compensation as db
+        self._upload("robot_cart", wide, f"cart-only run, force clamp {wide.u_max(pc):.2f} N, deadband {db:.3f}",
+                     coulomb=0.0)
         return self._params("robot_cart")
 
     def _cart_run(self, amp: float) -> tuple[float, Any]:
@@ -341,6 +353,9 @@ class Commission:
         if math.isfinite(e.get("deadband", math.nan)):
             # fitted from two amplitudes, else the cart-only run's compensation (the table compensates it)
             ch["motor.deadband"] = min(CART_DB_MAX, max(0.0, e["deadband"]))
+        if math.isfinite(e.get("coulomb", math.nan)):
+            # a dry cart (identify_cart's dry fit): its friction, most of it compensated by the table
+            ch["cart.coulomb"] = max(0.0, e["coulomb"])
         p1 = p.replace(**ch)
         (self.out / "robot_stage1.toml").write_text(robot_toml(p1, "upright commission: after the cart-only run"))
         self.state["data"]["robot_stage1"] = "robot_stage1.toml"
@@ -456,6 +471,17 @@ class Commission:
 def deadband_counts(p: RobotParams) -> int:
     """The robot file's ``motor.deadband`` (fraction of full duty) as the table's compensation, duty counts."""
     return int(round(min(CART_DB_MAX, max(0.0, float(p.values.get("motor.deadband", 0.0) or 0.0))) * DUTY_MAX))
+
+
+def compensation_counts(p: RobotParams, coulomb: float = COULOMB_COMP) -> int:
+    """The duty counts the table of robot file ``p`` adds in the force's direction: its deadband
+    (:func:`deadband_counts`) plus ``coulomb`` times the duty of its Coulomb friction ``cart.coulomb``
+    at rest (:data:`COULOMB_COMP`), at most :data:`CART_DB_MAX` of full duty."""
+    from sim.motor import duty_from_force
+
+    fc = max(0.0, float(p.values.get("cart.coulomb", 0.0) or 0.0))
+    extra = abs(float(duty_from_force(coulomb * fc, 0.0, p))) if fc > 0.0 else 0.0
+    return int(min(round(CART_DB_MAX * DUTY_MAX), deadband_counts(p) + round(extra)))
 
 
 def _more_deadband(p: RobotParams, db: float, amp_n: float) -> float:
