@@ -69,7 +69,7 @@ class Dispatcher:
         self.g_got = 0
         self.g_token = -1
         self.c32 = Crc32()  # command checks and the upload's CRC-32 (chunk by chunk)
-        self.crc30 = None  # a faster build of the check's CRC (fastframe.crc32_low30), if set
+        self.crc30 = None  # a faster build of the check's CRC (fastlink.crc32_low30), if set
         self.g32 = Crc32()
         self.g_active = False
         self.n_refused = 0
@@ -301,7 +301,7 @@ class Dispatcher:
         w = 3 if mid == T.PARAM_SET else 4
         f = self.crc30
         if f is not None:
-            # the viper build (link_serial sets it on a board: fastframe.crc32_low30)
+            # the viper build (link_serial sets it on a board: fastlink.crc32_low30)
             v = f(th, tl, mid, buf, off, self.layout.plen[mid] - w)
             if w == 3:
                 return (v & 0xFFFFFF) == (buf[got] | (buf[got + 1] << 8) | (buf[got + 2] << 16))

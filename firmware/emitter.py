@@ -6,9 +6,10 @@
 #   "native"    Controller.step and the frame encoder native-compiled (fastpath.py, fastframe.py)
 #   "viper"     every per-tick part in viper: the controller step (fastpath.py), the sensors,
 #               supervisor, motor and timing on slot arrays, the supply filter, the whole
-#               step and the link's pacer (fasttick.py), the telemetry scaling, the frame
-#               encoder and the commands' CRC-32 (fastframe.py)
-# fastpath.py and fasttick.py are generated from the plain code (host/boards/fwgen); the
+#               step and the link's pacer (fasttick.py), the frame encoder (fastframe.py),
+#               the telemetry scaling and the commands' CRC-32 (fastlink.py)
+# fastpath.py, fasttick.py and fastframe.py are generated from the plain code
+# (host/boards/fwgen; fastlink.py is written by hand); the
 # tests compare every build with the plain one (tests/test_firmware_fast*.py).
 # Start-up only: nothing here runs per tick.
 
@@ -42,7 +43,7 @@ def parts(em):
 def telemetry(em):
     # the telemetry scaling's fast build (App.fill_telemetry), or None: the plain loop
     if em == "viper":
-        from .fastframe import telem_viper
+        from .fastlink import telem_viper
         return telem_viper
     return None
 
@@ -75,7 +76,7 @@ def frame_encoder(em):
 def command_crc(em):
     # commands.Dispatcher.crc30: the integrity check's CRC-32 build, or None: crc32.py
     if em == "viper":
-        from .fastframe import crc32_low30
+        from .fastlink import crc32_low30
         return crc32_low30
     return None
 

@@ -20,6 +20,7 @@ GENERATED: dict[str, str] = {
     "firmware/gains.py": "host.design.export:render_default",
     "firmware/fastpath.py": "host.boards.fwgen.fastpath:render_fastpath",
     "firmware/fasttick.py": "host.boards.fwgen.fasttick:render_fasttick",
+    "firmware/fastframe.py": "host.boards.fwgen.fastframe:render_fastframe",
     "docs/upright.dbc": "host.link.dbc:render_default",
     "docs/protocol.md": "host.link.protodoc:render_protocol_md",
     "firmware/identity.py": "host.link.identity:render_identity",
