@@ -566,3 +566,16 @@ def method_viper(method: ast.FunctionDef, ints: Mapping[str, Iterable[str]], cal
     returns_value = any(isinstance(n, ast.Return) and n.value is not None for s in out for n in ast.walk(s))
     args = [_arg("self", None)] + [_arg(a.arg, "int") for a in method.args.args[1:]]
     return _function(method.name, args, out, "viper", "int" if returns_value else None), used
+
+
+def prelude(ptrs: tuple[str, ...] = ("ptr32",)) -> str:
+    """The import block a generated native/viper module starts with: ``micropython`` and ``const``
+    from the port, or CPython stand-ins (no-op decorators, ``const`` the identity, and the pointer
+    casts ``ptrs`` of ``ptr8``/``ptr16``/``ptr32`` as plain indexing)."""
+    casts = {"ptr8": "    def ptr8(a):\n        return a\n",
+             "ptr16": '    def ptr16(a):\n        return memoryview(a).cast("H")\n',
+             "ptr32": "    def ptr32(a):\n        return a\n"}
+    return ("try:\n    import micropython\n    from micropython import const\nexcept ImportError:\n"
+            "    class micropython:\n        @staticmethod\n        def native(f):\n            return f\n\n"
+            "        viper = native\n\n    def const(x):\n        return x\n"
+            + "".join("\n" + casts[p] for p in ptrs))
