@@ -200,6 +200,43 @@ def test_python_can_serial_garbage_is_dropped_not_fatal():
         br.close()
 
 
+def test_python_can_serial_short_frame_is_dropped_and_a_slow_frame_still_arrives():
+    """A frame cut short (a lossy line) is a counted framing drop, not an exception; a frame
+    whose second half arrives 20 ms after its first (a loaded host) is received whole, and an
+    idle recv() returns after its own timeout, not the port's."""
+    import threading
+    import time
+
+    br = PtyBridge()
+    try:
+        with serial.serial_for_url(br.b) as ser, L.CanLink(interface="serial", channel=br.a, node_id=1) as link:
+            good = M.Heartbeat(state=1, faults=0, boot=3, epoch=4, gains_crc=5, uptime_ms=6)
+            frame = M.encode_serial_can(good, 1)
+            t0 = time.monotonic()
+            assert link.recv(timeout=0.02) is None
+            assert time.monotonic() - t0 < 0.5
+            ser.write(frame[:3])  # 0xAA and two of the four timestamp bytes, then nothing
+            ser.flush()
+            assert link.recv(timeout=0.3) is None
+            assert link.drops["framing"] == 1
+
+            def late_half() -> None:
+                time.sleep(0.02)
+                ser.write(frame[7:])
+                ser.flush()
+
+            ser.write(frame[:7])
+            ser.flush()
+            th = threading.Thread(target=late_half)
+            th.start()
+            got = link.recv(timeout=1.0)
+            th.join()
+            assert got == good
+            assert link.drops["framing"] == 1
+    finally:
+        br.close()
+
+
 def test_late_reply_to_an_earlier_request_is_not_taken_as_the_answer():
     import threading
 

@@ -252,7 +252,8 @@ class HilSession:
             if self.link_kind == "can":
                 if self.virtual:
                     # python-can's serial interface ignores recv()'s timeout and waits the
-                    # port's own: keep it short, or every idle recv() costs 0.1 s
+                    # port's own; CanLink waits for the first byte itself and then gives
+                    # the rest of a frame STREAM_FRAME_WAIT_S (host.link.clients)
                     self._bus = open_can(PTMX, interface="serial", timeout=_CAN_PTY_TIMEOUT)
                 else:
                     self._bus = open_can(self.port, interface=self.can_interface)

@@ -38,6 +38,7 @@ import collections
 import importlib
 import os
 import select
+import struct
 import threading
 import time
 from typing import Any, Callable
@@ -161,6 +162,11 @@ _HEARTBEAT = M.BY_NAME["heartbeat"]
 _VERSION = M.BY_NAME["version"]
 #: board heartbeats that may be missing before :attr:`Link.board_silent` is set
 SILENT_PERIODS = 3
+
+#: python-can's ``serial`` interface reads a frame in pieces, each with the port's own
+#: timeout: once a frame has started, wait this long for the rest of it (a frame is 15
+#: bytes; a short wait would cut a frame that is still arriving on a loaded host)
+STREAM_FRAME_WAIT_S = 0.05
 
 
 class Link:
@@ -873,6 +879,10 @@ class CanLink(Link):
         # python-can's serial interface reads a frame in pieces with the port's timeout: a
         # poll that starts mid-frame would lose it, so only the reader polls
         self._background_reads = not self.stream_crc
+        if self.stream_crc and getattr(bus, "_ser", None) is not None:
+            # idle waits happen in _stream_readable (honouring recv's timeout); the port's
+            # own timeout then only bounds the wait for the rest of a started frame
+            bus._ser.timeout = STREAM_FRAME_WAIT_S
         self._drops = {"unknown": 0, "length": 0, "other": 0, "crc": 0, "framing": 0}
 
     @property
@@ -892,9 +902,44 @@ class CanLink(Link):
         except (self._can.CanError, OSError, ValueError) as exc:
             raise LinkError(f"CAN send failed: {exc}") from exc
 
+    def _stream_readable(self, timeout: float | None) -> bool:
+        """Wait up to ``timeout`` for a byte on a stream bus's port (python-can's ``serial``).
+
+        python-can's ``serial`` interface ignores ``recv``'s timeout and reads with the port's;
+        waiting here first lets the port keep a timeout long enough for a whole frame.
+        """
+        ser = getattr(self.bus, "_ser", None)
+        if ser is None:
+            return True
+        try:
+            if ser.in_waiting:
+                return True
+            fd = ser.fileno()
+        except (AttributeError, OSError, ValueError) as exc:
+            if isinstance(exc, AttributeError):
+                return True  # a port without in_waiting/fileno: let python-can wait
+            raise LinkError(f"CAN receive failed: {exc}") from exc
+        try:
+            ready, _, _ = select.select([fd], [], [], timeout)
+        except (OSError, ValueError) as exc:
+            raise LinkError(f"CAN receive failed: {exc}") from exc
+        return bool(ready)
+
     def _recv_internal(self, timeout: float | None) -> list[tuple[M.Message, int | None]]:
+        if self.stream_crc:
+            if not self._stream_readable(timeout):
+                return []
+            timeout = 0.0
         try:
             frame = self.bus.recv(timeout)
+        except (TypeError, struct.error):
+            # python-can's serial interface on a frame cut short (a lossy line, or a frame
+            # still arriving when the port's timeout ran out): struct.unpack or ord() of a
+            # short read.  Dropped and counted; the interface resynchronises on 0xAA
+            if not self.stream_crc:
+                raise
+            self._drops["framing"] += 1
+            return []
         except ValueError:
             # a malformed frame the interface could not parse (python-can's serial
             # interface raises ValueError for a DLC > 8): dropped and counted, the
