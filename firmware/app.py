@@ -65,6 +65,7 @@ except ImportError:  # CPython
     _mem_free = None
 
 from . import crc16
+from .commands import Target
 from . import emitter
 from . import fixmath
 from . import msgtable as T
@@ -93,7 +94,7 @@ _DERIVED = (T.P_TILT_LIMIT, T.P_ARM_TILT, T.P_WATCHDOG_MS, T.P_MAX_DUTY, T.P_POT
             T.P_ENC_SIGN, T.P_MOTOR_SIGN)
 
 
-class App:
+class App(Target):
     _hal_motor = None  # the HAL's set_motor, bound in __init__ after the parameters are applied
 
     def __init__(self, hal, link=None, gains=None, config=None):

@@ -10,7 +10,7 @@
 #   param_get(index) -> value, param_set(index, value), gains_apply(buf, nbytes),
 #   fill_heartbeat(arr) (HEARTBEAT fields: state, faults, boot, epoch, gains_crc low
 #   byte, uptime_ms low 16 bits),
-#   optional: feed_watchdog() (HOST_HEARTBEAT: the only command that feeds the link
+#   optional (class Target: None until a subclass defines it): feed_watchdog() (HOST_HEARTBEAT: the only command that feeds the link
 #   watchdog besides set_reference, whose target method feeds it), fill_version(arr)
 #   (arr[3] = gains CRC-16, arr[4] = reset cause), fill_stats(arr) (STATS_LOOP fields),
 #   fill_telemetry(arr) (TELEM_STATE fields then TELEM_CTRL fields: 8 ints),
@@ -47,6 +47,21 @@ _FAULT_STATE = const(3)
 _DISARMED = const(0)
 
 
+class Target:
+    # The dispatcher's target: the required methods (header) are the subclass's own; each
+    # optional capability is None here (the command is refused with R_NOT_SUPPORTED, or its
+    # reply left at zeros) until a subclass defines the method.  App is the firmware's target.
+    feed_watchdog = None  # feed_watchdog(): HOST_HEARTBEAT feeds the link watchdog
+    fill_version = None  # fill_version(arr): VERSION's gains CRC-16 (arr[3]) and reset cause (arr[4])
+    fill_stats = None  # fill_stats(arr): STATS_LOOP fields
+    fill_sensors_raw = None  # fill_sensors_raw(arr): SENSORS_RAW fields (on REQUEST)
+    cmd_save = None  # cmd_save(dispatcher, seq): SAVE_CONFIG, answered later by dispatcher.reply
+    cmd_excite = None  # cmd_excite(mode, amp_mn, div) -> OK or a reason: EXCITE
+    fill_session = None  # fill_session(arr): SESSION fields
+    status_get = None  # status_get(k) -> int: msgtable STATUS value k (PARAM_GET(STATUS_BASE + k))
+    gains_apply_crc = None  # gains_apply_crc(buf, nbytes, crc): the table, its CRC checked by the dispatcher
+
+
 class Dispatcher:
     def __init__(self, target, layout, sender, table=None):
         self.target = target
@@ -78,17 +93,16 @@ class Dispatcher:
         # MODE: the link that runs this dispatcher sets on_mode(mode) -> OK or a reason (it
         # switches after the ACK went out); None: the board has no other mode (NOT_SUPPORTED)
         self.on_mode = None
-        self._feed = target.feed_watchdog if hasattr(target, "feed_watchdog") else None
-        self._fill_version = target.fill_version if hasattr(target, "fill_version") else None
-        self._fill_stats = target.fill_stats if hasattr(target, "fill_stats") else None
-        self._fill_raw = target.fill_sensors_raw if hasattr(target, "fill_sensors_raw") else None
-        self._save = target.cmd_save if hasattr(target, "cmd_save") else None
-        self._excite = target.cmd_excite if hasattr(target, "cmd_excite") else None
-        self._fill_session = target.fill_session if hasattr(target, "fill_session") else None
-        # status_get(k) -> int: the read-only status values (msgtable STATUS; PARAM_GET)
-        self._status = target.status_get if hasattr(target, "status_get") else None
-        # gains_apply_crc(buf, nbytes, crc): the table with the CRC checked here (not computed again)
-        self._apply_crc = target.gains_apply_crc if hasattr(target, "gains_apply_crc") else None
+        # the optional capabilities (Target's None defaults: not supported)
+        self._feed = target.feed_watchdog
+        self._fill_version = target.fill_version
+        self._fill_stats = target.fill_stats
+        self._fill_raw = target.fill_sensors_raw
+        self._save = target.cmd_save
+        self._excite = target.cmd_excite
+        self._fill_session = target.fill_session
+        self._status = target.status_get
+        self._apply_crc = target.gains_apply_crc
         self._counted = hasattr(sender, "n_sent")
 
     # ---- replies ----

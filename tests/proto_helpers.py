@@ -7,6 +7,7 @@ from array import array
 from hypothesis import strategies as st
 
 from firmware import codec, framing
+from firmware.commands import Target
 from firmware import msgtable as T
 from firmware.supervisor import ARMED, DISARMED, FAULT
 from host.link import messages as M
@@ -80,7 +81,7 @@ def fw_decode_stream(data: bytes, block: int = 0) -> tuple[list[tuple[int, int, 
 
 
 # ---------------------------------------------------------------- test doubles
-class RecordingTarget:
+class RecordingTarget(Target):
     """The firmware target interface as a recording test double (not the real app)."""
 
     def __init__(self) -> None:

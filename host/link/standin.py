@@ -13,11 +13,12 @@ callers paste its source (:func:`host.boards.mpyrun.standin_source`).
 from array import array
 
 from firmware import msgtable as T
+from firmware.commands import Target
 
 QUIT_REF = 424242  # set_reference(QUIT_REF um) then disarm: StandIn.quit becomes True
 
 
-class StandIn:
+class StandIn(Target):
     """Command target: state, faults, reference, parameters and the last gain upload."""
 
     def __init__(self):
