@@ -58,13 +58,11 @@ except ImportError:  # CPython, or a port without them
 
 from array import array
 
-try:
-    from gc import mem_alloc as _mem_alloc, mem_free as _mem_free
-except ImportError:  # CPython
-    _mem_alloc = None
-    _mem_free = None
-
 from . import crc16
+from .appparams import Params
+from .appstatus import Reports
+from .appstore import ConfigSave
+from .apptable import TableUpload
 from .commands import Target
 from . import emitter
 from . import fixmath
@@ -89,12 +87,14 @@ _TICKS_MASK = const(0x3FFFFFFF)  # tick/uptime counters wrap to 0 after this (fi
 _LCG_AL = const(0x4E6D)
 _LCG_AH = const(0x038C)
 _LCG_C = const(12345)
-# the parameters with a derived integer (App._apply_param)
-_DERIVED = (T.P_TILT_LIMIT, T.P_ARM_TILT, T.P_WATCHDOG_MS, T.P_MAX_DUTY, T.P_POT_OFFSET, T.P_ADC_SIGN,
-            T.P_ENC_SIGN, T.P_MOTOR_SIGN)
 
 
-class App(Target):
+class App(Reports, Params, TableUpload, ConfigSave, Target):
+    # the parts, each its own module: Reports (appstatus.py: heartbeat, status, stats,
+    # timing, version, session replies), Params (appparams.py: parameters and set-point),
+    # TableUpload (apptable.py: the gain table), ConfigSave (appstore.py: the saved
+    # configuration); Target (commands.py: the optional capabilities' None defaults) last,
+    # so a part's method is found before Target's None
     _hal_motor = None  # the HAL's set_motor, bound in __init__ after the parameters are applied
 
     def __init__(self, hal, link=None, gains=None, config=None):
@@ -234,66 +234,6 @@ class App(Target):
         self._set_motor = hal.set_motor if self._msign > 0 else self._motor_neg
         self._ticks = hal.ticks_us
         self._drive(0)
-
-    # ---- parameters -> derived integers (outside the loop) ----
-    def _counts_from_mrad(self, mrad):
-        o = self.off["TILT"]
-        t = self.table
-        return (mrad * t[o] + (1 << (t[o + 1] - 1))) >> t[o + 1]
-
-    def _apply_params(self):
-        # every derived integer, from the parameters and the active table: at start-up and
-        # whenever the active table changes (upload, saved configuration) -- the period, the
-        # link watchdog, the stall timeout (ticks at the table's rate), the tilt and track
-        # limits (the table's scales)
-        p = self.params
-        sup = self.sup
-        # the period comes only from the active table (loop_rate_hz reports it)
-        rate = self.rate
-        p[T.P_LOOP_RATE] = rate
-        self.period_us = 1000000 // rate
-        self.timing.period_us = self.period_us
-        if self._has_period:
-            self.hal.set_period(self.period_us)  # HalPico: the driver-enable dead-man's timeout
-        # the link's per-tick budget (link_serial): its frames end within this many us of the
-        # step's scheduled start (11/8 of the period: short of a late tick, 1.5 periods, by
-        # 1/8 of a period for a burst's receive interrupts and a frame over its planned cost;
-        # 5/4 held frames back 225 ticks in a burst on the predicted Pico)
-        self.link_budget_us = self.period_us + (self.period_us >> 1) - (self.period_us >> 3)
-        sup.stall_ticks = (self.stall_ms * rate) // 1000
-        sup.stall_duty = self.stall_duty + self.motor.deadband
-        t = self.table
-        # track fault at 1.25 x the reference limit (encoder counts)
-        qx = t[self.off["FMT"]]
-        rl = t[self.off["RLIM"]] >> qx
-        sup.track_counts = rl + (rl >> 2)
-        for i in _DERIVED:
-            self._apply_param(i)
-
-    def _apply_param(self, i):
-        # what one parameter derives (param_set: only that one, a bounded piece of work)
-        p = self.params
-        sup = self.sup
-        if i == T.P_TILT_LIMIT:
-            sup.tilt_counts = self._counts_from_mrad(p[i])
-        elif i == T.P_ARM_TILT:
-            sup.arm_counts = self._counts_from_mrad(p[i])
-        elif i == T.P_WATCHDOG_MS:
-            sup.wd_ticks = (p[i] * self.rate) // 1000
-        elif i == T.P_MAX_DUTY:
-            self.motor.max_duty = p[i]
-        elif i == T.P_POT_OFFSET:
-            # calibration (upright board calibrate): pot offset (-1: the table's) and signs
-            po = p[i]
-            self.sensors.pot_offset = po if po >= 0 else self.table[self.off["CAL"]]
-        elif i == T.P_ADC_SIGN:
-            self.sensors.adc_sign = -1 if p[i] < 0 else 1
-        elif i == T.P_ENC_SIGN:
-            self.sensors.enc_sign = -1 if p[i] < 0 else 1
-        elif i == T.P_MOTOR_SIGN:
-            self._msign = -1 if p[i] < 0 else 1
-            if self._hal_motor is not None:  # (None until __init__ binds the motor output)
-                self._set_motor = self._hal_motor if self._msign > 0 else self._motor_neg
 
     # ---- the loop ----
     def step(self):
@@ -593,221 +533,9 @@ class App(Target):
             self.sup.state = FAULT
         return r
 
-    # ---- persistent configuration (firmware/store.py; never in the control tick) ----
-    def attach_store(self, store):
-        # start-up: the newest valid saved copy replaces the defaults; copies there but none
-        # valid -> defaults, F_CONFIG (arming refused until a table is uploaded).  -> status
-        # A copy an older firmware saved with another gain-table layout keeps its parameters
-        # (the calibration): its table converted (MIGRATED) or dropped for ours (PARAMS_ONLY).
-        from .store import CORRUPT, LOADED, MIGRATED, PARAMS_ONLY, upgrade
-        self.store = store
-        store.n_params = T.N_PARAMS
-        store.n_table = self.ctrl.length
-        n = self.ctrl.length
-        st, params, table = store.load(self._config_check, lambda t: upgrade(t, self.version, n),
-                                       self._params_check)
-        self.cfg_status = st
-        if st == LOADED or st == MIGRATED or st == PARAMS_ONLY:
-            if table is not None:
-                self._install_table(table, len(table))
-            p = self.params
-            for i in range(T.N_PARAMS):
-                p[i] = params[i]
-            self._apply_params()
-        elif st == CORRUPT:
-            self.config_bad = True
-            self.sup.faults |= F_CONFIG
-            self.sup.state = FAULT
-        return st
-
-    def _params_check(self, params):
-        # every saved parameter in range
-        for q in T.PARAMS:
-            v = params[q[0]]
-            if v < q[3] or v > q[4]:
-                return False
-        return True
-
-    def _config_check(self, params, table):
-        # a saved copy's content: every parameter in range, the table passes the check
-        return self._params_check(params) and self.ctrl.validate(table, len(table), self.version) == T.OK
-
-    def cmd_save(self, disp, seq):
-        # SAVE_CONFIG: queue a save of the parameters and the active table; disp.reply()
-        # answers it once service_save() has run (App.run: after this tick)
-        if self.store is None:
-            return T.R_NOT_SUPPORTED
-        st = self.sup.state
-        if st != DISARMED and st != FAULT:
-            return T.R_ARMED
-        if self.save_seq >= 0:
-            return T.R_BAD_STATE
-        self._save_disp = disp
-        self.save_seq = seq
-        return T.OK
-
-    def service_save(self, locked=False):
-        # run a queued save now (outside the control tick: it allocates and may wait for
-        # flash erases); locked: the caller holds the heap lock (released meanwhile)
-        seq = self.save_seq
-        if seq < 0:
-            return
-        self.save_seq = -1
-        st = self.sup.state
-        if st != DISARMED and st != FAULT:
-            r = T.R_ARMED
-        else:
-            if locked:
-                _heap_unlock()
-            try:
-                try:
-                    self.store.save(self.params, self.table)
-                    self.n_saves += 1
-                    r = T.OK
-                except OSError:
-                    r = T.R_STORAGE
-            finally:
-                if locked:
-                    _heap_lock()
-        d = self._save_disp
-        if d is not None:
-            d.reply(T.SAVE_CONFIG, seq, r)
-
-    def cmd_set_reference(self, x_um):
-        # a set-point is the controlling host's stream: it feeds the link watchdog
-        self.sup.feed()
-        lim = self.params[T.P_REF_LIMIT]
-        if x_um > lim or x_um < -lim:
-            return T.R_OUT_OF_RANGE
-        o = self.off["REF"]
-        t = self.table
-        r = (x_um * t[o] + (t[o + 1] >> 1)) // t[o + 1]
-        self.ref = fixmath.clamp(r, t[self.off["RLIM"]])
-        self.ref_um = x_um
-        return T.OK
-
-    def param_get(self, index):
-        # the value, or 0 for an index out of range (the dispatcher checks first)
-        if index < 0 or index >= T.N_PARAMS:
-            return 0
-        return self.params[index]
-
-    def param_set(self, index, value):
-        if index < 0 or index >= T.N_PARAMS:
-            return T.R_BAD_INDEX
-        p = T.PARAMS[index]
-        if value < p[3] or value > p[4]:
-            return T.R_OUT_OF_RANGE
-        if index == T.P_LOOP_RATE:
-            # the period is the active table's RATE, nothing else
-            return T.R_READ_ONLY
-        st = self.sup.state
-        if (st == ARMED or st == BALANCING) and index in T.DRIVE_PARAMS:
-            # signs, offsets, the drive: changed under a balancing robot they tip it
-            return T.R_ARMED
-        self.params[index] = value
-        self._apply_param(index)
-        return T.OK
-
-    def gains_apply(self, buf, nbytes):
-        return self.gains_apply_crc(buf, nbytes, -1)
-
-    def gains_apply_crc(self, buf, nbytes, crc):
-        # a complete, CRC-checked table from the dispatcher: int32 little-endian in
-        # the layout of firmware/gains.py; re-checked here before it replaces the live one.
-        # crc: its CRC-16 as the dispatcher checked it chunk by chunk (the table's CRC, the
-        # same bytes: not computed again), -1: compute it
-        if self.sup.state != DISARMED and self.sup.state != FAULT:
-            return T.R_ARMED
-        n = nbytes >> 2
-        if nbytes & 3 or n != self.ctrl.length:
-            return T.R_BAD_LENGTH
-        sc = self.ctrl.scratch
-        for i in range(n):
-            v = fixmath.s32_le(buf, 4 * i)
-            if v is None:
-                return T.R_UNSTABLE
-            sc[i] = v
-        r = self.ctrl.validate(sc, n, self.version)
-        if r != T.OK:
-            return r
-        self._install_table(sc, n, crc)
-        self._apply_params()
-        self.sup.faults &= ~(F_GAINS | F_CONFIG)
-        self.config_bad = False
-        return T.OK
-
-    def _install_table(self, src, n, crc=-1):
-        # a checked table becomes the live one (upload or saved configuration)
-        t = self.table
-        for i in range(n):
-            t[i] = src[i]
-        self.gains_crc = crc if crc >= 0 else self._table_crc(t, n)
-        self.sup.ready = True
-        off = self.off
-        self.ctrl.load(t)
-        self.sensors.load(t, off)
-        self.motor.load(t, off)
-        self.rate = t[off["RATE"]]
-
-    def _table_crc(self, t, n):
-        # CRC-16/CCITT-FALSE of the table as int32 little-endian (gains.CRC, the upload CRC)
-        tb = self._crc_table
-        c = crc16.INIT
-        for i in range(n):
-            v = t[i]
-            c = crc16.update(tb, c, v & 0xFF)
-            c = crc16.update(tb, c, (v >> 8) & 0xFF)
-            c = crc16.update(tb, c, (v >> 16) & 0xFF)
-            c = crc16.update(tb, c, (v >> 24) & 0xFF)
-        return c
-
-    def fill_heartbeat(self, arr):
-        arr[0] = self.sup.state
-        arr[1] = self.sup.faults
-        arr[2] = self.boot
-        arr[3] = self.epoch & 0xFF
-        arr[4] = self.gains_crc & 0xFF
-        arr[5] = self.uptime_ms & 0xFFFF
-
-    def status_get(self, k):
-        # msgtable STATUS value k (PARAM_GET(STATUS_BASE + k)); allocation-free
-        if k == T.S_UPTIME_MS:
-            return self.uptime_ms
-        if k == T.S_LATE:
-            return self.n_late
-        ln = self.link
-        if k == T.S_LINK_DEFERRED:
-            return getattr(ln, "n_deferred", 0)
-        if k == T.S_LINK_WAIT_MAX:
-            return getattr(ln, "wait_max", 0)
-        st = self.store
-        if k == T.S_CFG_STATUS:
-            return self.cfg_status
-        if k == T.S_CFG_SLOT:
-            return st.slot if st is not None else -1
-        if k == T.S_CFG_SEQ:
-            return st.seq if st is not None else 0
-        if k == T.S_STARTS:
-            return self.starts
-        return 0
-
     def _set_motor_neg(self, duty):
         # motor_sign -1: the HAL gets the opposite duty (set_motor is this method then)
         self._hal_motor(-duty)
-
-    def fill_sensors_raw(self, arr):
-        # SENSORS_RAW: the ADC as read (from the calibrated counts; clamped at the rails),
-        # the encoder counter as read, the unwrapped position
-        s = self.sensors
-        arr[0] = s.pot_offset + (s.counts if s.adc_sign > 0 else -s.counts)
-        arr[1] = s.last
-        arr[2] = s.pos
-
-    def fill_version(self, arr):
-        # VERSION fields the app knows (the dispatcher adds version and table hashes)
-        arr[3] = self.gains_crc
-        arr[4] = self.reset_cause
 
     def _paused(self):
         # after a pause of the loop between ticks (a save, a heap walk; motor off): the heap
@@ -816,18 +544,6 @@ class App(Target):
         self.sample_heap()
         self.timing.restart()
         self.sensors.follow(self._read_enc())
-
-    def sample_heap(self):
-        # the heap statistics STATS_LOOP reports (outside the control tick only: see __init__)
-        self._heap_due = False
-        if _mem_free is None:
-            return
-        f = _mem_free() >> 6
-        self.heap_free = f if f < _U16 else _U16
-        a = _mem_alloc()
-        if a < self._alloc_last:
-            self._gc_count += 1
-        self._alloc_last = a
 
     def _new_token(self):
         # the next arming token (disarm, clear_faults, fault): x -> a*x + c mod 2**30, a = 1 mod
@@ -840,25 +556,6 @@ class App(Target):
         m = ((_LCG_AH * lo) & 0x7FFF) + ((_LCG_AL * hi) & 0x7FFF)
         s = (t & 0x7FFF) + _LCG_C
         self.epoch = ((((t >> 15) + m + (s >> 15)) & 0x7FFF) << 15) | (s & 0x7FFF)
-
-    def fill_session(self, arr):
-        # SESSION: the arming token and the whole uptime
-        arr[0] = self.epoch
-        arr[1] = self.uptime_ms
-
-    def fill_stats(self, arr):
-        # STATS_LOOP: worst step and deadline misses since boot, free heap (64 B units) and
-        # collections seen (the heap in use fell between two samples) as last sampled (a
-        # fresh sample is taken between ticks while the motor is off); allocation-free, and
-        # no heap walk in the tick
-        tm = self.timing
-        w = tm.worst if tm.worst > tm.step_max else tm.step_max
-        arr[0] = w if w < _U16 else _U16
-        m = tm.misses + tm.overruns
-        arr[1] = m if m < _U16 else _U16
-        arr[2] = self.heap_free
-        arr[3] = self._gc_count & 0xFFFF
-        self._heap_due = True
 
     def _tel(self, v, j):
         t = self.table
@@ -903,11 +600,3 @@ class App(Target):
         arr[6] = self.duty
         arr[7] = self.step_us if self.step_us < _U16 else _U16
 
-    def fill_timing(self, arr):
-        # TIMING fields since the last report, then a new interval starts
-        tm = self.timing
-        arr[0] = tm.step_min if tm.steps else 0
-        arr[1] = tm.step_max
-        arr[2] = tm.period_max if tm.period_max < _U16 else _U16
-        arr[3] = tm.overruns
-        tm.reset()

@@ -107,6 +107,25 @@ def test_the_app_reads_the_hal_without_probing_it() -> None:
     assert probes == []
 
 
+def test_the_dispatcher_reads_its_target_without_probing_it() -> None:
+    # commands.Target declares each optional capability as None; the dispatcher reads the
+    # attributes, never hasattr/getattr on the target, and the app's parts override every one
+    from firmware import commands
+
+    tree = ast.parse((ROOT / "firmware" / "commands.py").read_text())
+    probes = [ast.unparse(n) for n in ast.walk(tree) if isinstance(n, ast.Call)
+              and isinstance(n.func, ast.Name) and n.func.id in ("hasattr", "getattr")
+              and "target" in ast.unparse(n.args[0])]
+    assert probes == []
+    declared = {k: v for k, v in vars(commands.Target).items() if not k.startswith("__")}
+    assert declared and set(declared.values()) == {None}
+    assert App.__mro__[-2] is commands.Target  # last: no part's method hidden by a None
+    missing = [k for k in declared if getattr(App, k) is None]
+    assert missing == []
+    bare = commands.Dispatcher(commands.Target(), None, object())
+    assert bare._save is None and bare._status is None and bare._feed is None
+
+
 def test_the_unix_port_refuses_and_runs_alike() -> None:
     # MicroPython's bool is no int subclass: the boolean keys must still pass there
     code = H.FAKE_HAL + """

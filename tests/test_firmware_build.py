@@ -45,7 +45,8 @@ def test_only_hals_touch_hardware(name) -> None:
         assert not hw, f"{name} imports {hw}"
 
 
-OWN = ["fixmath", "controller", "sensors", "motor", "supervisor", "timing", "app", "board", "link_serial", "pacer", "main",
+OWN = ["fixmath", "controller", "sensors", "motor", "supervisor", "timing", "app", "appparams", "appstatus", "appstore",
+       "apptable", "board", "link_serial", "pacer", "main",
        "gains"]
 
 

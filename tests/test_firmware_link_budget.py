@@ -21,7 +21,7 @@ from host.boards.mpyrun import run_unix
 
 SCRIPT = H.FAKE_HAL + """
 from array import array
-import firmware.app as A
+import firmware.appstatus as A  # the heap sample (Reports.sample_heap) lives there
 from firmware import codec, crc16, framing
 from firmware import msgtable as T
 from firmware.app import App

@@ -1,0 +1,111 @@
+# The app's parameters (msgtable PARAMS) and set-point: the derived integers each parameter
+# sets (tilt and arm limits in ADC counts, the link watchdog and stall timeout in ticks, the
+# period and link budget, the drive's signs and offset), PARAM_GET / PARAM_SET and
+# SET_REFERENCE.  A part of firmware/app.py's App (class App(..., Params, ...)): the methods
+# read and write the app's attributes; none runs in the control tick.
+
+from . import fixmath
+from . import msgtable as T
+from .supervisor import ARMED, BALANCING
+
+# the parameters with a derived integer (Params._apply_param)
+_DERIVED = (T.P_TILT_LIMIT, T.P_ARM_TILT, T.P_WATCHDOG_MS, T.P_MAX_DUTY, T.P_POT_OFFSET, T.P_ADC_SIGN,
+            T.P_ENC_SIGN, T.P_MOTOR_SIGN)
+
+
+class Params:
+    # ---- parameters -> derived integers (outside the loop) ----
+    def _counts_from_mrad(self, mrad):
+        o = self.off["TILT"]
+        t = self.table
+        return (mrad * t[o] + (1 << (t[o + 1] - 1))) >> t[o + 1]
+
+    def _apply_params(self):
+        # every derived integer, from the parameters and the active table: at start-up and
+        # whenever the active table changes (upload, saved configuration) -- the period, the
+        # link watchdog, the stall timeout (ticks at the table's rate), the tilt and track
+        # limits (the table's scales)
+        p = self.params
+        sup = self.sup
+        # the period comes only from the active table (loop_rate_hz reports it)
+        rate = self.rate
+        p[T.P_LOOP_RATE] = rate
+        self.period_us = 1000000 // rate
+        self.timing.period_us = self.period_us
+        if self._has_period:
+            self.hal.set_period(self.period_us)  # HalPico: the driver-enable dead-man's timeout
+        # the link's per-tick budget (link_serial): its frames end within this many us of the
+        # step's scheduled start (11/8 of the period: short of a late tick, 1.5 periods, by
+        # 1/8 of a period for a burst's receive interrupts and a frame over its planned cost;
+        # 5/4 held frames back 225 ticks in a burst on the predicted Pico)
+        self.link_budget_us = self.period_us + (self.period_us >> 1) - (self.period_us >> 3)
+        sup.stall_ticks = (self.stall_ms * rate) // 1000
+        sup.stall_duty = self.stall_duty + self.motor.deadband
+        t = self.table
+        # track fault at 1.25 x the reference limit (encoder counts)
+        qx = t[self.off["FMT"]]
+        rl = t[self.off["RLIM"]] >> qx
+        sup.track_counts = rl + (rl >> 2)
+        for i in _DERIVED:
+            self._apply_param(i)
+
+    def _apply_param(self, i):
+        # what one parameter derives (param_set: only that one, a bounded piece of work)
+        p = self.params
+        sup = self.sup
+        if i == T.P_TILT_LIMIT:
+            sup.tilt_counts = self._counts_from_mrad(p[i])
+        elif i == T.P_ARM_TILT:
+            sup.arm_counts = self._counts_from_mrad(p[i])
+        elif i == T.P_WATCHDOG_MS:
+            sup.wd_ticks = (p[i] * self.rate) // 1000
+        elif i == T.P_MAX_DUTY:
+            self.motor.max_duty = p[i]
+        elif i == T.P_POT_OFFSET:
+            # calibration (upright board calibrate): pot offset (-1: the table's) and signs
+            po = p[i]
+            self.sensors.pot_offset = po if po >= 0 else self.table[self.off["CAL"]]
+        elif i == T.P_ADC_SIGN:
+            self.sensors.adc_sign = -1 if p[i] < 0 else 1
+        elif i == T.P_ENC_SIGN:
+            self.sensors.enc_sign = -1 if p[i] < 0 else 1
+        elif i == T.P_MOTOR_SIGN:
+            self._msign = -1 if p[i] < 0 else 1
+            if self._hal_motor is not None:  # (None until __init__ binds the motor output)
+                self._set_motor = self._hal_motor if self._msign > 0 else self._motor_neg
+
+    def param_get(self, index):
+        # the value, or 0 for an index out of range (the dispatcher checks first)
+        if index < 0 or index >= T.N_PARAMS:
+            return 0
+        return self.params[index]
+
+    def param_set(self, index, value):
+        if index < 0 or index >= T.N_PARAMS:
+            return T.R_BAD_INDEX
+        p = T.PARAMS[index]
+        if value < p[3] or value > p[4]:
+            return T.R_OUT_OF_RANGE
+        if index == T.P_LOOP_RATE:
+            # the period is the active table's RATE, nothing else
+            return T.R_READ_ONLY
+        st = self.sup.state
+        if (st == ARMED or st == BALANCING) and index in T.DRIVE_PARAMS:
+            # signs, offsets, the drive: changed under a balancing robot they tip it
+            return T.R_ARMED
+        self.params[index] = value
+        self._apply_param(index)
+        return T.OK
+
+    def cmd_set_reference(self, x_um):
+        # a set-point is the controlling host's stream: it feeds the link watchdog
+        self.sup.feed()
+        lim = self.params[T.P_REF_LIMIT]
+        if x_um > lim or x_um < -lim:
+            return T.R_OUT_OF_RANGE
+        o = self.off["REF"]
+        t = self.table
+        r = (x_um * t[o] + (t[o + 1] >> 1)) // t[o + 1]
+        self.ref = fixmath.clamp(r, t[self.off["RLIM"]])
+        self.ref_um = x_um
+        return T.OK
