@@ -27,11 +27,23 @@ METHODS_DIV = 10  # per-tick methods: a tenth of the unix port's iterations
 APP_DIV = 4  # whole apps: 1500 ticks per HAL kind
 
 
+# the raw REPL keeps a script's globals for the next one: each test starts from the imports only
+# (an earlier test's sequences and the first App pair are not the next test's heap to carry)
+_CLEAR = ("for _k in [k for k in globals() if not k.startswith('__')]:\n    del globals()[_k]\n"
+          "import gc\ngc.collect()\n")
+
+
 @pytest.fixture(scope="module")
-def board(tmp_path_factory: pytest.TempPathFactory):
+def _booted(tmp_path_factory: pytest.TempPathFactory):
     bundle: Path = build_bundle(tmp_path_factory.mktemp("bundle"))
     with EmulatedBoard(bundle, main=False) as b:
         yield b
+
+
+@pytest.fixture
+def board(_booted: EmulatedBoard) -> EmulatedBoard:
+    _booted.exec(_CLEAR, timeout=30)
+    return _booted
 
 
 def test_controller_step_of_every_emitter_equal_on_the_board(board: EmulatedBoard) -> None:
