@@ -205,18 +205,22 @@ def _firmware_copy(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
     return fw
 
 
+def _edit(path: Path, old: str, new: str) -> str:
+    # one occurrence of old in the file replaced by new; -> the text before the edit
+    text = path.read_text()
+    assert text.count(old) == 1, (path.name, old)
+    path.write_text(text.replace(old, new))
+    return text
+
+
 def test_an_edit_of_the_plain_link_code_changes_the_build(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     from host.boards.fwgen.fastcan import render_fastcan
     from host.boards.fwgen.fastlink import render_fastlink
     can0, link0 = render_fastcan(), render_fastlink()
     fw = _firmware_copy(monkeypatch, tmp_path)
-    for name, old, new in (("link_can.py", "        q[3] = 0\n", "        q[3] = 1\n"),
-                           ("app.py", "        v = (v * t[o + j] + (1 << (s - 1))) >> s\n",
-                            "        v = (v * t[o + j] + (1 << (s - 2))) >> s\n"),
-                           ("crc32.py", "            hi = (hi >> 8) ^ th[k]\n", "            hi = (hi >> 8) ^ th[k] ^ 1\n")):
-        text = (fw / name).read_text()
-        assert text.count(old) == 1, (name, old)
-        (fw / name).write_text(text.replace(old, new))
+    _edit(fw / "link_can.py", "        q[3] = 0\n", "        q[3] = 1\n")
+    _edit(fw / "app.py", "(1 << (s - 1))) >> s\n", "(1 << (s - 2))) >> s\n")
+    _edit(fw / "crc32.py", "            hi = (hi >> 8) ^ th[k]\n", "            hi = (hi >> 8) ^ th[k] ^ 1\n")
     can1, link1 = render_fastcan(), render_fastlink()
     assert "B[3] = 1" in can1 and "B[3] = 1" not in can0
     assert link1.count("(1 << (s - 2))") == 6 and "(1 << (s - 2))" not in link0
@@ -227,17 +231,13 @@ def test_what_the_link_builds_cannot_follow_is_refused(monkeypatch: pytest.Monke
     from host.boards.fwgen.fastcan import render_fastcan
     from host.boards.fwgen.fastlink import render_fastlink
     fw = _firmware_copy(monkeypatch, tmp_path)
-    lc = (fw / "link_can.py").read_text()
-    old = "        cid = ((self.node & 0x3F) << 5) | (mid & 0x1F)\n"
-    assert lc.count(old) == 1
-    (fw / "link_can.py").write_text(lc.replace(old, "        cid = ((self.node & 0x1F) << 5) | (mid & 0x1F)\n"))
+    lc = _edit(fw / "link_can.py", "cid = ((self.node & 0x3F) << 5) | (mid & 0x1F)\n        q[1]",
+               "cid = ((self.node & 0x1F) << 5) | (mid & 0x1F)\n        q[1]")
     with pytest.raises(ValueError, match="id differs from the one send passes"):
         render_fastcan()
     (fw / "link_can.py").write_text(lc)
     render_fastcan()
-    cr = (fw / "crc32.py").read_text()
-    old = "        self.hi = (hi >> 8) ^ self.th[k]\n"
-    assert cr.count(old) == 1
-    (fw / "crc32.py").write_text(cr.replace(old, "        self.hi = (hi >> 8) ^ self.th[k]\n        self.lo ^= lo\n"))
+    _edit(fw / "crc32.py", "        self.hi = (hi >> 8) ^ self.th[k]\n",
+          "        self.hi = (hi >> 8) ^ self.th[k]\n        self.lo ^= lo\n")
     with pytest.raises(ValueError, match="reads the local lo after storing its attribute"):
         render_fastlink()
