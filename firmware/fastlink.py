@@ -50,48 +50,31 @@ def telem_viper(arr, t, xf, o: int, vh: int, ref: int, u: int) -> int:
     T = ptr32(t)
     X = ptr32(xf)
     s = (((T[o + 5] + sb) & msk) - sb)
-    v = (((X[0] + sb) & msk) - sb)
-    v = (v * (((T[o] + sb) & msk) - sb) + (1 << (s - 1))) >> s
-    if v > _I16:
-        v = _I16
-    elif v < -_I16:
-        v = -_I16
-    arr[0] = v
-    v = vh
-    v = (v * (((T[o + 1] + sb) & msk) - sb) + (1 << (s - 1))) >> s
-    if v > _I16:
-        v = _I16
-    elif v < -_I16:
-        v = -_I16
-    arr[1] = v
-    v = (((X[2] + sb) & msk) - sb)
-    v = (v * (((T[o + 2] + sb) & msk) - sb) + (1 << (s - 1))) >> s
-    if v > _I16:
-        v = _I16
-    elif v < -_I16:
-        v = -_I16
-    arr[2] = v
-    v = (((X[3] + sb) & msk) - sb)
-    v = (v * (((T[o + 3] + sb) & msk) - sb) + (1 << (s - 1))) >> s
-    if v > _I16:
-        v = _I16
-    elif v < -_I16:
-        v = -_I16
-    arr[3] = v
-    v = ref
-    v = (v * (((T[o] + sb) & msk) - sb) + (1 << (s - 1))) >> s
-    if v > _I16:
-        v = _I16
-    elif v < -_I16:
-        v = -_I16
-    arr[4] = v
-    v = u
-    v = (v * (((T[o + 4] + sb) & msk) - sb) + (1 << (s - 1))) >> s
-    if v > _I16:
-        v = _I16
-    elif v < -_I16:
-        v = -_I16
-    arr[5] = v
+    for f in range(6):
+        if f == 0:
+            v = (((X[0] + sb) & msk) - sb)
+            j = 0
+        elif f == 1:
+            v = vh
+            j = 1
+        elif f == 2:
+            v = (((X[2] + sb) & msk) - sb)
+            j = 2
+        elif f == 3:
+            v = (((X[3] + sb) & msk) - sb)
+            j = 3
+        elif f == 4:
+            v = ref
+            j = 0
+        else:
+            v = u
+            j = 4
+        v = (v * (((T[o + j] + sb) & msk) - sb) + (1 << (s - 1))) >> s
+        if v > _I16:
+            v = _I16
+        elif v < -_I16:
+            v = -_I16
+        arr[f] = v
     return 6
 
 
