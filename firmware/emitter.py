@@ -8,9 +8,9 @@
 #               supervisor, motor and timing on slot arrays, the supply filter, the whole
 #               step and the link's pacer (fasttick.py), the frame encoder (fastframe.py),
 #               the telemetry scaling and the commands' CRC-32 (fastlink.py)
-# fastpath.py, fasttick.py and fastframe.py are generated from the plain code
-# (host/boards/fwgen; fastlink.py is written by hand); the
-# tests compare every build with the plain one (tests/test_firmware_fast*.py).
+# fastpath.py, fasttick.py, fastframe.py, fastlink.py and fastcan.py are generated from the
+# plain code (host/boards/fwgen); the tests compare every build with the plain one
+# (tests/test_firmware_fast*.py, test_proto_fastframe.py, test_fwgen.py).
 # Start-up only: nothing here runs per tick.
 
 EMITTERS = ("bytecode", "native", "viper")

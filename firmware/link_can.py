@@ -22,7 +22,8 @@
 # stays there (two buffers; a third frame is an overflow, counted).  A tick that ran past its
 # period hands the excess on.  The flags are read whenever INT is low, held frame or not: an
 # error state change (bus-off: F_CAN) is handled in its tick.  With the viper emitter (App
-# config "emitter") payloads are packed by fastcan.py.
+# config "emitter") payloads are packed by fastcan.py (generated from codec.Layout.pack and
+# _fill below by host/boards/fwgen/fastcan.py: `upright generate` after editing either).
 #
 # Transmit: send() packs the payload straight into a slot of a software queue (two rings: heartbeat, replies
 # and stats before telemetry; a full ring drops the new frame, counted in tx_dropped); the end

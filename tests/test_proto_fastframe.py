@@ -6,7 +6,7 @@ Every message of the table, with values across each field's range (extremes incl
 sequence numbers across 0..255, encodes to the same wire bytes on all three paths: under the
 MicroPython unix port (real viper/native code), under CPython (the decorators fall back to
 plain functions) and -- bytecode only, the port has no native emitter -- on the 32-bit
-WebAssembly port against CPython's bytes.  ``fastframe.telem_viper`` gives
+WebAssembly port against CPython's bytes.  ``fastlink.telem_viper`` gives
 ``App.fill_telemetry``'s values; the fast paths allocate nothing.
 """
 

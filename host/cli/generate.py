@@ -21,6 +21,8 @@ GENERATED: dict[str, str] = {
     "firmware/fastpath.py": "host.boards.fwgen.fastpath:render_fastpath",
     "firmware/fasttick.py": "host.boards.fwgen.fasttick:render_fasttick",
     "firmware/fastframe.py": "host.boards.fwgen.fastframe:render_fastframe",
+    "firmware/fastcan.py": "host.boards.fwgen.fastcan:render_fastcan",
+    "firmware/fastlink.py": "host.boards.fwgen.fastlink:render_fastlink",
     "docs/upright.dbc": "host.link.dbc:render_default",
     "docs/protocol.md": "host.link.protodoc:render_protocol_md",
     "firmware/identity.py": "host.link.identity:render_identity",
