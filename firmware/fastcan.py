@@ -20,22 +20,8 @@
 try:
     import micropython
     from micropython import const
-except ImportError:
-    class micropython:
-        @staticmethod
-        def native(f):
-            return f
-
-        viper = native
-
-    def const(x):
-        return x
-
-    def ptr8(a):
-        return a
-
-    def ptr32(a):
-        return a
+except ImportError:  # CPython
+    from .viperstub import micropython, const, ptr8, ptr32
 
 _MAXF = const(8)
 _RAW = const(64)

@@ -19,25 +19,8 @@
 try:
     import micropython
     from micropython import const
-except ImportError:
-    class micropython:
-        @staticmethod
-        def native(f):
-            return f
-
-        viper = native
-
-    def const(x):
-        return x
-
-    def ptr8(a):
-        return a
-
-    def ptr16(a):
-        return memoryview(a).cast("H")
-
-    def ptr32(a):
-        return a
+except ImportError:  # CPython
+    from .viperstub import micropython, const, ptr8, ptr16, ptr32
 
 _I16 = const(32767)
 

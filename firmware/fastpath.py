@@ -14,19 +14,8 @@
 try:
     import micropython
     from micropython import const
-except ImportError:
-    class micropython:
-        @staticmethod
-        def native(f):
-            return f
-
-        viper = native
-
-    def const(x):
-        return x
-
-    def ptr32(a):
-        return a
+except ImportError:  # CPython
+    from .viperstub import micropython, const, ptr32
 
 _INTEG_SHIFT = const(6)
 _INTEG_HALF = const(32)

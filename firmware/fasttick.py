@@ -21,16 +21,7 @@ try:
     import micropython
     from micropython import const
 except ImportError:  # CPython
-    class micropython:
-        @staticmethod
-        def viper(f):
-            return f
-
-    def const(x):
-        return x
-
-    def ptr32(a):
-        return a
+    from .viperstub import micropython, const, ptr32
 
 from array import array
 from .sensors import Sensors

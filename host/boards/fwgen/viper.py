@@ -570,12 +570,12 @@ def method_viper(method: ast.FunctionDef, ints: Mapping[str, Iterable[str]], cal
 
 def prelude(ptrs: tuple[str, ...] = ("ptr32",)) -> str:
     """The import block a generated native/viper module starts with: ``micropython`` and ``const``
-    from the port, or CPython stand-ins (no-op decorators, ``const`` the identity, and the pointer
-    casts ``ptrs`` of ``ptr8``/``ptr16``/``ptr32`` as plain indexing)."""
-    casts = {"ptr8": "    def ptr8(a):\n        return a\n",
-             "ptr16": '    def ptr16(a):\n        return memoryview(a).cast("H")\n',
-             "ptr32": "    def ptr32(a):\n        return a\n"}
-    return ("try:\n    import micropython\n    from micropython import const\nexcept ImportError:\n"
-            "    class micropython:\n        @staticmethod\n        def native(f):\n            return f\n\n"
-            "        viper = native\n\n    def const(x):\n        return x\n"
-            + "".join("\n" + casts[p] for p in ptrs))
+    from the port, or under CPython the stand-ins of ``firmware/viperstub.py`` (no-op decorators,
+    ``const`` the identity, the pointer casts ``ptrs`` of ``ptr8``/``ptr16``/``ptr32`` as plain
+    indexing) -- one module, not a copy in each generated file."""
+    bad = [p for p in ptrs if p not in ("ptr8", "ptr16", "ptr32")]
+    if bad:
+        raise ValueError(f"no CPython stand-in for {bad}")
+    names = ", ".join(("micropython", "const", *ptrs))
+    return ("try:\n    import micropython\n    from micropython import const\n"
+            f"except ImportError:  # CPython\n    from .viperstub import {names}\n")
