@@ -10,8 +10,9 @@
 #   param_get(index) -> value, param_set(index, value), gains_apply(buf, nbytes),
 #   fill_heartbeat(arr) (HEARTBEAT fields: state, faults, boot, epoch, gains_crc low
 #   byte, uptime_ms low 16 bits),
-#   optional (class Target: None until a subclass defines it): feed_watchdog() (HOST_HEARTBEAT: the only command that feeds the link
-#   watchdog besides set_reference, whose target method feeds it), fill_version(arr)
+#   optional (class Target: None until a subclass defines it): feed_watchdog()
+#   (HOST_HEARTBEAT: the only command that feeds the link watchdog besides
+#   set_reference, whose target method feeds it), fill_version(arr)
 #   (arr[3] = gains CRC-16, arr[4] = reset cause), fill_stats(arr) (STATS_LOOP fields),
 #   fill_telemetry(arr) (TELEM_STATE fields then TELEM_CTRL fields: 8 ints),
 #   fill_timing(arr) (TIMING fields: 4 ints),

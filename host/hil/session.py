@@ -58,7 +58,6 @@ __all__ = [
 ]
 
 LINKS = ("serial", "can")
-_CAN_PTY_TIMEOUT = 0.0005
 MODES = ("lockstep", "realtime")
 
 _SENSOR = M.BY_NAME["hil_sensor"]
@@ -252,9 +251,9 @@ class HilSession:
             if self.link_kind == "can":
                 if self.virtual:
                     # python-can's serial interface ignores recv()'s timeout and waits the
-                    # port's own; CanLink waits for the first byte itself and then gives
-                    # the rest of a frame STREAM_FRAME_WAIT_S (host.link.clients)
-                    self._bus = open_can(PTMX, interface="serial", timeout=_CAN_PTY_TIMEOUT)
+                    # port's own: CanLink waits for the first byte itself and sets the port's
+                    # timeout to the rest of a frame's (STREAM_FRAME_WAIT_S, host.link.clients)
+                    self._bus = open_can(PTMX, interface="serial")
                 else:
                     self._bus = open_can(self.port, interface=self.can_interface)
                 self.link = CanLink(self._bus, node_id=self.node)

@@ -911,19 +911,13 @@ class CanLink(Link):
         ser = getattr(self.bus, "_ser", None)
         if ser is None:
             return True
+        fileno = getattr(ser, "fileno", None)
+        if fileno is None:
+            return True  # a port without a file descriptor: python-can waits the port's timeout
         try:
-            if ser.in_waiting:
-                return True
-            fd = ser.fileno()
-        except (AttributeError, OSError, ValueError) as exc:
-            if isinstance(exc, AttributeError):
-                return True  # a port without in_waiting/fileno: let python-can wait
-            raise LinkError(f"CAN receive failed: {exc}") from exc
-        try:
-            ready, _, _ = select.select([fd], [], [], timeout)
+            return bool(ser.in_waiting) or bool(select.select([fileno()], [], [], timeout)[0])
         except (OSError, ValueError) as exc:
             raise LinkError(f"CAN receive failed: {exc}") from exc
-        return bool(ready)
 
     def _recv_internal(self, timeout: float | None) -> list[tuple[M.Message, int | None]]:
         if self.stream_crc:
