@@ -66,6 +66,34 @@ def test_confidence_box_widens_the_intervals_and_keeps_the_estimate() -> None:
     assert box.delay == pytest.approx((0.008, 0.012)) and box.realism == {}
 
 
+def _evaluation(cand, centre: float, corner: float):
+    # an Evaluation of two points (the box's centre, one corner): the step's |xdd| ratio as given
+    from host.design.robust import CONSTRAINTS, Evaluation
+
+    lim = {"phi_max": 0.3, "a_max": 5.0, "settle": 2.5}
+    met = {s: {c: np.array([0.5, 0.5]) * lim[c] for c in CONSTRAINTS} for s in ("step", "push")}
+    met["step"]["a_max"] = np.array([centre, corner]) * 5.0
+    return Evaluation(cand, [], met, {s: dict(lim) for s in met})
+
+
+def test_margin_design_prefers_the_candidate_with_margin_at_the_identified_robot(monkeypatch) -> None:
+    # the box's worst corner must not outvote the robot measured: a candidate 1 % under the limit at
+    # the box's centre (the identified robot) loses to one with the margin there, whatever the corners
+    # say (at the report's robot such a table made 5.05 m/s^2 on the robot, where the batch read 4.98)
+    p = load_params()
+    tight, easy = Mg.candidates(ki=(0.0,), a_cmd=(4.73,), names=("x2", "shipped"))
+    ev = {tight.name: _evaluation(tight, 0.99, 1.1), easy.name: _evaluation(easy, 0.85, 1.5)}
+    monkeypatch.setattr(Mg, "evaluate", lambda params, c, box, push=False, engine=None: ev[c.name])
+    box = Mg.confidence_box({"estimates": {}, "ci": {}}, p, realism={})
+    md = Mg.design_with_margin(p, box, [tight, easy], top=2)
+    assert md.candidate.name == easy.name and md.worst_ratio == pytest.approx(1.5)
+    assert Mg.nominal_ratio(ev[tight.name]) == pytest.approx(0.99)
+    assert {t["name"]: t["nominal_ratio"] for t in md.tried} == pytest.approx({tight.name: 0.99, easy.name: 0.85})
+    # with the margin at the centre for both, the box's worst ratio decides
+    ev[tight.name] = _evaluation(tight, 0.8, 1.1)
+    assert Mg.design_with_margin(p, box, [tight, easy], top=2).candidate.name == tight.name
+
+
 def _cli(capsys, *args: str) -> tuple[int, str]:
     from host.cli.main import main
 

@@ -22,7 +22,10 @@ identification's own confidence box, with integral action on the cart position.
   scenario simulator at its worst points) and keeps the best on the report's step and push
   (:data:`SCOPE`, the runs the commissioning verifies on the robot): all constraints met with the
   margin ``margin`` (worst ratio value/limit ``<= 1 - margin``) if any candidate does, else
-  the one with the best :attr:`~host.design.robust.Evaluation.rank`; every candidate must
+  the one with the best :attr:`~host.design.robust.Evaluation.rank` (one that meets every
+  constraint with ``margin`` at the identified robot itself, the box's centre, before any that
+  does not: see
+  :func:`nominal_ratio`; then the worst ratio over the box); every candidate must
   fit the force row's fixed-point precision bound (:data:`~host.design.robust.FORCE_LSB_MAX`).
 """
 
@@ -41,7 +44,7 @@ from .robust import FORCE_LSB_MAX, Candidate, Evaluation, evaluate, shipped, wor
 from .uncertainty import UNCERTAINTY_REALISTIC, UncertaintySet, load_uncertainty, uncertainty_from_dict
 
 __all__ = ["IntegralController", "MarginCandidate", "MarginDesign", "confidence_box", "candidates",
-           "design_with_margin", "fixed_design", "MARGIN", "KI_DEFAULT", "SCOPE", "scoped_score"]
+           "design_with_margin", "fixed_design", "MARGIN", "KI_DEFAULT", "SCOPE", "scoped_score", "nominal_ratio"]
 
 MARGIN = 0.1
 """Required margin: every constraint's worst value at most ``1 - MARGIN`` of its limit over the box."""
@@ -93,6 +96,15 @@ def scoped_score(ev: Evaluation, scope: Sequence[str] = SCOPE) -> tuple[float, i
     ph = np.array([ev.ratios(s, "phi_max") for s in scope if s in ev.metrics])
     falls = int(np.sum(np.any(np.nan_to_num(ph, nan=0.0) >= 1.0, axis=0)))
     return worst, failing, falls
+
+
+def nominal_ratio(ev: Evaluation, scope: Sequence[str] = SCOPE) -> float:
+    """The worst value/limit over ``scope`` at the box's nominal point (point 0: the identified robot itself)."""
+    from .robust import CONSTRAINTS
+
+    rs = [float(ev.ratios(s, c)[0]) for s in scope if s in ev.metrics for c in CONSTRAINTS]
+    fin = [r for r in rs if math.isfinite(r)]
+    return max(fin) if fin else math.inf
 
 
 def _factor_range(est: float, ci: Sequence[float] | None, nominal: float, widen: float, floor: float) -> list[float]:
@@ -233,22 +245,32 @@ def design_with_margin(params: RobotParams, box: UncertaintySet, cands: Sequence
             tried.append({"name": c.name, "error": str(exc)})
             continue
         worst, failing, falls = scoped_score(ev)
-        tried.append({"name": c.name, "worst_ratio": worst, "falls": falls, "failing": failing, "force_lsb": lsb})
-        # a candidate beyond the force row's precision bound only after every one within it
-        scored.append(((lsb > FORCE_LSB_MAX, worst, falls, failing), c, ev, lsb))
+        at = nominal_ratio(ev)
+        tried.append({"name": c.name, "worst_ratio": worst, "falls": falls, "failing": failing, "force_lsb": lsb,
+                      "nominal_ratio": at})
+        # a candidate beyond the force row's precision bound only after every one within it; one that
+        # misses the margin at the identified robot itself (the box's centre) after every one that
+        # has it there (Evaluation.rank's rule, with the margin: the box's worst corner must not
+        # outvote the robot measured; at the report's robot the batch read a step's |xdd| 0.4 % under
+        # the limit where the firmware on that robot in lockstep HIL made 5.05 m/s^2)
+        scored.append(((lsb > FORCE_LSB_MAX, at > 1.0 - margin, worst, falls, failing), c, ev, lsb))
     if not scored:
         raise ValueError("no candidate design stabilises the identified robot")
     scored.sort(key=lambda s: s[0])
     best: MarginDesign | None = None
+    best_key: tuple[Any, ...] = ()
     for _, c, _, lsb in scored[:max(1, int(top))]:
         ev = evaluate(params, c, box, push=True, engine=engine)
         worst = scoped_score(ev)[0]
+        at = nominal_ratio(ev)
         md = MarginDesign(c, ev, worst, 1.0 - worst, lsb, tried)
         for t in tried:
             if t["name"] == c.name:
                 t["worst_ratio_push"] = worst
-        if best is None or (lsb > FORCE_LSB_MAX, worst) < (best.force_lsb > FORCE_LSB_MAX, best.worst_ratio):
-            best = md
+                t["nominal_ratio_push"] = at
+        key = (lsb > FORCE_LSB_MAX, at > 1.0 - margin, worst)
+        if best is None or key < best_key:
+            best, best_key = md, key
         if worst <= 1.0 - margin and lsb <= FORCE_LSB_MAX:
             break
     assert best is not None
