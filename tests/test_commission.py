@@ -243,3 +243,17 @@ def test_the_lockstep_robot_says_when_the_board_refuses_the_excitation() -> None
             r.excite(2, 2.0, seconds=0.5, coast_s=0.2)
         run = r.excite(2, 1.0, seconds=0.5, coast_s=0.2)
         assert 0 < max(abs(run.columns["duty"])) <= 420  # 1 N: about 410 duty counts on the report's drive
+
+
+def test_bench_identification_errors_against_the_robots_truth() -> None:
+    from host.bench.commission import id_errors
+
+    plant = load_params("sim/plants/realistic_cart.toml")
+    data = {"cart": {"estimates": {"kt": plant.kt * 0.9, "coulomb": 0.25, "backlash": math.nan}},
+            "identify": {"estimates": {"I": plant.I * 1.05, "kt": plant.kt * 1.02, "b": plant.b}}}
+    e = id_errors(data, plant)
+    assert e["err_I"] == pytest.approx(0.05) and e["err_b"] == pytest.approx(0.0)
+    assert e["err_kt"] == pytest.approx(0.02)  # the final identification's, not the cart stage's
+    assert e["err_coulomb"] == pytest.approx(0.25 - plant.values["cart.coulomb"])  # absolute, N
+    assert "err_backlash" not in e and "err_mL" not in e  # not estimated (nan) or not in the data
+    assert id_errors({}, plant) == {}

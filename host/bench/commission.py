@@ -12,10 +12,12 @@ points), the first ``n`` of the nominal point, every ``stride``-th vertex and th
    it starts from is ``sim/robot.toml`` with that robot's masses, as weighed), and verified
    again with the commissioned table (the commissioning's own telemetry verdict and the truth).
 
-Rows: per robot the verdicts before/after, whether the pendulum was lost during commissioning
-(a stage refused after a fall, or a verification run that fell), the stage that refused, the
-worst design margin and the seconds it took; the summary: counts before and after, losses,
-time per commissioning.  ``n`` robots (default 50; ``UPRIGHT_BENCH_COMMISSION_N``).
+Rows: per robot the verdicts before/after, the first report constraint failed after it
+(``fails``), whether the pendulum was lost during commissioning (a stage refused after a fall,
+or a verification run that fell), the stage that refused, the worst design margin, the
+identification's errors against the robot's truth (:func:`id_errors`) and the seconds it took;
+the summary: counts before and after, losses, failures by constraint, identification errors,
+the worst margin, time per commissioning.  ``n`` robots (default 50; ``UPRIGHT_BENCH_COMMISSION_N``).
 
 Section ``commission_rp2040`` (:func:`bench_rp2040`) is the subset on the emulated RP2040: the
 first ``n`` of the same robots (default 2; ``UPRIGHT_BENCH_COMMISSION_RP2040_N``), each on the
@@ -36,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["bench", "bench_rp2040", "robots", "true_verdict"]
+__all__ = ["bench", "bench_rp2040", "robots", "true_verdict", "id_errors", "ID_TRUTH"]
 
 
 def robots(n: int) -> list[tuple[str, Any]]:
@@ -73,8 +75,47 @@ def true_verdict(log: dict[str, np.ndarray], scenario: Any, params: Any) -> dict
     return {"peak_phi": float(m.peak_phi), "peak_xddot": float(m.peak_xddot), "settle": settle, "fell": fell, "pass": ok}
 
 
+ID_TRUTH = {"I": lambda p: p.I, "mL": lambda p: p.m * p.L, "kt": lambda p: p.kt, "b": lambda p: p.b,
+            "coulomb": lambda p: float(p.values.get("cart.coulomb", 0.0)),
+            "backlash": lambda p: float(p.values.get("motor.backlash", 0.0)),
+            "deadband": lambda p: float(p.values.get("motor.deadband", 0.0))}
+"""The identified quantities the bench compares with the robot's truth (relative errors where the truth
+is a physical constant, absolute for the plant realism, whose truth may be 0)."""
+ID_ABS = ("coulomb", "backlash", "deadband")
+
+
+def id_errors(data: dict[str, Any], plant: Any) -> dict[str, float]:
+    """Identification errors of one commissioning: ``err_K`` per :data:`ID_TRUTH` key it estimated.
+
+    Relative (estimate / truth - 1) except :data:`ID_ABS` (estimate - truth, the robot file's units);
+    from the final identification where it ran, else the cart-only stage's (drive and realism only).
+    """
+    est = dict(data.get("cart", {}).get("estimates", {}))
+    est.update(data.get("identify", {}).get("estimates", {}))
+    out: dict[str, float] = {}
+    for k, truth in ID_TRUTH.items():
+        v = est.get(k)
+        if not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+            continue
+        t = truth(plant)
+        out[f"err_{k}"] = float(v) - t if k in ID_ABS else (float(v) / t - 1.0 if t else math.nan)
+    return out
+
+
+def _id_note(rows: list[dict[str, Any]]) -> str:
+    parts = []
+    for k in ID_TRUTH:
+        e = np.array([abs(r[f"err_{k}"]) for r in rows if math.isfinite(r.get(f"err_{k}", math.nan))])
+        if e.size:
+            parts.append(f"{k} {np.median(e):.3g}/{e.max():.3g} ({e.size})" if k in ID_ABS
+                         else f"{k} {100 * np.median(e):.1f}/{100 * e.max():.1f} % ({e.size})")
+    return ("identification error |estimate - truth|, median/max over the robots that reached it (n): "
+            + (", ".join(parts) or "none identified") + "; coulomb N, backlash m, deadband fraction of full duty")
+
+
 def bench(n: int | None = None) -> dict[str, Any]:
     """Commission ``n`` robots (module docstring)."""
+    from host.bench.realism import failing_check
     from host.operate.commission import Commission, CommissionError, weighed
     from host.studies.identify import robot_toml
     from host.operate.commission_lockstep import LockstepRobot
@@ -112,14 +153,16 @@ def bench(n: int | None = None) -> dict[str, Any]:
                 row["refused"] = refused
                 row["verified"] = bool(ver) and all(v.get("pass", False) for v in ver.values())
                 row["margin"] = data.get("design2", {}).get("margin", math.nan)
+                row.update(id_errors(data, plant))
                 if ver:
                     after = [true_verdict(r.run_scenario(sc), sc, plant) for sc in scen]
                     row["after"] = all(v["pass"] for v in after)
+                    row["fails"] = next((f for f in (failing_check(v, plant) for v in after) if f), "")
                     row["after_settle"] = max(v["settle"] for v in after)
                     row["after_xdd"] = max(v["peak_xddot"] for v in after)
                     lost = lost or any(v["fell"] for v in after)
                 else:
-                    row["after"] = False
+                    row["after"], row["fails"] = False, "refused"
             row["lost"] = lost
         row["wall_s"] = time.monotonic() - t0
         rows.append(row)
@@ -132,7 +175,14 @@ def bench(n: int | None = None) -> dict[str, Any]:
              f"stages refused: {sum(bool(r['refused']) for r in rows)}",
              "refused at: " + (", ".join(f"{st} {n}" for st, n in sorted(collections.Counter(
                  r["refused"] for r in rows if r["refused"]).items())) or "none"),
-             f"time per commissioning: median {np.median(secs):.1f} s, max {max(secs):.1f} s (lockstep HIL, unix port)"]
+             f"time per commissioning: median {np.median(secs):.1f} s, max {max(secs):.1f} s (lockstep HIL, unix port)",
+             "after commissioning, the first constraint failed: " + (", ".join(
+                 f"{f} {m}" for f, m in collections.Counter(r["fails"] for r in rows if r["fails"]).most_common())
+                 or "none") + " (section realism: which plant-realism parameter makes it fail)",
+             _id_note(rows),
+             "worst design margin over the identification's box (1 - worst ratio): "
+             + (f"{min(r['margin'] for r in rows if math.isfinite(r['margin'])):+.3f}"
+                if any(math.isfinite(r["margin"]) for r in rows) else "none designed")]
     return {"title": "commission: robots of the realistic set, end to end in lockstep HIL", "rows": rows, "notes": notes,
             "summary": {"robots": k, "shipped_pass": sum(r["shipped"] for r in rows),
                         "after_pass": sum(r["after"] for r in rows), "lost": sum(r["lost"] for r in rows),
