@@ -10,7 +10,8 @@ import math
 
 import pytest
 
-from host.bench.realism import EFFECTS, failing_check, study, summary
+from host.bench.realism import EFFECTS, study, summary
+from host.bench.robots import failing_check
 from host.design.uncertainty import REALISM
 from sim.params import load_params
 
@@ -67,7 +68,7 @@ def test_the_uploaded_table_compensates_most_of_the_coulomb_friction() -> None:
 def test_coulomb_compensation_shortens_the_settling_of_a_dry_cart() -> None:
     # the nominal robot with 0.25 N of Coulomb friction, the firmware in lockstep HIL: without
     # compensation the step hunts (stick-slip, settling ~4.7 s); with the table's it settles
-    from host.bench.commission import robots
+    from host.bench.robots import robots
     from host.bench.realism import _runs, _strip
     from host.design.margin import candidates, fixed_design
     from host.operate.commission import compensation_counts

@@ -136,7 +136,7 @@ def _commission(plant, out, params_in=None):
             data, err = c.state["data"], exc
         after = None
         if err is None:
-            from host.bench.commission import true_verdict
+            from host.bench.robots import true_verdict
             from sim.scenario import load_scenario
 
             after = [true_verdict(r.run_scenario(load_scenario(n)), load_scenario(n), plant)
@@ -146,7 +146,7 @@ def _commission(plant, out, params_in=None):
 
 @pytest.mark.slow
 def test_commission_the_robot_the_shipped_table_cannot_hold(tmp_path) -> None:
-    from host.bench.commission import true_verdict
+    from host.bench.robots import true_verdict
     from host.operate.commission import weighed
     from host.operate.commission_lockstep import LockstepRobot
     from host.studies.identify import robot_toml

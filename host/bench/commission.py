@@ -38,41 +38,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["bench", "bench_rp2040", "robots", "true_verdict", "id_errors", "ID_TRUTH"]
-
-
-def robots(n: int) -> list[tuple[str, Any]]:
-    """The first ``n`` robots of the realistic set: ``(label, RobotParams)`` (module docstring)."""
-    from host.design.uncertainty import UNCERTAINTY_REALISTIC, load_uncertainty
-    from sim.params import load_params
-
-    base = load_params()
-    us = load_uncertainty(UNCERTAINTY_REALISTIC)
-    pts = us.points(float(base.rate), base.delay)
-    nominal, vert, rand = pts[:1], [p for p in pts[1:] if p.vertex], [p for p in pts[1:] if not p.vertex]
-    k_rand = min(len(rand), max(0, n // 3))
-    k_vert = max(0, n - 1 - k_rand)
-    stride = max(1, len(vert) // max(1, k_vert))
-    chosen = (nominal + vert[::stride][:k_vert] + rand[:k_rand])[:max(0, n)]
-    out = []
-    for p in chosen:
-        ch = dict(p.overrides(base))
-        ch["sensors.delay"] = p.delay_ticks / float(base.rate)
-        out.append((p.label(float(base.rate)), base.replace(**ch)))
-    return out
-
-
-def true_verdict(log: dict[str, np.ndarray], scenario: Any, params: Any) -> dict[str, Any]:
-    """The run's true metrics (the plant's state) against the report's constraints."""
-    from sim.metrics import compute_metrics
-
-    lg = {"t": log["t"], "x": log["true_x"], "phi": log["true_phi"], "x_ref": log["x_ref"], "xddot": log["true_xddot"],
-          "force": log["force"], "duty": log["duty"]}
-    m = compute_metrics(lg, scenario, params)
-    settle = math.inf if math.isnan(m.settling_time) else float(m.settling_time)
-    fell = bool(m.peak_phi >= params.phi_max or np.any(np.asarray(log["state"]) != 2))
-    ok = (not fell) and m.peak_xddot <= params.a_max and settle <= params.t_settle
-    return {"peak_phi": float(m.peak_phi), "peak_xddot": float(m.peak_xddot), "settle": settle, "fell": fell, "pass": ok}
+__all__ = ["bench", "bench_rp2040", "id_errors", "ID_TRUTH"]
 
 
 ID_TRUTH = {"I": lambda p: p.I, "mL": lambda p: p.m * p.L, "kt": lambda p: p.kt, "b": lambda p: p.b,
@@ -115,7 +81,7 @@ def _id_note(rows: list[dict[str, Any]]) -> str:
 
 def bench(n: int | None = None) -> dict[str, Any]:
     """Commission ``n`` robots (module docstring)."""
-    from host.bench.realism import failing_check
+    from host.bench.robots import failing_check, robots, true_verdict
     from host.operate.commission import Commission, CommissionError, weighed
     from host.studies.identify import robot_toml
     from host.operate.commission_lockstep import LockstepRobot
@@ -245,6 +211,7 @@ def _commission_on_emulated_board(plant: Any, design: Any, td: str, timeout: flo
 
 def bench_rp2040(n: int | None = None, timeout: float = 1800.0) -> dict[str, Any]:
     """Commission the first ``n`` robots on the emulated RP2040 (module docstring)."""
+    from host.bench.robots import robots
     from sim.params import load_params
 
     n = int(os.environ.get("UPRIGHT_BENCH_COMMISSION_RP2040_N", "2")) if n is None else int(n)

@@ -9,7 +9,7 @@ compensated by the firmware as ``upright commission`` uploads it
 and adds one plant-realism effect at a time, at fractions of its range's high end in
 ``sim/uncertainty_realistic.toml`` (``[realism]``), then all of them together:
 
-* robots: the commissioning bench's first ``n`` robots (:func:`host.bench.commission.robots`:
+* robots: the commissioning bench's first ``n`` robots (:func:`host.bench.robots.robots`:
   the nominal, vertices of the box, random points) with their realism removed, so each row
   changes one thing;
 * the table: of the margin design's weight sets ``shipped`` at force clamps 4.73 and 4.2 m/s^2,
@@ -17,7 +17,7 @@ and adds one plant-realism effect at a time, at fractions of its range's high en
   the robot's true parameters at the firmware's predictor length;
 * each run: the report's 20 cm step and 0.2 N push in lockstep HIL (the firmware on the unix port,
   :class:`host.operate.commission_lockstep.LockstepRobot`), judged on the true traces
-  (:func:`host.bench.commission.true_verdict`).
+  (:func:`host.bench.robots.true_verdict`).
 
 Rows: robot, effect, level (fraction of the range's high end), the robot-file value, verdict,
 the first constraint that fails (``settle``, ``xdd``, ``phi`` or ``fell``), worst settling time and
@@ -31,7 +31,7 @@ import math
 import os
 from typing import Any, Sequence
 
-__all__ = ["bench", "EFFECTS", "LEVELS", "study", "failing_check"]
+__all__ = ["bench", "EFFECTS", "LEVELS", "study"]
 
 EFFECTS: dict[str, tuple[str, ...]] = {
     "coulomb": ("coulomb",),
@@ -48,19 +48,6 @@ LEVELS: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
 """Fractions of each range's high end."""
 
 
-def failing_check(v: dict[str, Any], limits: Any) -> str:
-    """The first report constraint a run's verdict ``v`` fails: ``fell``, ``phi``, ``xdd``, ``settle`` or ``""``."""
-    if v["fell"]:
-        return "fell"
-    if v["peak_phi"] >= limits.phi_max:
-        return "phi"
-    if v["peak_xddot"] > limits.a_max:
-        return "xdd"
-    if not v["settle"] <= limits.t_settle:
-        return "settle"
-    return ""
-
-
 def _strip(plant: Any) -> Any:
     from host.design.uncertainty import REALISM
 
@@ -68,7 +55,7 @@ def _strip(plant: Any) -> Any:
 
 
 def _runs(robot: Any, plant: Any, scen: Sequence[Any]) -> list[dict[str, Any]]:
-    from host.bench.commission import true_verdict
+    from host.bench.robots import true_verdict
 
     return [true_verdict(robot.run_scenario(sc), sc, plant) for sc in scen]
 
@@ -87,7 +74,7 @@ def _ratio(vs: Sequence[dict[str, Any]], p: Any) -> float:
 
 def study(n: int, effects: Sequence[str] = tuple(EFFECTS), levels: Sequence[float] = LEVELS) -> list[dict[str, Any]]:
     """The rows of the section (module docstring) for the first ``n`` robots, ``effects`` x ``levels``."""
-    from host.bench.commission import robots
+    from host.bench.robots import failing_check, robots
     from host.design.margin import candidates
     from host.design.uncertainty import REALISM, UNCERTAINTY_REALISTIC, load_uncertainty
     from host.operate.commission_lockstep import LockstepRobot
