@@ -5,7 +5,10 @@
 (commit cba71df, the sweep's own formulas in ``sample_runs`` and the box's ``lo + (hi - lo) r``):
 for three sweep configurations the drawn table, initial states, batch values and delay ticks;
 for the default and the realistic box every random point.  Equality is exact (JSON keeps a
-float's 17 digits).
+float's 17 digits), except where numpy's vectorised ``exp``/``log`` (the log-uniform law) run:
+their SIMD kernels differ by the CPU (AVX-512 against AVX2), and a CI machine drew the friction
+factor one ulp away (0.08210255526317717 against ...715).  Those numbers are compared to within
+:data:`MAX_ULP` units in the last place -- a change of formula moves them by far more.
 """
 
 from __future__ import annotations
@@ -20,6 +23,9 @@ import pytest
 from host.design.uncertainty import UNCERTAINTY_REALISTIC, Axis, UncertaintyError, load_uncertainty, scaled_values
 from host.studies.sweep import Design, SweepConfig, Uncertainty, sample_runs
 from sim.params import load_params
+
+MAX_ULP = 4
+"""The last-place units a float may differ by: numpy's SIMD exp/log are not the same bits on every CPU."""
 
 DRAWS = json.loads((Path(__file__).parent / "data" / "uncertainty_draws.json").read_text())
 
@@ -40,11 +46,22 @@ def test_the_sweeps_draw_is_the_number_for_number_the_draw_before_the_axes(p, ca
     old = case["table"]
     for k, v in table.items():
         want = old[k]
-        got = [str(x) for x in v] if k == "design" else [float(x) for x in v]
-        assert got == want, k
-    assert runs.x0.tolist() == old["x0"]
+        if k == "design":
+            assert [str(x) for x in v] == want, k
+        else:
+            _same_floats(v, want, k)
+    _same_floats(runs.x0, old["x0"], "x0")
     assert runs.delay_ticks.tolist() == old["delay_ticks"]
-    assert {k: np.asarray(v, float).tolist() for k, v in runs.values.items()} == old["values"]
+    assert sorted(runs.values) == sorted(old["values"])
+    for k, v in runs.values.items():
+        _same_floats(v, old["values"][k], k)
+
+
+def _same_floats(got, want, what: str) -> None:
+    """Equal shapes and every number within :data:`MAX_ULP` of the recorded one."""
+    g, w = np.asarray(got, float), np.asarray(want, float)
+    assert g.shape == w.shape, what
+    np.testing.assert_array_max_ulp(g, w, maxulp=MAX_ULP)
 
 
 @pytest.mark.parametrize("case", DRAWS["points"], ids=lambda c: str(c["file"]))
