@@ -4,13 +4,20 @@
 # SET_REFERENCE.  A part of firmware/app.py's App (class App(..., Params, ...)): the methods
 # read and write the app's attributes; none runs in the control tick.
 
+try:
+    from micropython import const
+except ImportError:
+    def const(x):
+        return x
+
 from . import fixmath
 from . import msgtable as T
 from .supervisor import ARMED, BALANCING
 
 # the parameters with a derived integer (Params._apply_param)
 _DERIVED = (T.P_TILT_LIMIT, T.P_ARM_TILT, T.P_WATCHDOG_MS, T.P_MAX_DUTY, T.P_POT_OFFSET, T.P_ADC_SIGN,
-            T.P_ENC_SIGN, T.P_MOTOR_SIGN)
+            T.P_ENC_SIGN, T.P_MOTOR_SIGN, T.P_GEAR_PLAY)
+_SMALL = const(0x1FFFFFFF)
 
 
 class Params:
@@ -19,6 +26,36 @@ class Params:
         o = self.off["TILT"]
         t = self.table
         return (mrad * t[o] + (1 << (t[o + 1] - 1))) >> t[o + 1]
+
+    def _gap_ticks(self, half_x):
+        # half the gear play in the controller's gap units (u LSB x ticks): the motor side
+        # crosses the play at the no-load speed the force u leaves it (u KDU/KDV xdot LSB),
+        # moving Ad[0][1] >> SA[0] x LSB per xdot LSB per tick:
+        #   half_x x KDV/KDU x 2**SA[0] / Ad[0][1]
+        # in small ints (every intermediate < 2**30; saturates at _SMALL)
+        mo = self.motor
+        t = self.table
+        ad1 = t[self.off["AD"] + 1]
+        if half_x <= 0 or mo.kdu <= 0 or mo.kdv <= 0 or ad1 <= 0:
+            return 0
+        r = (mo.kdv << 8) // mo.kdu
+        if r <= 0 or half_x > _SMALL // r:
+            return _SMALL
+        n = half_x * r
+        s = t[self.off["SA"]] - 8
+        while s > 0 and n <= (_SMALL >> 1):
+            n <<= 1
+            s -= 1
+        n //= ad1
+        while s > 0:
+            if n > (_SMALL >> 1):
+                return _SMALL
+            n <<= 1
+            s -= 1
+        while s < 0:
+            n >>= 1
+            s += 1
+        return n
 
     def _apply_params(self):
         # every derived integer, from the parameters and the active table: at start-up and
@@ -73,6 +110,11 @@ class Params:
             self._msign = -1 if p[i] < 0 else 1
             if self._hal_motor is not None:  # (None until __init__ binds the motor output)
                 self._set_motor = self._hal_motor if self._msign > 0 else self._motor_neg
+        elif i == T.P_GEAR_PLAY:
+            # the play operator's half-width (encoder counts) and the predictor's gap model
+            g = p[i]
+            self.sensors.play = g >> 1
+            self.ctrl.ghb = self._gap_ticks((g << self.table[self.off["FMT"]]) >> 1)
 
     def param_get(self, index):
         # the value, or 0 for an index out of range (the dispatcher checks first)

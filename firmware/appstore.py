@@ -32,8 +32,10 @@ class ConfigSave:
             if table is not None:
                 self._install_table(table, len(table))
             p = self.params
-            for i in range(T.N_PARAMS):
-                p[i] = params[i]
+            n = len(params)
+            for q in T.PARAMS:
+                i = q[0]
+                p[i] = params[i] if i < n else q[5]  # an older firmware's copy: the defaults
             self._apply_params()
         elif st == CORRUPT:
             self.config_bad = True
@@ -42,8 +44,11 @@ class ConfigSave:
         return st
 
     def _params_check(self, params):
-        # every saved parameter in range
+        # every saved parameter in range (an older firmware's copy holds fewer)
+        n = len(params)
         for q in T.PARAMS:
+            if q[0] >= n:
+                continue
             v = params[q[0]]
             if v < q[3] or v > q[4]:
                 return False

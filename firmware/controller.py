@@ -135,6 +135,9 @@ class Controller:
         self.u = 0
         self.u_raw = 0
         self.vh = 0
+        # gear play model: half the play in u LSB x ticks (0: none), the motor side's place in it
+        self.ghb = 0
+        self.gap = 0
         # anti-windup by conditional integration (False only to show windup in tests)
         self.aw = True
         self.load(flat)
@@ -324,6 +327,7 @@ class Controller:
         self.u = 0
         self.u_raw = 0
         self.vh = 0
+        self.gap = 0
         self.ramp = False
         self._use(False)
 
@@ -547,14 +551,29 @@ class Controller:
         elif v < -l:
             v = -l
         self.vh = v
+        # gear play: the predictor is given the force the gear passes (ue), the part of u
+        # beyond the flank of the play model gap (u LSB x ticks, +-ghb)
+        ue = u
+        l = self.ghb
+        if l:
+            v = self.gap + u
+            if v > l:
+                ue = v - l
+                v = l
+            elif v < -l:
+                ue = v + l
+                v = -l
+            else:
+                ue = 0
+            self.gap = v
         # update: p = xf + (Ad - I) xf + Bd b0 (delta form), then shift the buffer
         if d > 0:
             b0 = b[0]
             for i in range(d - 1):
                 b[i] = b[i + 1]
-            b[d - 1] = u
+            b[d - 1] = ue
         else:
-            b0 = u
+            b0 = ue
         ad = self.ad
         bd = self.bd
         sa = self.sa

@@ -124,13 +124,26 @@ def step_native(c, yx, yp, r):
     elif v < -l:
         v = -l
     c.vh = v
+    ue = u
+    l = c.ghb
+    if l:
+        v = c.gap + u
+        if v > l:
+            ue = v - l
+            v = l
+        elif v < -l:
+            ue = v + l
+            v = -l
+        else:
+            ue = 0
+        c.gap = v
     if d > 0:
         b0 = b[0]
         for i in range(d - 1):
             b[i] = b[i + 1]
-        b[d - 1] = u
+        b[d - 1] = ue
     else:
-        b0 = u
+        b0 = ue
     ad = c.ad
     bd = c.bd
     sa = c.sa
@@ -284,13 +297,26 @@ def step_viper(c, yx: int, yp: int, r: int) -> int:
     elif v < -l:
         v = -l
     c.vh = v
+    ue = u
+    l = int(c.ghb)
+    if l:
+        v = int(c.gap) + u
+        if v > l:
+            ue = v - l
+            v = l
+        elif v < -l:
+            ue = v + l
+            v = -l
+        else:
+            ue = 0
+        c.gap = v
     if d > 0:
         b0 = (((b[0] + sb) & msk) - sb)
         for i in range(d - 1):
             b[i] = (((b[i + 1] + sb) & msk) - sb)
-        b[d - 1] = u
+        b[d - 1] = ue
     else:
-        b0 = u
+        b0 = ue
     ad = ptr32(c.ad)
     bd = ptr32(c.bd)
     sa = ptr32(c.sa)

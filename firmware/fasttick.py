@@ -80,7 +80,9 @@ _SN_YLX = const(14)
 _SN_YX = const(15)
 _SN_QX = const(16)
 _SN_RAIL = const(17)
-_SN_SLOTS = const(18)
+_SN_PLAY = const(18)
+_SN_WPOS = const(19)
+_SN_SLOTS = const(20)
 _SU_STATE = const(0)
 _SU_FAULTS = const(1)
 _SU_LAST = const(2)
@@ -193,6 +195,15 @@ def sensors_update(S: ptr32, adc: int, enc: int):
     elif v < -_POS_MAX:
         v = -_POS_MAX
     S[_SN_POS] = v
+    l = (((S[_SN_PLAY] + sb) & msk) - sb)
+    if l:
+        w = (((S[_SN_WPOS] + sb) & msk) - sb)
+        if v - w > l:
+            w = v - l
+        elif v - w < -l:
+            w = v + l
+        S[_SN_WPOS] = w
+        v = w
     l = (((S[_SN_YLX] + sb) & msk) - sb)
     if v > l:
         v = l
@@ -220,6 +231,8 @@ class SensorsV(Sensors):
     yx = _int(_SN_YX)
     qx = _int(_SN_QX)
     rail = _flag(_SN_RAIL)
+    play = _int(_SN_PLAY)
+    wpos = _int(_SN_WPOS)
 
     def __init__(self, t, off, adc_sign=1, enc_sign=1, pot_offset=None):
         self._S = _slots(_SN_SLOTS)

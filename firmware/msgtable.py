@@ -349,12 +349,13 @@ P_POT_OFFSET = const(9)
 P_ADC_SIGN = const(10)
 P_ENC_SIGN = const(11)
 P_MOTOR_SIGN = const(12)
-N_PARAMS = const(13)
+P_GEAR_PLAY = const(13)
+N_PARAMS = const(14)
 
 # parameters that change the drive or what the sensors mean (signs, offsets, the duty clamp,
 # the CAN node id the host reaches the board at): param_set is refused (ARMED) while armed or
 # balancing -- changed under a balancing robot they tip it
-DRIVE_PARAMS = (P_MAX_DUTY, P_NODE_ID, P_POT_OFFSET, P_ADC_SIGN, P_ENC_SIGN, P_MOTOR_SIGN)
+DRIVE_PARAMS = (P_MAX_DUTY, P_NODE_ID, P_POT_OFFSET, P_ADC_SIGN, P_ENC_SIGN, P_MOTOR_SIGN, P_GEAR_PLAY)
 
 # (index, name, unit, min, max, default, doc); every value an int with |v| < 2**30
 PARAMS = (
@@ -386,6 +387,10 @@ PARAMS = (
      "encoder direction: -1 flips it (0 counts as +1); start-up value firmware/board.py ENC_SIGN"),
     (P_MOTOR_SIGN, "motor_sign", "", -1, 1, 1,
      "motor direction on top of firmware/board.py MOTOR_SIGN: -1 flips it (0 counts as +1)"),
+    (P_GEAR_PLAY, "gear_play", "count", 0, 255, 0,
+     "gear play between the motor's encoder and the wheels, in encoder counts (robot.toml "
+     "motor.backlash; upright commission sets it): the estimator follows the wheel side through a "
+     "play operator and its predictor is given only the force the gear passes (0: no play)"),
 )
 
 # ---- status values: read-only board figures, read with PARAM_GET(STATUS_BASE + k) ----

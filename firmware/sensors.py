@@ -38,6 +38,10 @@ class Sensors:
         self.jump = False
         self.delta = 0
         self.primed = False
+        # gear play: the encoder reads the motor side; yx follows it through a play operator of
+        # half-width play (counts; 0: none), the wheel side's estimate wpos
+        self.play = 0
+        self.wpos = 0
 
     def load(self, t, off):
         # conversion constants from a gain table (start-up / gain upload)
@@ -52,6 +56,7 @@ class Sensors:
     def zero(self):
         # the current cart position becomes x = 0
         self.pos = 0
+        self.wpos = 0
         self.yx = 0
 
     def follow(self, enc):
@@ -114,6 +119,15 @@ class Sensors:
         elif v < -_POS_MAX:
             v = -_POS_MAX
         self.pos = v
+        l = self.play
+        if l:
+            w = self.wpos
+            if v - w > l:
+                w = v - l
+            elif v - w < -l:
+                w = v + l
+            self.wpos = w
+            v = w
         l = self.ylx
         if v > l:
             v = l

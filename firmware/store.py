@@ -26,7 +26,9 @@
 #                                         copy whose table has another layout (an older gain-table
 #                                         version) gives MIGRATED (its table converted by
 #                                         migrate(table), see upgrade()) or PARAMS_ONLY (the
-#                                         parameters, table None: the caller keeps its own)
+#                                         parameters, table None: the caller keeps its own);
+#                                         a copy with fewer parameters (an older firmware's)
+#                                         loads MIGRATED, the caller defaulting the rest
 #   store.save(params, table)             -> the new sequence number; OSError on a write error
 # Never called from the control tick (it allocates and may wait for flash erases): the app
 # runs a requested save between ticks, only while the motor is off (firmware/app.py).
@@ -113,12 +115,17 @@ def upgrade(table, version, length):
 
 def decode(data, n_params, n_table, crc_table=None):
     # (seq, params, table) of a copy, or None if it is not a complete, intact copy of this
-    # shape (n_table < 0: any table length, the one its header gives)
+    # shape (n_table < 0: any table length, the one its header gives; n_params < 0: any
+    # number of parameters up to -n_params, the one its header gives)
     if data is None or len(data) < _HEAD + 2 or data[0:4] != MAGIC:
         return None
     fmt, n, m, seq = struct.unpack_from("<BBHI", data, 4)
     if n_table < 0:
         n_table = m
+    if n_params < 0:
+        if n > -n_params:
+            return None
+        n_params = n
     if len(data) != _HEAD + 4 * (n_params + n_table) + 2:
         return None
     if fmt != _FORMAT or n != n_params or m != n_table:
@@ -166,9 +173,15 @@ class ConfigStore:
         # else its parameters alone if params_ok(params) -> PARAMS_ONLY (table None)
         # A table of our length is dropped only when converted from an older version: our
         # length with content failing the check (a bad version included) stays CORRUPT.
+        # An older firmware's copy may hold fewer parameters (params_ok and check see the
+        # shorter list; the caller gives the rest their defaults): with our table layout
+        # and passing check, it is MIGRATED as it is.
         params, table = rec[1], rec[2]
         if params_ok is None or not params_ok(params):
             return None
+        fewer = len(params) < self.n_params
+        if fewer and len(table) == self.n_table and (check is None or check(params, table)):
+            return MIGRATED, table
         t = migrate(table) if migrate is not None else None
         if t is not None and t != table and len(t) == self.n_table and (check is None or check(params, t)):
             return MIGRATED, t
@@ -193,7 +206,7 @@ class ConfigStore:
             rec = decode(data, self.n_params, self.n_table, self.crc)
             st = LOADED
             if rec is None or (check is not None and not check(rec[1], rec[2])):
-                rec = decode(data, self.n_params, -1, self.crc)
+                rec = decode(data, -self.n_params if params_ok is not None else self.n_params, -1, self.crc)
                 old = None if rec is None else self._older(rec, check, migrate, params_ok)
                 if old is None:
                     continue

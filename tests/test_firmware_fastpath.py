@@ -38,25 +38,34 @@ import micropython
 c0 = Controller(LAYOUT, FLAT)
 c1 = Controller(LAYOUT, FLAT)
 c2 = Controller(LAYOUT, FLAT)
+c0.ghb = c1.ghb = c2.ghb = GHB
 n = len(YX)
 bad = 0
+free = 0
 for k in range(n):
     u0 = c0.step(YX[k], YP[k], R[k])
     u1 = fastpath.step_native(c1, YX[k], YP[k], R[k])
     u2 = fastpath.step_viper(c2, YX[k], YP[k], R[k])
     if u0 != u1 or u0 != u2 or c0.vh != c1.vh or c0.vh != c2.vh or c0.integ != c2.integ:
         bad += 1
+    if c0.gap != c1.gap or c0.gap != c2.gap or list(c0.b) != list(c1.b) or list(c0.b) != list(c2.b):
+        bad += 1
+    if c0.gap not in (-GHB, GHB):
+        free += 1
     for i in range(4):
         if c0.p[i] != c2.p[i] or c0.p[i] != c1.p[i] or c0.rf[i] != c2.rf[i] or c0.ra[i] != c2.ra[i]:
             bad += 1
 print('n', n)
 print('bad', bad)
 print('last', u0)
+print('free', free)
 """ + H.FAKE_HAL + """
 from firmware.app import App
+from firmware import msgtable as T
 for em in ('native', 'viper'):
     hal = Hal()
     app = App(hal, config={'watchdog_ms': 0, 'emitter': em})
+    app.param_set(T.P_GEAR_PLAY, PLAY)
     hal.adc = 2048
     app.step()
     app.cmd_arm()
@@ -76,12 +85,17 @@ for em in ('native', 'viper'):
 """
 
 
-def test_native_and_viper_equal_bytecode(seq) -> None:
+@pytest.mark.parametrize("ghb, play", [(0, 0), (4000, 19)], ids=["no gear play", "gear play"])
+def test_native_and_viper_equal_bytecode(seq, ghb: int, play: int) -> None:
+    # with gear play the gap model (Controller.ghb, .gap) and the play operator (param gear_play) run too
     yx, yp, r = seq
     code = (H.INTS_SRC + f"LAYOUT = {tuple(H.layout_of(FD))!r}\nFLAT = tuple(ints({' '.join(map(str, FD.flat()))!r}))\n"
-            + f"YX = ints({H._ints(yx)!r})\nYP = ints({H._ints(yp)!r})\nR = ints({H._ints(r)!r})\n" + SCRIPT)
+            + f"YX = ints({H._ints(yx)!r})\nYP = ints({H._ints(yp)!r})\nR = ints({H._ints(r)!r})\n"
+            + f"GHB = {ghb}\nPLAY = {play}\n" + SCRIPT)
     out = dict(line.split() for line in run_unix(code, timeout=120).splitlines() if line.strip())
     assert int(out["n"]) == len(yx) and int(out["bad"]) == 0
+    # the sequence crosses the play model's gap (the force reverses) and rests on a flank
+    assert (int(out["free"]) > 0) == (ghb > 0) and (ghb == 0 or int(out["free"]) < len(yx) // 2)
     assert out["alloc_free_native"] == "1" and out["alloc_free_viper"] == "1"
     assert out["state_native"] == "2" and out["state_viper"] == "2"
 

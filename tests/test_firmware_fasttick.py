@@ -51,11 +51,12 @@ for k in F.CONSTS:
 print('consts_bad', cbad)
 
 # sensors
-SA = ('rail', 'counts', 'yp', 'last', 'primed', 'delta', 'jump', 'pos', 'yx')
+SA = ('rail', 'counts', 'yp', 'last', 'primed', 'delta', 'jump', 'pos', 'yx', 'wpos')
 n = 0
-for cfg in ((1, 1), (-1, 1), (1, -1), (-1, -1)):
+for cfg in ((1, 1, 0), (-1, 1, 9), (1, -1, 0), (-1, -1, 3)):  # (adc_sign, enc_sign, gear play / 2)
     a = Sensors(flat, off, cfg[0], cfg[1])
     b = F.SensorsV(flat, off, cfg[0], cfg[1])
+    a.play = b.play = cfg[2]
     enc = 65000
     for i in range(1500 // DIV):
         r = rnd(20)

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from firmware import msgtable as T
 from firmware import supervisor
 from host.hil.lockstep import Lockstep
 from host.hil.accounting import Sink
@@ -33,7 +34,7 @@ from host.operate.board import BoardError
 from sim import sensors as ssens
 from sim.params import RobotParams
 
-__all__ = ["LockstepRobot", "ExciteRun", "sensor_xphi"]
+__all__ = ["LockstepRobot", "ExciteRun", "sensor_xphi", "drive_params"]
 
 _EXCITE = M.BY_NAME["excite"]
 _DISARM = M.BY_NAME["disarm"]
@@ -47,6 +48,15 @@ def sensor_xphi(adc: np.ndarray, enc: np.ndarray, fw: RobotParams) -> tuple[np.n
     x = np.concatenate([[0.0], np.cumsum(d)]) / ssens.enc_counts_per_m(fw)
     phi = ssens.adc_to_phi(adc, fw)
     return np.round(x, 4), np.round(phi, 4)
+
+
+def drive_params(fw: RobotParams) -> dict[str, int]:
+    """The firmware parameters that go with a gain table designed for robot file ``fw``:
+    ``gear_play``, its ``motor.backlash`` in encoder counts (at most the parameter's maximum;
+    0 without play), which the firmware's estimator needs to follow the wheel side of the gear."""
+    hi = next(int(q[4]) for q in T.PARAMS if q[0] == T.P_GEAR_PLAY)
+    play = float(fw.values.get("motor.backlash", 0.0) or 0.0) * float(ssens.enc_counts_per_m(fw))
+    return {"gear_play": int(min(hi, max(0, round(play))))}
 
 
 @dataclass
@@ -99,6 +109,7 @@ class LockstepRobot:
         self.session = HilSession(timeout=5.0, rt_priority=None)
         self.blob: bytes | None = None
         self.fw_params: RobotParams | None = None  # the robot file the uploaded table was designed for
+        self.fw_set: dict[str, int] = {}  # the firmware parameters that go with the table (drive_params)
         self.hands = None
 
     # ---- lifecycle
@@ -141,6 +152,7 @@ class LockstepRobot:
         """Run with this gain table from now on (uploaded, CRC read back, before each run)."""
         self.blob = bytes(blob)
         self.fw_params = fw_params
+        self.fw_set = drive_params(fw_params)
         self.session.use_gains(self.blob, "commission")
 
     def excite(self, mode: int, amp_n: float, *, seconds: float, div: int = 4, coast_s: float = 3.0,
@@ -159,7 +171,7 @@ class LockstepRobot:
         s = self.session
         link = s.link
         sink = Sink(link)
-        s.prepare(sim, sink)
+        s.prepare(sim, sink, fw_params=self.fw_set)
         fw = self.fw_params
         cpr = float(ssens.adc_counts_per_rad(fw))
         state = {"stop": None, "sent_stop": False}
@@ -202,7 +214,7 @@ class LockstepRobot:
         """The scenario (the report's step or push) with the uploaded table; the log as the host
         reads it (``t, x, phi, x_ref, duty, state, faults``) plus the truth (``true_*``)."""
         assert self.fw_params is not None, "upload a table first"
-        r = self.session.run_lockstep(scenario, self.plant, pipeline=0, seed=self.seed)
+        r = self.session.run_lockstep(scenario, self.plant, pipeline=0, seed=self.seed, fw_params=self.fw_set)
         lg = r.log
         x, phi = sensor_xphi(lg["adc"], lg["enc"], self.fw_params)
         return {"t": lg["t"], "x": x, "phi": phi, "x_ref": lg["x_ref"], "duty": lg["duty"].astype(float),

@@ -165,9 +165,14 @@ class PortRobot:
         return load_params(out)
 
     def upload(self, blob: bytes, fw_params: RobotParams, save: bool = True) -> None:
-        """Upload the table (CRC read back) and save it on the board."""
+        """Upload the table (CRC read back) and the firmware parameters that go with it
+        (:func:`host.operate.commission_lockstep.drive_params`), and save them on the board."""
+        from host.operate.commission_lockstep import drive_params
+
         b = self._b()
         b.upload_gains(blob)
+        for name, value in drive_params(fw_params).items():
+            b.param_set(name, value)
         if save:
             b.save()
         self.fw_params = fw_params

@@ -25,7 +25,7 @@ FIRMWARE = Path(__file__).resolve().parents[3] / "firmware"
 
 # Controller.step: the int32 arrays (ptr32 locals in viper) and the int attributes it reads
 CONTROLLER_ARRAYS = ("p", "m", "lim", "sm", "rf", "xf", "kf", "kv", "b", "kb", "kvb", "ad", "bd", "sa", "ra")
-CONTROLLER_SCALARS = ("kr", "hk", "hkv", "d", "ki", "sk", "ulim", "uhi", "ulo", "ilim", "skv", "aw", "integ", "est")
+CONTROLLER_SCALARS = ("kr", "hk", "hkv", "d", "ki", "sk", "ulim", "uhi", "ulo", "ilim", "skv", "aw", "integ", "est", "ghb", "gap")
 
 # fixmath.ticks_diff written out (a call costs more than this on a board): the same values for
 # a clock whose period is a multiple of 2**30
@@ -61,7 +61,8 @@ TICK_PARTS: tuple[TickPart, ...] = (
     TickPart("sensors", "Sensors", SlotObject("SN", (
         ("adc_max", "i"), ("pot_offset", "i"), ("adc_sign", "i"), ("counts", "i"), ("ylp", "i"), ("yp", "i"),
         ("qp", "u"), ("primed", "b"), ("last", "u"), ("enc_sign", "i"), ("delta", "i"), ("encj", "i"),
-        ("jump", "b"), ("pos", "i"), ("ylx", "i"), ("yx", "i"), ("qx", "u"), ("rail", "b"))),
+        ("jump", "b"), ("pos", "i"), ("ylx", "i"), ("yx", "i"), ("qx", "u"), ("rail", "b"), ("play", "i"),
+        ("wpos", "i"))),
         (("update", "sensors_update"),)),
     # timing_ok stays an attribute: App.run reads it every tick, the update only when ARMED
     TickPart("supervisor", "Supervisor", SlotObject("SU", (
