@@ -48,6 +48,12 @@ _G_MAX = const(0xFFFFF)
 _B_MAX = const(0x3FFFF)
 # (2**30 - 1) >> 10: budget of a row in units of 1024
 _BUDGET = const(0xFFFFF)
+# lim: the state limits x, xdot, phi, phidot (LSB, from the table), then the gear-play model --
+# its half-width (u LSB x ticks, 0: none) and the motor side's place in the play -- as words of
+# the same array: the viper step reads them through its ptr32, not as attributes (an attribute
+# read costs a board ~2.5 us, and the link's poll after the step has none to spare)
+_LIM_GHB = const(4)
+_LIM_GAP = const(5)
 
 
 def layout_offsets(layout):
@@ -66,7 +72,7 @@ class Controller:
         self.off, self.length = layout_offsets(layout)
         d = flat[self.off["HDR"] + 1]
         self.d = d
-        self.lim = fixmath.zeros(4)
+        self.lim = fixmath.zeros(6)
         self.m = fixmath.zeros(8)
         self.sm = fixmath.zeros(4)
         self.rf = fixmath.zeros(4)
@@ -135,14 +141,29 @@ class Controller:
         self.u = 0
         self.u_raw = 0
         self.vh = 0
-        # gear play model: half the play in u LSB x ticks (0: none), the motor side's place in it
-        self.ghb = 0
-        self.gap = 0
         # anti-windup by conditional integration (False only to show windup in tests)
         self.aw = True
         self.load(flat)
 
     # ---- table handling (not in the loop) ----
+    @property
+    def ghb(self):
+        # half the gear play in u LSB x ticks (0: none; set from the board parameter gear_play)
+        return self.lim[_LIM_GHB]
+
+    @ghb.setter
+    def ghb(self, v):
+        self.lim[_LIM_GHB] = v
+
+    @property
+    def gap(self):
+        # the gear-play model's motor side, in +-ghb (u LSB x ticks)
+        return self.lim[_LIM_GAP]
+
+    @gap.setter
+    def gap(self, v):
+        self.lim[_LIM_GAP] = v
+
     def load(self, t):
         # copy a validated flat table into the working arrays
         o = self.off
@@ -327,7 +348,7 @@ class Controller:
         self.u = 0
         self.u_raw = 0
         self.vh = 0
-        self.gap = 0
+        self.lim[_LIM_GAP] = 0
         self.ramp = False
         self._use(False)
 
@@ -554,9 +575,9 @@ class Controller:
         # gear play: the predictor is given the force the gear passes (ue), the part of u
         # beyond the flank of the play model gap (u LSB x ticks, +-ghb)
         ue = u
-        l = self.ghb
+        l = lim[_LIM_GHB]
         if l:
-            v = self.gap + u
+            v = lim[_LIM_GAP] + u
             if v > l:
                 ue = v - l
                 v = l
@@ -565,7 +586,7 @@ class Controller:
                 v = -l
             else:
                 ue = 0
-            self.gap = v
+            lim[_LIM_GAP] = v
         # update: p = xf + (Ad - I) xf + Bd b0 (delta form), then shift the buffer
         if d > 0:
             b0 = b[0]

@@ -19,6 +19,8 @@ except ImportError:  # CPython
 
 _INTEG_SHIFT = const(6)
 _INTEG_HALF = const(32)
+_LIM_GHB = const(4)
+_LIM_GAP = const(5)
 
 
 @micropython.native
@@ -125,9 +127,9 @@ def step_native(c, yx, yp, r):
         v = -l
     c.vh = v
     ue = u
-    l = c.ghb
+    l = lim[_LIM_GHB]
     if l:
-        v = c.gap + u
+        v = lim[_LIM_GAP] + u
         if v > l:
             ue = v - l
             v = l
@@ -136,7 +138,7 @@ def step_native(c, yx, yp, r):
             v = -l
         else:
             ue = 0
-        c.gap = v
+        lim[_LIM_GAP] = v
     if d > 0:
         b0 = b[0]
         for i in range(d - 1):
@@ -298,9 +300,9 @@ def step_viper(c, yx: int, yp: int, r: int) -> int:
         v = -l
     c.vh = v
     ue = u
-    l = int(c.ghb)
+    l = (((lim[_LIM_GHB] + sb) & msk) - sb)
     if l:
-        v = int(c.gap) + u
+        v = (((lim[_LIM_GAP] + sb) & msk) - sb) + u
         if v > l:
             ue = v - l
             v = l
@@ -309,7 +311,7 @@ def step_viper(c, yx: int, yp: int, r: int) -> int:
             v = -l
         else:
             ue = 0
-        c.gap = v
+        lim[_LIM_GAP] = v
     if d > 0:
         b0 = (((b[0] + sb) & msk) - sb)
         for i in range(d - 1):

@@ -25,7 +25,7 @@ FIRMWARE = Path(__file__).resolve().parents[3] / "firmware"
 
 # Controller.step: the int32 arrays (ptr32 locals in viper) and the int attributes it reads
 CONTROLLER_ARRAYS = ("p", "m", "lim", "sm", "rf", "xf", "kf", "kv", "b", "kb", "kvb", "ad", "bd", "sa", "ra")
-CONTROLLER_SCALARS = ("kr", "hk", "hkv", "d", "ki", "sk", "ulim", "uhi", "ulo", "ilim", "skv", "aw", "integ", "est", "ghb", "gap")
+CONTROLLER_SCALARS = ("kr", "hk", "hkv", "d", "ki", "sk", "ulim", "uhi", "ulo", "ilim", "skv", "aw", "integ", "est")
 
 # fixmath.ticks_diff written out (a call costs more than this on a board): the same values for
 # a clock whose period is a multiple of 2**30
