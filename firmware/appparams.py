@@ -12,6 +12,7 @@ except ImportError:
 
 from . import fixmath
 from . import msgtable as T
+from .controller import LIM_GHB
 from .supervisor import ARMED, BALANCING
 
 # the parameters with a derived integer (Params._apply_param)
@@ -114,7 +115,7 @@ class Params:
             # the play operator's half-width (encoder counts) and the predictor's gap model
             g = p[i]
             self.sensors.play = g >> 1
-            self.ctrl.ghb = self._gap_ticks((g << self.table[self.off["FMT"]]) >> 1)
+            self.ctrl.lim[LIM_GHB] = self._gap_ticks((g << self.table[self.off["FMT"]]) >> 1)
 
     def param_get(self, index):
         # the value, or 0 for an index out of range (the dispatcher checks first)

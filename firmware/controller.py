@@ -51,9 +51,10 @@ _BUDGET = const(0xFFFFF)
 # lim: the state limits x, xdot, phi, phidot (LSB, from the table), then the gear-play model --
 # its half-width (u LSB x ticks, 0: none) and the motor side's place in the play -- as words of
 # the same array: the viper step reads them through its ptr32, not as attributes (an attribute
-# read costs a board ~2.5 us, and the link's poll after the step has none to spare)
-_LIM_GHB = const(4)
-_LIM_GAP = const(5)
+# read costs a board ~2.5 us, and the link's poll after the step has none to spare; and no
+# properties on the class: with one, MicroPython looks every attribute store up in the class first)
+LIM_GHB = const(4)
+LIM_GAP = const(5)
 
 
 def layout_offsets(layout):
@@ -146,24 +147,6 @@ class Controller:
         self.load(flat)
 
     # ---- table handling (not in the loop) ----
-    @property
-    def ghb(self):
-        # half the gear play in u LSB x ticks (0: none; set from the board parameter gear_play)
-        return self.lim[_LIM_GHB]
-
-    @ghb.setter
-    def ghb(self, v):
-        self.lim[_LIM_GHB] = v
-
-    @property
-    def gap(self):
-        # the gear-play model's motor side, in +-ghb (u LSB x ticks)
-        return self.lim[_LIM_GAP]
-
-    @gap.setter
-    def gap(self, v):
-        self.lim[_LIM_GAP] = v
-
     def load(self, t):
         # copy a validated flat table into the working arrays
         o = self.off
@@ -348,7 +331,7 @@ class Controller:
         self.u = 0
         self.u_raw = 0
         self.vh = 0
-        self.lim[_LIM_GAP] = 0
+        self.lim[LIM_GAP] = 0
         self.ramp = False
         self._use(False)
 
@@ -575,9 +558,9 @@ class Controller:
         # gear play: the predictor is given the force the gear passes (ue), the part of u
         # beyond the flank of the play model gap (u LSB x ticks, +-ghb)
         ue = u
-        l = lim[_LIM_GHB]
+        l = lim[LIM_GHB]
         if l:
-            v = lim[_LIM_GAP] + u
+            v = lim[LIM_GAP] + u
             if v > l:
                 ue = v - l
                 v = l
@@ -586,7 +569,7 @@ class Controller:
                 v = -l
             else:
                 ue = 0
-            lim[_LIM_GAP] = v
+            lim[LIM_GAP] = v
         # update: p = xf + (Ad - I) xf + Bd b0 (delta form), then shift the buffer
         if d > 0:
             b0 = b[0]

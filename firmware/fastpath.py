@@ -19,8 +19,8 @@ except ImportError:  # CPython
 
 _INTEG_SHIFT = const(6)
 _INTEG_HALF = const(32)
-_LIM_GHB = const(4)
-_LIM_GAP = const(5)
+LIM_GHB = const(4)
+LIM_GAP = const(5)
 
 
 @micropython.native
@@ -127,9 +127,9 @@ def step_native(c, yx, yp, r):
         v = -l
     c.vh = v
     ue = u
-    l = lim[_LIM_GHB]
+    l = lim[LIM_GHB]
     if l:
-        v = lim[_LIM_GAP] + u
+        v = lim[LIM_GAP] + u
         if v > l:
             ue = v - l
             v = l
@@ -138,7 +138,7 @@ def step_native(c, yx, yp, r):
             v = -l
         else:
             ue = 0
-        lim[_LIM_GAP] = v
+        lim[LIM_GAP] = v
     if d > 0:
         b0 = b[0]
         for i in range(d - 1):
@@ -300,9 +300,9 @@ def step_viper(c, yx: int, yp: int, r: int) -> int:
         v = -l
     c.vh = v
     ue = u
-    l = (((lim[_LIM_GHB] + sb) & msk) - sb)
+    l = (((lim[LIM_GHB] + sb) & msk) - sb)
     if l:
-        v = (((lim[_LIM_GAP] + sb) & msk) - sb) + u
+        v = (((lim[LIM_GAP] + sb) & msk) - sb) + u
         if v > l:
             ue = v - l
             v = l
@@ -311,7 +311,7 @@ def step_viper(c, yx: int, yp: int, r: int) -> int:
             v = -l
         else:
             ue = 0
-        lim[_LIM_GAP] = v
+        lim[LIM_GAP] = v
     if d > 0:
         b0 = (((b[0] + sb) & msk) - sb)
         for i in range(d - 1):

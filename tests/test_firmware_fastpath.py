@@ -38,7 +38,7 @@ import micropython
 c0 = Controller(LAYOUT, FLAT)
 c1 = Controller(LAYOUT, FLAT)
 c2 = Controller(LAYOUT, FLAT)
-c0.ghb = c1.ghb = c2.ghb = GHB
+c0.lim[4] = c1.lim[4] = c2.lim[4] = GHB
 n = len(YX)
 bad = 0
 free = 0
@@ -48,9 +48,9 @@ for k in range(n):
     u2 = fastpath.step_viper(c2, YX[k], YP[k], R[k])
     if u0 != u1 or u0 != u2 or c0.vh != c1.vh or c0.vh != c2.vh or c0.integ != c2.integ:
         bad += 1
-    if c0.gap != c1.gap or c0.gap != c2.gap or list(c0.b) != list(c1.b) or list(c0.b) != list(c2.b):
+    if c0.lim[5] != c1.lim[5] or c0.lim[5] != c2.lim[5] or list(c0.b) != list(c1.b) or list(c0.b) != list(c2.b):
         bad += 1
-    if c0.gap not in (-GHB, GHB):
+    if c0.lim[5] not in (-GHB, GHB):
         free += 1
     for i in range(4):
         if c0.p[i] != c2.p[i] or c0.p[i] != c1.p[i] or c0.rf[i] != c2.rf[i] or c0.ra[i] != c2.ra[i]:
@@ -87,7 +87,7 @@ for em in ('native', 'viper'):
 
 @pytest.mark.parametrize("ghb, play", [(0, 0), (4000, 19)], ids=["no gear play", "gear play"])
 def test_native_and_viper_equal_bytecode(seq, ghb: int, play: int) -> None:
-    # with gear play the gap model (Controller.ghb, .gap) and the play operator (param gear_play) run too
+    # with gear play the gap model (Controller.lim[4], [5]: LIM_GHB, LIM_GAP) and the play operator (param gear_play) run too
     yx, yp, r = seq
     code = (H.INTS_SRC + f"LAYOUT = {tuple(H.layout_of(FD))!r}\nFLAT = tuple(ints({' '.join(map(str, FD.flat()))!r}))\n"
             + f"YX = ints({H._ints(yx)!r})\nYP = ints({H._ints(yp)!r})\nR = ints({H._ints(r)!r})\n"

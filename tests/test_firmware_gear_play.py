@@ -34,7 +34,7 @@ P = load_params()
 def _controller(ghb: int) -> Controller:
     c = Controller(G.LAYOUT, G.FLAT)
     c.reset(0, 0)
-    c.ghb = ghb
+    c.lim[4] = ghb
     return c
 
 
@@ -55,11 +55,11 @@ def test_the_predictor_gets_only_the_force_the_gear_passes() -> None:
     assert d > 0
     kinds = {"free": 0, "flank": 0, "partial": 0}
     for k in range(400):
-        gap = c.gap
+        gap = c.lim[5]
         # a reference that jumps back and forth: the force reverses again and again
         u = c.step(0, 0, 20000 if (k // 40) % 2 else -20000)
         ue, g = _passed(gap, u, ghb)
-        assert (c.b[d - 1], c.gap) == (ue, g), k
+        assert (c.b[d - 1], c.lim[5]) == (ue, g), k
         kinds["free" if ue == 0 and u != 0 else ("flank" if ue == u else "partial")] += 1
     assert all(kinds.values()), kinds  # crossed the play, pushed a flank, reached it mid-tick
 
@@ -68,7 +68,7 @@ def test_without_play_every_force_passes() -> None:
     c = _controller(0)
     for k in range(50):
         u = c.step(4000 if k < 25 else -4000, 0, 0)
-        assert c.b[c.d - 1] == u and c.gap == 0
+        assert c.b[c.d - 1] == u and c.lim[5] == 0
 
 
 def test_the_play_operator_follows_the_wheel_side() -> None:
@@ -89,7 +89,7 @@ def test_the_play_operator_follows_the_wheel_side() -> None:
 
 def test_gear_play_parameter_derives_both_and_is_refused_while_balancing() -> None:
     app = App(H.StandInHal(inc=2000), config={})
-    assert app.params[T.P_GEAR_PLAY] == 0 and app.ctrl.ghb == 0 and app.sensors.play == 0
+    assert app.params[T.P_GEAR_PLAY] == 0 and app.ctrl.lim[4] == 0 and app.sensors.play == 0
     assert T.P_GEAR_PLAY in T.DRIVE_PARAMS
     assert app.param_set(T.P_GEAR_PLAY, 256) == T.R_OUT_OF_RANGE
     fd = export(P)
@@ -100,7 +100,7 @@ def test_gear_play_parameter_derives_both_and_is_refused_while_balancing() -> No
         # half the play in force x ticks: the motor side crosses it at the no-load speed u / ce
         half_m = 0.5 * counts / float(ssens.enc_counts_per_m(P))
         want = half_m * ce * float(P.rate) / fd.lsb["u"]
-        assert app.ctrl.ghb == pytest.approx(want, rel=0.03)
+        assert app.ctrl.lim[4] == pytest.approx(want, rel=0.03)
     app.sup.state = BALANCING
     assert app.param_set(T.P_GEAR_PLAY, 5) == T.R_ARMED and app.params[T.P_GEAR_PLAY] == 60
 
@@ -117,7 +117,7 @@ def test_a_copy_saved_before_gear_play_loads_with_it_off(tmp_path) -> None:
     st = fresh.attach_store(ConfigStore(str(tmp_path)))
     assert st == MIGRATED
     assert fresh.params[T.P_POT_OFFSET] == 2100 and fresh.params[T.P_MOTOR_SIGN] == -1
-    assert fresh.params[T.P_GEAR_PLAY] == 0 and fresh.sensors.play == 0 and fresh.ctrl.ghb == 0
+    assert fresh.params[T.P_GEAR_PLAY] == 0 and fresh.sensors.play == 0 and fresh.ctrl.lim[4] == 0
     assert not fresh.config_bad
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import pytest
 
+from firmware import admit
 from host.bench.link_sweep import BURST, sweep
 from host.boards.rp2040.board import EmulatedBoard, build_bundle
 from host.hil.emulated import EmulatedHil
@@ -66,7 +67,10 @@ def test_bursts_wait_in_the_receive_buffer_and_are_counted(result) -> None:
     b, a = result["before"], result["after"]
     assert a["link_deferred"] > b["link_deferred"], (b, a)
     # a frame goes in a tick that still has the worst frame's time; a tick that ran past its
-    # period lets the next one catch up without link work: a heavy frame (a stats request) every
-    # other tick at worst, so the 2 * BURST frames of the "everything" burst wait up to 4 * BURST
-    # ticks (measured 42)
-    assert 2 <= a["link_wait_max"] <= 4 * BURST + 4, a
+    # period lets the next one catch up without link work, and a backlog held FORCE ticks in a
+    # row gets one frame whatever the time (admit.py): the 2 * BURST frames of the "everything"
+    # burst wait FORCE ticks each at most.  The figure itself follows the firmware's layout, not
+    # its rule: 29 ticks on one build, 43 with one parameter more in msgtable.PARAMS and nothing
+    # else changed, 53 with the gear-play model (a bound of 4 * BURST + 4 = 52, a heavy frame
+    # every other tick, held until then: measured, never guaranteed)
+    assert 2 <= a["link_wait_max"] <= 2 * BURST * admit.FORCE, a
