@@ -7,8 +7,8 @@ at the line's full rate (:mod:`host.bench.link_sweep`).  Asserted with the firmw
 and figures: no loop iteration over 1.5 periods, ``stats_loop.overruns`` and the status value
 ``late_ticks`` (the firmware's own clock: a gap over 1.5 periods between step starts, a late
 tick, ``App._period``) unchanged by the sweep, balancing
-without a fault after every message; the bursts made frames wait (``link_deferred``) no longer
-than four bursts' length in ticks.  Timed with the XIP flash-cache model (the predicted real
+without a fault after every message; the bursts made frames wait (``link_deferred``), each no
+longer than the admission rule's FORCE ticks.  Timed with the XIP flash-cache model (the predicted real
 Pico).  ``make bench`` (section ``link``) prints the worst gap per message.  One board for the
 module: about 45-70 s of wall time.
 """
