@@ -256,13 +256,17 @@ class EmulatedHil:
         Emulated time a command's answer may take (per attempt, 3 attempts).
     stall_ms : float
         No firmware loop iteration for this long: the loop stopped (:class:`HilError`).
+    start_ms : float
+        The same before the loop's first iteration after :meth:`open`: ``main.py`` builds the
+        App first -- its imports, the saved configuration, an older copy migrated and saved
+        again (a version-1 copy: 88-110 ms of board time, depending on the firmware's size).
     board : EmulatedBoard, optional
         An already booted board running ``main.py`` (not closed by :meth:`close`).
     """
 
     def __init__(self, bundle_dir: Path | None = None, *, firmware: Path = FIRMWARE, margin_us: float = 60.0,
                  enc_within_us: float = 40.0, keepalive_ms: float = 50.0, reply_ms: float = 40.0,
-                 stall_ms: float = 100.0, board: EmulatedBoard | None = None) -> None:
+                 stall_ms: float = 100.0, start_ms: float = 1000.0, board: EmulatedBoard | None = None) -> None:
         if not 0 < enc_within_us < margin_us:
             raise ValueError("enc_within_us must be in (0, margin_us)")
         self.bundle_dir = bundle_dir
@@ -272,6 +276,7 @@ class EmulatedHil:
         self.keepalive_ms = float(keepalive_ms)
         self.reply_ms = float(reply_ms)
         self.stall_ms = float(stall_ms)
+        self.start_ms = float(start_ms)
         self.board: EmulatedBoard | None = board
         self._own = board is None
         self.host: _HostSide | None = None
@@ -282,6 +287,7 @@ class EmulatedHil:
         self.pins: PinDrive | None = None
         self._iters: list[tuple[int, int]] = []
         self._last_iter_end = 0
+        self._looping = False  # a loop iteration seen since open(): stall_ms applies, before it start_ms
         self._state = -1
         self._faults = -1
 
@@ -302,6 +308,7 @@ class EmulatedHil:
         self.board.loop_probe(gap_us=50.0, min_reads=3)
         self.host = _HostSide(self.board)
         self._last_iter_end = self.board.cycles
+        self._looping = False
         return self
 
     def close(self) -> None:
@@ -346,11 +353,13 @@ class EmulatedHil:
         c0 = b.cycles
         r = b.run(us)
         if r.loop_iters:
+            self._looping = True
             self._iters.extend(r.loop_iters)
             self._last_iter_end = r.loop_iters[-1][1]
-        elif (r.cycles - self._last_iter_end) > self.stall_ms * 1000 * CYCLES_PER_US:
-            raise HilError(f"the firmware loop stopped ticking: no loop iteration for "
-                           f"{(r.cycles - self._last_iter_end) / CYCLES_PER_US / 1000:.0f} ms of board time "
+        elif (r.cycles - self._last_iter_end) > (self.stall_ms if self._looping else self.start_ms) * 1000 * CYCLES_PER_US:
+            raise HilError(("the firmware loop stopped ticking: no loop iteration for " if self._looping else
+                            "the firmware loop did not start: no loop iteration after boot for ")
+                           + f"{(r.cycles - self._last_iter_end) / CYCLES_PER_US / 1000:.0f} ms of board time "
                            f"(at {r.cycles / CYCLES_PER_US / 1e6:.3f} s)\n{self._tail()}")
         del c0
         msgs = self.host.feed(r.uart_tx) if self.host is not None else []
