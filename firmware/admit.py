@@ -10,7 +10,8 @@
 # traffic).  Then the user hook (set_user): called in the spare time left, timed, switched off
 # when over its budget.
 #
-#   a = Admit(app)           a.on False: the app has no clock/step start (host tests): no rule
+#   a = Admit(app)           app: the App (its clock _ticks/_tdiff, timing, link_budget_us);
+#                            a.on True (a host test may set it False: no rule)
 #   a.open()                 a tick's receive phase starts: a.t0 (the step's scheduled start),
 #                            a.lim, a.plim (us from t0 a frame must end within), a.force
 #   the link, per frame:     c = a.ctab[mid] (a REQUEST: a.rtab[requested id & 31]) + its own;
@@ -56,10 +57,11 @@ _U16 = const(65535)
 class Admit:
     def __init__(self, app):
         self.app = app
-        self._ticks = app._ticks if hasattr(app, "_ticks") else None
-        self._diff = getattr(app, "_tdiff", None)
-        # the rule needs the app's clock and its step start (App: timing.last_us)
-        self.on = self._ticks is not None and hasattr(app, "link_budget_us") and hasattr(app, "timing")
+        # the rule reads the app's clock and its step start (App: _ticks, _tdiff, timing.last_us,
+        # link_budget_us, period_us); on: the rule applies (host tests may switch it off)
+        self._ticks = app._ticks
+        self._diff = app._tdiff
+        self.on = True
         self.over = 0  # us the last tick with link work ran past its period (the next catches up)
         self.held = 0  # ticks in a row a backlog got no frame (the rule held it)
         self.t0 = 0

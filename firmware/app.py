@@ -232,7 +232,7 @@ class App(Reports, Params, TableUpload, ConfigSave, Target):
         self._hal_motor = hal.set_motor
         self._motor_neg = self._set_motor_neg
         self._set_motor = hal.set_motor if self._msign > 0 else self._motor_neg
-        self._ticks = hal.ticks_us
+        self._ticks = hal.ticks_us  # with _tdiff and emitter: read by the links (link_serial, admit)
         self._drive(0)
 
     # ---- the loop ----

@@ -83,9 +83,8 @@ def command_crc(em):
 
 def pacer(app, disp):
     # the link's periodic sender (firmware/pacer.py) of the app's emitter
-    from array import array
     from .pacer import Pacer
-    if getattr(app, "emitter", "bytecode") == "viper" and type(getattr(app, "params", None)) is array:
+    if app.emitter == "viper":
         from .fasttick import PacerV
         p = PacerV(app, disp)
         if p._p is not None:

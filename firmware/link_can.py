@@ -117,7 +117,7 @@ class CanLink:
         self._motor = app.hal.set_motor
         # payloads packed in viper on the board (fastcan.py), else codec.Layout.pack
         self._pk = None
-        if getattr(app, "emitter", "") == "viper":
+        if app.emitter == "viper":
             from .fastcan import frame_viper
             self._pk = frame_viper
         self._codes = layout.codes

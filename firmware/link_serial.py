@@ -5,6 +5,8 @@
 # SET_REFERENCE frames feed the app's link watchdog (commands.py): a monitor polling the
 # board does not keep a dead controlling host alive.
 #
+# app: the App (firmware/app.py), read as plain attributes -- its emitter (framing.Encoder, the
+# pacer, the commands' CRC), its clock _ticks/_tdiff and step start (admit.py) -- no probes.
 # uart: machine.UART-like with any() (bytes waiting; a port may say 1 when there are
 # more) and readinto(buf, n).  Only bytes any() reported are read: rp2's readinto waits
 # for all n bytes (up to an inter-character timeout of >= 1 ms at 1 Mbaud), a stall of
@@ -72,14 +74,14 @@ class SerialLink:
         table = crc16.make_table()
         self.dec = framing.Decoder(layout, table)
         # frames packed/CRC'd/stuffed by the app's emitter (viper on the board: fastframe.py)
-        enc = framing.Encoder(layout, table, getattr(app, "emitter", "bytecode"))
+        enc = framing.Encoder(layout, table, app.emitter)
         mv = memoryview(enc.out)
         self._views = [mv[:k] for k in range(len(enc.out) + 1)]
         self.tx = framing.SerialTx(enc, self._write)
         self.disp = commands.Dispatcher(app, layout, self.tx, table)
         self.disp.dec = self.dec
         # the commands' integrity check (CRC-32) and the pacer of the app's emitter too
-        self.disp.crc30 = emitter.command_crc(getattr(app, "emitter", "bytecode"))
+        self.disp.crc30 = emitter.command_crc(app.emitter)
         self.pacer = emitter.pacer(app, self.disp)
         self._tick = self.pacer.tick
         # MODE: the mode asked for (-1: stay in robot mode); the exception made now (the
@@ -98,8 +100,8 @@ class SerialLink:
         self._pend = -1  # a decoded frame the budget held (its id; dec.buf keeps it), or -1
         self._pseq = 0
         self._budget = self.adm.on  # (host tests may switch the time rule off)
-        self._ticks = getattr(app, "_ticks", None)
-        self._diff = getattr(app, "_tdiff", None)
+        self._ticks = app._ticks
+        self._diff = app._tdiff
         self._scan = self.dec.scan
         self._uart_write = uart.write
         self._readinto = uart.readinto
@@ -109,7 +111,7 @@ class SerialLink:
         # written with one uart.write, the heartbeat likewise -- the same bytes, counted in
         # SerialTx.n_sent as before.  A call costs ~5-10 us on the board; this saves about
         # ten of them on a telemetry tick
-        self._ff = getattr(enc, "_fast", None)
+        self._ff = enc._fast  # (None: the bytecode emitter)
         if self._ff is not None:
             tx = self.disp.tx
             enc.encode(T.HEARTBEAT, 0, tx, 0)  # the encoder checks tx once (its length)

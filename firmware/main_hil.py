@@ -97,7 +97,8 @@ class BoardUART:
 
 class HilMain:
     # uart: UnixUART or machine.UART-like (wait/any, readinto(buf, n), write(buf, n));
-    # app_factory(hal, link) -> the firmware app (default firmware.app.App; link is this
+    # app_factory(hal, link) -> the firmware app (firmware.app.App or a subclass: its emitter
+    # is read here and by the pacer; default App; link is this
     # object in real time, whose poll() app.run() calls after each step)
     # config: passed to the default App (e.g. {"boot": n}, see firmware/app.py); its
     # "emitter" is the board's (firmware/board.py EMITTER) unless given: HIL runs the code
@@ -146,8 +147,7 @@ class HilMain:
         self.switch = False
         self.next_mode = T.MODE_ROBOT
         self.disp.on_mode = self._on_mode
-        em = getattr(self.app, "emitter", "bytecode")
-        self.disp.crc30 = emitter.command_crc(em)
+        self.disp.crc30 = emitter.command_crc(self.app.emitter)
         self.pacer = emitter.pacer(self.app, self.disp)
         self.rx = bytearray(_RX)
         self.sv = array("i", [0] * 4)
