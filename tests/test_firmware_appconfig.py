@@ -23,24 +23,10 @@ from host.boards.mpyrun import run_unix
 ROOT = Path(__file__).resolve().parents[1]
 
 
-class BareHal(Hal):
-    # the required methods only: every optional capability is the base class's None
-    def __init__(self) -> None:
-        self.t = 0
-        self.duty = 7
-
-    def read_angle_raw(self) -> int:
-        return 2048
-
-    def read_encoder(self) -> int:
-        return 0
-
-    def set_motor(self, d: int) -> None:
-        self.duty = d
-
-    def ticks_us(self) -> int:
-        self.t = (self.t + 250) & 0x3FFFFFFF
-        return self.t
+def _bare_hal() -> H.StandInHal:
+    # the shared stand-in: the required methods only, every optional capability the base
+    # class's None; its duty starts at 7, so a test sees the app drive it to 0
+    return H.StandInHal(duty=7)
 
 
 @pytest.mark.parametrize("cfg, key", [
@@ -55,7 +41,7 @@ class BareHal(Hal):
 ])
 def test_an_unknown_key_or_a_value_out_of_range_is_refused_naming_the_key(cfg: dict, key: str) -> None:
     with pytest.raises(ValueError, match=f"^config {key}: ") as e:
-        App(BareHal(), config=cfg)
+        App(_bare_hal(), config=cfg)
     assert "\n" not in str(e.value)
 
 
@@ -73,13 +59,13 @@ def test_every_key_has_its_default_and_a_range_holding_it() -> None:
 def test_the_boards_config_and_parameter_names_are_accepted() -> None:
     # board.config() is what main.py hands the app; a msgtable PARAMS name overrides a
     # parameter unchecked (watchdog_ms=0: the watchdog off, bench/tests)
-    app = App(BareHal(), config={**board.config(), "watchdog_ms": 0, "max_duty": 1000})
+    app = App(_bare_hal(), config={**board.config(), "watchdog_ms": 0, "max_duty": 1000})
     assert app.params[T.P_WATCHDOG_MS] == 0 and app.motor.max_duty == 1000
     assert app.wdt_ms == board.WDT_MS and app.vsup_nom == board.VSUP_NOMINAL_MV
 
 
 def test_a_hal_without_the_optional_capabilities_runs() -> None:
-    hal = BareHal()
+    hal = _bare_hal()
     app = App(hal, config={"watchdog_ms": 0, "stall_ms": 0, "epoch": 1})
     assert app._set_enable is None and app._estop is None and app._read_vsup is None
     assert not app._has_open and not app._has_frames

@@ -224,20 +224,12 @@ print('pacer_n', n)
 
 # supply: App._supply against SupplyV(app).update on two apps fed the same readings
 from firmware.app import App
-from firmware.hal_base import Hal as HalBase
-class VHal(HalBase):
+""" + H.FAKE_HAL + r"""
+class VHal(Hal):
+    # the shared stand-in HAL (fwharness.FAKE_HAL) with a supply reading
     def __init__(self):
+        Hal.__init__(self)
         self.mv = 12000
-        self.t = 0
-    def read_angle_raw(self):
-        return 2048
-    def read_encoder(self):
-        return 0
-    def set_motor(self, d):
-        pass
-    def ticks_us(self):
-        self.t = (self.t + 250) & 0x3FFFFFFF
-        return self.t
     def read_supply_mv(self):
         return self.mv
 h0, h1 = VHal(), VHal()

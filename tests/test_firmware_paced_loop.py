@@ -44,6 +44,7 @@ _MASK = 0x3FFFFFFF
 
 
 class Hal(HalBase):
+    # not fwharness.FAKE_HAL: sensors that change every tick and a clock that crosses its wrap
     # scripted sensors; the clock advances `inc` us per read and starts 1.5 s before
     # its 2**30 wrap (wrapped here without ever computing 2**30)
     def __init__(s):

@@ -51,6 +51,7 @@ def chk(name, v):
     print('OBS ' + name + ' ' + str(int(v)))
 
 class Hal(HalBase):
+    # not fwharness.FAKE_HAL: slow steps, the enable pin and every duty checked against the state
     # stand-in board: a clock that advances `inc` us per read, `delay[n]` us more while the
     # n-th step reads the encoder (a slow step); every duty and enable recorded and checked
     def __init__(s):

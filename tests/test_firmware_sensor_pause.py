@@ -6,9 +6,9 @@ and the user's next ``arm`` was refused."""
 
 from __future__ import annotations
 
+import fwharness as H
 from firmware import fasttick as F
 from firmware import gains as G
-from firmware.hal_base import Hal as HalBase
 from firmware.sensors import Sensors
 
 
@@ -38,31 +38,13 @@ def test_the_counts_of_a_pause_are_followed_without_a_jump() -> None:
             assert s.jump, cls
 
 
-class _Hal(HalBase):
-    def __init__(self) -> None:
-        self.enc, self.duty, self.t = 0, 0, 0
-
-    def read_angle_raw(self) -> int:
-        return 2048
-
-    def read_encoder(self) -> int:
-        return self.enc
-
-    def set_motor(self, duty: int) -> None:
-        self.duty = duty
-
-    def ticks_us(self) -> int:
-        self.t = (self.t + 300) & 0x3FFFFFFF
-        return self.t
-
-
 def test_the_paced_loop_follows_the_encoder_across_a_pause() -> None:
     # the paced loop, disarmed: a host asks for heap statistics (sampled between ticks, a pause),
     # and the cart rolls 20 ticks' worth of counts meanwhile; no fault, the counts in the position
     from firmware.app import App
     from firmware.supervisor import F_ENC_JUMP
 
-    hal = _Hal()
+    hal = H.StandInHal(inc=300)
     app = App(hal, config={"watchdog_ms": 0, "stall_ms": 0})
     lim = app.sensors.encj
     n = [0]
