@@ -126,7 +126,8 @@ def test_gear_play_keeps_the_report_acceleration_limit_on_a_cart_with_play() -> 
     # the report's robot with 1.5 mm of play, a table for it: the 20 cm step in lockstep HIL
     from host.bench.robots import true_verdict
     from host.design.margin import candidates, fixed_design
-    from host.operate.commission_lockstep import LockstepRobot, drive_params
+    from host.operate.commission import drive_params
+    from host.operate.commission_lockstep import LockstepRobot
     from sim.scenario import load_scenario
 
     plant = P.replace(**{"motor.backlash": 0.0015})

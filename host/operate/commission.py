@@ -42,12 +42,12 @@ from typing import Any, Callable
 import numpy as np
 
 from firmware.supervisor import F_STALL
-from host.operate.board import BoardError
+from host.operate.board import BoardError, param_info
 from sim.motor import DUTY_MAX
 from sim.params import RobotParams, load_params
 
 __all__ = ["STAGES", "CommissionError", "Commission", "telemetry_metrics", "PHI_BOUND", "STATE_FILE", "weighed",
-           "COULOMB_COMP", "compensation_counts", "deadband_counts", "XDD_LOWPASS_HZ", "VERIFY_PLAY_MAX"]
+           "COULOMB_COMP", "compensation_counts", "deadband_counts", "drive_params", "XDD_LOWPASS_HZ", "VERIFY_PLAY_MAX"]
 
 STAGES = ("identity", "sensors", "calibrate", "cart", "design1", "balance", "identify", "design2", "verify", "save")
 STATE_FILE = "commission.json"
@@ -503,6 +503,17 @@ def compensation_counts(p: RobotParams, coulomb: float = COULOMB_COMP) -> int:
     fc = max(0.0, float(p.values.get("cart.coulomb", 0.0) or 0.0))
     extra = abs(float(duty_from_force(coulomb * fc, 0.0, p))) if fc > 0.0 else 0.0
     return int(min(round(CART_DB_MAX * DUTY_MAX), deadband_counts(p) + round(extra)))
+
+
+def drive_params(fw: RobotParams) -> dict[str, int]:
+    """The firmware parameters that go with a gain table designed for robot file ``fw`` (both
+    robots' ``upload`` sets them): ``gear_play``, its ``motor.backlash`` in encoder counts (0
+    without play, at most the parameter's maximum), which the estimator needs to follow the
+    wheel side of the gear."""
+    from sim.sensors import enc_counts_per_m
+
+    play = float(fw.values.get("motor.backlash", 0.0) or 0.0) * float(enc_counts_per_m(fw))
+    return {"gear_play": int(min(param_info("gear_play")["max"], max(0, round(play))))}
 
 
 def _more_deadband(p: RobotParams, db: float, amp_n: float) -> float:

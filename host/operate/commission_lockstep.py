@@ -23,7 +23,6 @@ from typing import Any
 
 import numpy as np
 
-from firmware import msgtable as T
 from firmware import supervisor
 from host.hil.lockstep import Lockstep
 from host.hil.accounting import Sink
@@ -31,10 +30,11 @@ from host.hil.session import HilSession
 from host.hil.virtual_robot import RobotPlant
 from host.link import messages as M
 from host.operate.board import BoardError
+from host.operate.commission import drive_params
 from sim import sensors as ssens
 from sim.params import RobotParams
 
-__all__ = ["LockstepRobot", "ExciteRun", "sensor_xphi", "drive_params"]
+__all__ = ["LockstepRobot", "ExciteRun", "sensor_xphi"]
 
 _EXCITE = M.BY_NAME["excite"]
 _DISARM = M.BY_NAME["disarm"]
@@ -48,15 +48,6 @@ def sensor_xphi(adc: np.ndarray, enc: np.ndarray, fw: RobotParams) -> tuple[np.n
     x = np.concatenate([[0.0], np.cumsum(d)]) / ssens.enc_counts_per_m(fw)
     phi = ssens.adc_to_phi(adc, fw)
     return np.round(x, 4), np.round(phi, 4)
-
-
-def drive_params(fw: RobotParams) -> dict[str, int]:
-    """The firmware parameters that go with a gain table designed for robot file ``fw``:
-    ``gear_play``, its ``motor.backlash`` in encoder counts (at most the parameter's maximum;
-    0 without play), which the firmware's estimator needs to follow the wheel side of the gear."""
-    hi = next(int(q[4]) for q in T.PARAMS if q[0] == T.P_GEAR_PLAY)
-    play = float(fw.values.get("motor.backlash", 0.0) or 0.0) * float(ssens.enc_counts_per_m(fw))
-    return {"gear_play": int(min(hi, max(0, round(play))))}
 
 
 @dataclass

@@ -31,6 +31,7 @@ import numpy as np
 
 from host.link import messages as M
 from host.operate.board import Board, BoardError, wait_state
+from host.operate.commission import drive_params
 from sim.params import RobotParams
 
 __all__ = ["PortRobot"]
@@ -166,9 +167,7 @@ class PortRobot:
 
     def upload(self, blob: bytes, fw_params: RobotParams, save: bool = True) -> None:
         """Upload the table (CRC read back) and the firmware parameters that go with it
-        (:func:`host.operate.commission_lockstep.drive_params`), and save them on the board."""
-        from host.operate.commission_lockstep import drive_params
-
+        (:func:`host.operate.commission.drive_params`), and save them on the board."""
         b = self._b()
         b.upload_gains(blob)
         for name, value in drive_params(fw_params).items():
