@@ -144,3 +144,36 @@ def test_gear_play_keeps_the_report_acceleration_limit_on_a_cart_with_play() -> 
             peak[label] = v["peak_xddot"]
     assert peak["without"] > P.a_max * 1.3  # the engagement's force: 8.5 m/s^2 when measured
     assert peak["with"] <= P.a_max
+
+
+@pytest.mark.slow
+@pytest.mark.rp2040
+def test_the_emulated_board_balances_a_cart_with_play_with_gear_play_on(tmp_path) -> None:
+    # the bundle's main.py on the emulated Pico (HalPico, the paced loop with the heap locked,
+    # the UART link), the plant with 1.5 mm of play on its pins: gear_play set over the link while
+    # disarmed and read back, the step run (play operator and gap model every tick: an allocation
+    # would raise MemoryError under the locked heap and stop the robot), requests answered while
+    # balancing, and the firmware's own clock saw no late tick
+    import dataclasses
+
+    from host.boards.rp2040.board import build_bundle
+    from host.hil.emulated import EmulatedHil
+    from host.link import messages as M
+    from host.operate.commission import drive_params
+    from sim.scenario import load_scenario
+
+    plant = P.replace(**{"motor.backlash": 0.0015})
+    counts = drive_params(plant)["gear_play"]
+    sc = dataclasses.replace(load_scenario("ref_step_20cm"), duration=3.0)
+    with EmulatedHil(build_bundle(tmp_path / "bundle")) as hil:
+        hil.request(M.BY_NAME["param_set"](index=T.P_GEAR_PLAY, value=counts))
+        assert int(hil.request(M.ParamGet(index=T.P_GEAR_PLAY)).value) == counts
+        run = hil.run(sc, plant)
+        late = int(hil.request(M.ParamGet(index=T.STATUS_BASE + T.S_LATE)).value)
+        after = int(hil.request(M.ParamGet(index=T.P_GEAR_PLAY)).value)  # the run's table kept it
+    assert counts == 10 and after == counts
+    assert (run.log["fw_state"][50:] == BALANCING).all()
+    assert not run.log["fw_faults"][50:].any()
+    assert run.stats["nacks"] == [] and run.stats["telemetry_lost"] == 0
+    assert late == 0 and run.stats["overruns"] == 0, (late, run.stats["overruns"])
+    assert run.stats["tick_us_max"] < 1.5 * run.stats["period_us"], run.stats["tick_us_max"]
