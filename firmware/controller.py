@@ -55,6 +55,10 @@ _BUDGET = const(0xFFFFF)
 # properties on the class: with one, MicroPython looks every attribute store up in the class first)
 LIM_GHB = const(4)
 LIM_GAP = const(5)
+# crossing the play: while the gap is open toward the force, the force is raised to what reaches
+# the flank, at most the clamp >> CROSS_SHIFT (a quarter: a stronger crossing hits the flank hard
+# enough to break the 5 m/s^2 limit, a weaker one leaves the limit cycle; docs/parameters.md)
+CROSS_SHIFT = const(2)
 
 
 def layout_offsets(layout):
@@ -556,11 +560,32 @@ class Controller:
             v = -l
         self.vh = v
         # gear play: the predictor is given the force the gear passes (ue), the part of u
-        # beyond the flank of the play model gap (u LSB x ticks, +-ghb)
+        # beyond the flank of the play model gap (u LSB x ticks, +-ghb).  While the motor side
+        # is off the flank u pushes toward, u is raised to what reaches that flank this tick,
+        # at most the clamp >> CROSS_SHIFT (an inverse of the play: it is crossed in a few ticks
+        # instead of at the slow speed a small force leaves the motor, and none of the raise
+        # reaches the cart, which the gear does not drive until the flank)
         ue = u
         l = lim[LIM_GHB]
         if l:
-            v = lim[LIM_GAP] + u
+            v = lim[LIM_GAP]
+            if u > 0:
+                w = l - v
+                h = self.uhi >> CROSS_SHIFT
+                if w > h:
+                    w = h
+                if u < w:
+                    u = w
+                    self.u = u
+            elif u < 0:
+                w = -l - v
+                h = -((-self.ulo) >> CROSS_SHIFT)
+                if w < h:
+                    w = h
+                if u > w:
+                    u = w
+                    self.u = u
+            v = v + u
             if v > l:
                 ue = v - l
                 v = l

@@ -21,6 +21,7 @@ _INTEG_SHIFT = const(6)
 _INTEG_HALF = const(32)
 LIM_GHB = const(4)
 LIM_GAP = const(5)
+CROSS_SHIFT = const(2)
 
 
 @micropython.native
@@ -129,7 +130,24 @@ def step_native(c, yx, yp, r):
     ue = u
     l = lim[LIM_GHB]
     if l:
-        v = lim[LIM_GAP] + u
+        v = lim[LIM_GAP]
+        if u > 0:
+            w = l - v
+            h = c.uhi >> CROSS_SHIFT
+            if w > h:
+                w = h
+            if u < w:
+                u = w
+                c.u = u
+        elif u < 0:
+            w = -l - v
+            h = -(-c.ulo >> CROSS_SHIFT)
+            if w < h:
+                w = h
+            if u > w:
+                u = w
+                c.u = u
+        v = v + u
         if v > l:
             ue = v - l
             v = l
@@ -302,7 +320,24 @@ def step_viper(c, yx: int, yp: int, r: int) -> int:
     ue = u
     l = (((lim[LIM_GHB] + sb) & msk) - sb)
     if l:
-        v = (((lim[LIM_GAP] + sb) & msk) - sb) + u
+        v = (((lim[LIM_GAP] + sb) & msk) - sb)
+        if u > 0:
+            w = l - v
+            h = int(c.uhi) >> CROSS_SHIFT
+            if w > h:
+                w = h
+            if u < w:
+                u = w
+                c.u = u
+        elif u < 0:
+            w = -l - v
+            h = -(-int(c.ulo) >> CROSS_SHIFT)
+            if w < h:
+                w = h
+            if u > w:
+                u = w
+                c.u = u
+        v = v + u
         if v > l:
             ue = v - l
             v = l

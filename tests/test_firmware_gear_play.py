@@ -19,7 +19,7 @@ import fwharness as H
 from firmware import gains as G
 from firmware import msgtable as T
 from firmware.app import App
-from firmware.controller import Controller
+from firmware.controller import CROSS_SHIFT, Controller
 from firmware.sensors import Sensors
 from firmware.store import MIGRATED, NAMES, ConfigStore, encode
 from firmware.supervisor import BALANCING
@@ -48,20 +48,57 @@ def _passed(gap: int, u: int, ghb: int) -> tuple[int, int]:
     return 0, v
 
 
+def _raised(gap: int, u: int, ghb: int, hi: int, lo: int) -> int:
+    # the crossing: toward a flank the motor side is off, u is raised to what reaches that flank,
+    # at most the clamp >> CROSS_SHIFT
+    if u > 0 and gap < ghb:
+        return max(u, min(ghb - gap, hi >> CROSS_SHIFT))
+    if u < 0 and gap > -ghb:
+        return min(u, max(-ghb - gap, -((-lo) >> CROSS_SHIFT)))
+    return u
+
+
 def test_the_predictor_gets_only_the_force_the_gear_passes() -> None:
     ghb = 3000
     c = _controller(ghb)
     d = c.d
     assert d > 0
-    kinds = {"free": 0, "flank": 0, "partial": 0}
+    kinds = {"free": 0, "flank": 0, "partial": 0, "raised": 0}
     for k in range(400):
         gap = c.lim[5]
-        # a reference that jumps back and forth: the force reverses again and again
-        u = c.step(0, 0, 20000 if (k // 40) % 2 else -20000)
+        # a reference that jumps back and forth, far and near: the force reverses again and
+        # again, strong and weak
+        u = c.step(0, 0, (20000, -20000, 300, -300)[(k // 40) % 4])
+        u0 = max(c.ulo, min(c.uhi, c.u_raw))  # the clamped command before the crossing
+        assert u == _raised(gap, u0, ghb, c.uhi, c.ulo) == c.u, k
         ue, g = _passed(gap, u, ghb)
         assert (c.b[d - 1], c.lim[5]) == (ue, g), k
         kinds["free" if ue == 0 and u != 0 else ("flank" if ue == u else "partial")] += 1
-    assert all(kinds.values()), kinds  # crossed the play, pushed a flank, reached it mid-tick
+        kinds["raised"] += u != u0
+    assert all(kinds.values()), kinds  # crossed the play, pushed a flank, reached it mid-tick, raised
+
+
+def test_a_small_force_crosses_the_play_at_a_quarter_of_the_clamp_and_lands_on_the_flank() -> None:
+    # the motor side at the far flank, a force well under the crossing's: without the raise the
+    # play takes 2 ghb / u ticks with no force on the cart; with it, ceil(2 ghb / (clamp >> 2))
+    ghb = 1000
+    c = _controller(ghb)
+    c.lim[5] = -ghb
+    h = c.uhi >> CROSS_SHIFT
+    assert 0 < h < ghb  # the crossing takes more than one tick
+    seen = []
+    for _ in range(12):
+        gap = c.lim[5]
+        u = c.step(0, 0, -40)  # a reference 40 LSB ahead: a small positive force
+        seen.append((gap, u, c.lim[5], c.b[c.d - 1]))
+        if c.lim[5] == ghb and c.b[c.d - 1] != 0:
+            break
+    raised = [s for s in seen if s[2] < ghb or (s[0] < ghb and s[3] == 0)]
+    assert all(0 < s[1] <= h for s in raised), seen  # never above a quarter of the clamp
+    assert all(s[3] == 0 for s in raised), seen  # none of it reached the cart
+    land = next(i for i, s in enumerate(seen) if s[2] == ghb)
+    assert land + 1 == -(-2 * ghb // h), seen  # crossed at the raise, landed on the flank exactly
+    assert seen[land][3] == 0 and seen[-1][3] > 0 and seen[-1][1] < h, seen  # then the force passes
 
 
 def test_without_play_every_force_passes() -> None:
