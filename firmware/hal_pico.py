@@ -46,6 +46,9 @@ _WD_ENABLE = const(0x40000000)
 _MARK = const(0x2AFE0000)  # marker | cause (a small int)
 # PWM INTR (raw wrap flags, write 1 to clear): a new compare is in force after the next wrap
 _PWM_INTR = const(0x400500A4)
+_UART_BASE = (0x40034000, 0x40038000)  # UART0, UART1
+_UARTIFLS = const(0x34)  # interrupt FIFO level select
+_RX_HALF = const(2)  # RXIFLSEL: receive FIFO >= 1/2 full (16 of 32 bytes)
 _WRAP_SPINS = const(400)  # bound of the wait for a wrap (one PWM period is a few spins)
 # the per-tick I/O on the RP2040's registers (viper, installed by __init__ on the rp2 port
 # only: the methods of the same names below are the portable reference).  One call each
@@ -600,8 +603,17 @@ class HalPico(Hal):
         # bytes = 10 ms of line at 1 Mbaud); transmit buffer: a tick's telemetry,
         # heartbeat and replies go out without write() waiting for the line
         b = self.b
-        return machine.UART(b.UART_ID, b.UART_BAUD, tx=machine.Pin(b.UART_TX_PIN), rx=machine.Pin(b.UART_RX_PIN),
-                            rxbuf=b.UART_RXBUF, txbuf=b.UART_TXBUF)
+        u = machine.UART(b.UART_ID, b.UART_BAUD, tx=machine.Pin(b.UART_TX_PIN), rx=machine.Pin(b.UART_RX_PIN),
+                         rxbuf=b.UART_RXBUF, txbuf=b.UART_TXBUF)
+        # the receive interrupt at half the 32-byte FIFO, not MicroPython's 1/8: at 1 Mbaud a
+        # burst of commands otherwise interrupts the loop every 4 bytes (40 us), each interrupt
+        # ~35 us of handler from flash on a predicted Pico -- the loop got one eighth of the CPU
+        # for the burst's length and a tick went late.  16 bytes (160 us) still leave the
+        # handler 160 us before the FIFO could overflow; the receive timeout interrupt takes the
+        # tail of a frame as before.  UARTIFLS (RP2040 datasheet 4.2.8): RXIFLSEL bits 5:3
+        ifls = _UART_BASE[b.UART_ID] + _UARTIFLS
+        machine.mem32[ifls] = (machine.mem32[ifls] & ~0x38) | (_RX_HALF << 3)
+        return u
 
     def can(self):
         # the MCP2515 CAN controller of the board config (start-up only): SPI mode 0, CS idle
