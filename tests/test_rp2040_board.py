@@ -108,6 +108,17 @@ def test_firmware_main_streams_on_uart_at_1_mbaud(bundle: Path) -> None:
         assert len(data) >= 50
 
 
+def test_the_host_uart_interrupts_at_half_its_receive_fifo(board: EmulatedBoard) -> None:
+    # MicroPython's default (RXIFLSEL 0: 4 bytes) interrupted the loop every 40 us of a burst at
+    # 1 Mbaud; HalPico.uart sets 1/2 (16 bytes) and leaves the transmit level as it was
+    board.exec("import machine\nu = machine.UART(0, 1000000)")  # MicroPython's own setting
+    default = int(board.exec("print(machine.mem32[0x40034034])"))
+    board.exec("u = hal.uart()")
+    ifls = int(board.exec("print(machine.mem32[0x40034034])"))
+    assert (default >> 3) & 7 == 0 and (ifls >> 3) & 7 == 2 and ifls & 7 == default & 7, (default, ifls)
+    assert board.exec("print(u.any())").strip() == "0"
+
+
 def test_code_that_never_finishes_gives_board_error_in_bounded_time(bundle: Path) -> None:
     with EmulatedBoard(bundle, main=False) as b:
         t0 = time.monotonic()
