@@ -10,6 +10,7 @@ call began, in a bounded number of FIFO reads.  The stand-in state machine advan
 
 from __future__ import annotations
 
+import collections
 import importlib
 import sys
 import types
@@ -88,6 +89,7 @@ def hal_pico(monkeypatch):
     machine.Pin = type("Pin", (_Obj,), {"IN": 0, "OUT": 1, "PULL_UP": 1})
     machine.ADC = machine.PWM = _Obj
     machine.UART = FakeUART
+    machine.mem32 = collections.defaultdict(int)  # the registers HalPico writes (address -> word)
     rp2 = types.ModuleType("rp2")
     rp2.PIO = type("PIO", (), {"SHIFT_LEFT": 0, "SHIFT_RIGHT": 1})
     rp2.asm_pio = lambda **kw: (lambda f: f)  # the program body runs only on the board
@@ -144,3 +146,6 @@ def test_host_uart_has_large_buffers(hal_pico) -> None:
     (u,) = FakeUART.made
     assert u.args == (board.UART_ID, board.UART_BAUD)
     assert u.kw["rxbuf"] >= 1024 and u.kw["txbuf"] >= 256
+    # the receive interrupt at half the FIFO (UART0 UARTIFLS.RXIFLSEL = 2); on the board:
+    # tests/test_rp2040_board.py::test_the_host_uart_interrupts_at_half_its_receive_fifo
+    assert (sys.modules["machine"].mem32[0x40034034] >> 3) & 7 == 2
