@@ -83,10 +83,9 @@ def command_crc(em):
 
 def pacer(app, disp):
     # the link's periodic sender (firmware/pacer.py) of the app's emitter
-    from .pacer import Pacer
+    # (App.params: its int32 parameter array, read directly by the pacer's tick)
     if app.emitter == "viper":
         from .fasttick import PacerV
-        p = PacerV(app, disp)
-        if p._p is not None:
-            return p
-    return Pacer(app, disp)
+        return PacerV(app, disp, app.params)
+    from .pacer import Pacer
+    return Pacer(app, disp, app.params)

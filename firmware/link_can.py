@@ -113,7 +113,7 @@ class CanLink:
         table = crc16.make_table()
         self.disp = commands.Dispatcher(app, layout, self, table)
         self.disp.dec = self
-        self.pacer = Pacer(app, self.disp)
+        self.pacer = Pacer(app, self.disp, app.params)
         self._motor = app.hal.set_motor
         # payloads packed in viper on the board (fastcan.py), else codec.Layout.pack
         self._pk = None

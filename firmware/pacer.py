@@ -9,8 +9,11 @@
 # (when telem_div > 1): no tick carries both, which bounds the longest tick on a board.
 # Allocation-free.
 #
-#   pacer = Pacer(app, disp)   app: param_get(index), period_us (and, read directly when it
-#                              has one, its params array); disp: commands.Dispatcher
+#   pacer = Pacer(app, disp, params)
+#                              app: param_get(index), period_us; disp: commands.Dispatcher;
+#                              params (optional): the app's int32 parameter array (T.N_PARAMS
+#                              entries, App.params), indexed in tick() without a call; None
+#                              (a stand-in app with no array): tick() calls app.param_get
 #   pacer.tick()               after every control step
 #   pacer.telemetry / .heartbeat  the senders (seq) -> disp.send_telemetry/send_heartbeat;
 #                              a link may put faster ones of the same bytes there
@@ -30,7 +33,7 @@ _HB_DUE_US = const(10000000)
 
 
 class Pacer:
-    def __init__(self, app, disp):
+    def __init__(self, app, disp, params=None):
         self.app = app
         self.disp = disp
         self.seq = 0
@@ -39,8 +42,7 @@ class Pacer:
         self.telemetry = disp.send_telemetry
         self.heartbeat = disp.send_heartbeat
         # the app's parameter array, indexed in tick() (no method call per tick); None: param_get
-        p = getattr(app, "params", None)
-        self._p = p if p is not None and len(p) == T.N_PARAMS else None
+        self._p = params
 
     def tick(self):
         # every control tick; the same as elapse(app.period_us) after the telemetry, in one

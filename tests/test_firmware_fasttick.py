@@ -213,7 +213,7 @@ for div, hb, per in ((10, 100, 2000), (1, 100, 2000), (0, 100, 1000), (7, 0, 200
     ap.params[MT.P_HEARTBEAT_MS] = hb
     ap.period_us = per
     ra, rb = Rec(), Rec()
-    a, b = Pacer(ap, ra), F.PacerV(ap, rb)
+    a, b = Pacer(ap, ra, ap.params), F.PacerV(ap, rb, ap.params)
     for i in range(700 // DIV):
         a.tick()
         b.tick()
