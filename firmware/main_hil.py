@@ -167,8 +167,9 @@ class HilMain:
         # the link watchdog is fed by sensor frames (the HAL's n_sensor), HOST_HEARTBEAT
         # and SET_REFERENCE (commands.py), not by every frame
         # a queued SAVE_CONFIG runs between frames in lockstep (app.run does it in real
-        # time); locked: main() holds the heap lock around run()
-        self._save = getattr(self.app, "service_save", None)
+        # time); locked: main() holds the heap lock around run().  Every app has it
+        # (App's part appstore.ConfigSave; without a store nothing is ever queued)
+        self._save = self.app.service_save
         self.locked = False
 
     def _ticks_ms(self):
@@ -226,7 +227,7 @@ class HilMain:
                 continue
             if self._drain(True) == 0 and self._hung_up():
                 return 0
-            if self._save is not None and self.app.save_seq >= 0:
+            if self.app.save_seq >= 0:
                 self._save(self.locked)
         return 0
 
