@@ -3,9 +3,9 @@ measurement sequences under MicroPython (unix or WebAssembly port) or CPython.
 
 Sequences are passed to the interpreter once and every tick runs inside one interpreter
 process, so a test of thousands of ticks costs one start-up.  The production pieces it
-builds on (the firmware's inputs from SI measurements, the scripted HAL ``FAKE_HAL``,
-``INTS_SRC``) are :mod:`host.boards.fwharness`'s, re-exported here: tests import this module
-(``import fwharness as H``).
+builds on (the firmware's inputs from SI measurements, the scripted HAL ``FAKE_HAL`` and
+its CPython class ``StandInHal``, ``INTS_SRC``) are :mod:`host.boards.fwharness`'s,
+re-exported here: tests import this module (``import fwharness as H``).
 """
 
 from __future__ import annotations
@@ -16,7 +16,8 @@ from typing import Callable, Sequence
 import numpy as np
 
 from host.boards.fwharness import (  # noqa: F401 - re-exported for the tests
-    FAKE_HAL, INTS_SRC, Sequence3, _ints, app_process, controller_inputs, layout_of, measurements, ref_lsb,
+    FAKE_HAL, INTS_SRC, Sequence3, StandInHal, _ints, app_process, controller_inputs, layout_of, measurements,
+    ref_lsb,
 )
 from host.boards.mpyrun import run_unix, run_wasm
 from host.design.export import FixedDesign, export
@@ -31,9 +32,6 @@ REPORT_SCENARIOS: dict[str, dict] = {
     "ref_square": dict(x0=[0, 0, 0, 0], duration=5.0, x_ref=lambda t: 0.2 if int(t / 2.2) % 2 else 0.0),
     "push_0.2N": dict(x0=[0, 0, 0, 0], duration=5.0, disturbance=lambda t: 0.2 if t < 4.0 else 0.0),
 }
-
-_NS: dict = {}
-exec(compile(FAKE_HAL, "<FAKE_HAL>", "exec"), _NS)
 
 
 # print-and-parse: a MicroPython script records named integer observations with chk() and
@@ -82,19 +80,6 @@ def run(name, fn):
 def parse_ints(out: str) -> dict[str, int]:
     """The ``name value`` lines of an interpreter's output as a dict (blank lines skipped)."""
     return {k: int(v) for k, v in (line.split() for line in out.splitlines() if line.strip())}
-
-
-class StandInHal(_NS["Hal"]):  # type: ignore[misc,valid-type]
-    """:data:`FAKE_HAL`'s ``Hal`` under CPython: the one stand-in HAL of the tests (the
-    MicroPython scripts paste the same source).  ``values`` set its attributes (``adc``,
-    ``enc``, ``duty``, ``t``, ``inc``: the microseconds each ``ticks_us`` call advances)."""
-
-    def __init__(self, **values: int) -> None:
-        super().__init__()
-        for k, v in values.items():
-            if not hasattr(self, k):
-                raise TypeError(f"StandInHal has no attribute {k!r}")
-            setattr(self, k, v)
 
 
 def _flat_src(fd: FixedDesign) -> str:

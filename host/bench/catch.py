@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from firmware.hal_base import Hal as HalBase
+from host.boards.fwharness import StandInHal
 from host.design.catch import drive_bound, physical_bound
 from host.design.export import FixedDesign, export
 from sim.params import RobotParams, load_params
@@ -62,27 +62,6 @@ class _Gains:
         self.CRC = fd.crc()
 
 
-class _Hal(HalBase):
-    def __init__(self) -> None:
-        self.adc = 2048
-        self.enc = 0
-        self.duty = 0
-        self.t = 0
-
-    def read_angle_raw(self) -> int:
-        return self.adc
-
-    def read_encoder(self) -> int:
-        return self.enc
-
-    def set_motor(self, d: int) -> None:
-        self.duty = d
-
-    def ticks_us(self) -> int:
-        self.t = (self.t + 250) & 0x3FFFFFFF
-        return self.t
-
-
 def run_tilt(phi0: float, *, fd: FixedDesign | None = None, params: RobotParams | None = None,
              plant: RobotParams | None = None, duration: float = DURATION) -> TiltRun:
     """The firmware (CPython) balancing the nonlinear plant from ``phi0`` rad at rest.
@@ -104,7 +83,7 @@ def run_tilt(phi0: float, *, fd: FixedDesign | None = None, params: RobotParams 
     fd = export(p) if fd is None else fd
     sc = Scenario(name="catch", duration=duration, x0=(0.0, 0.0, float(phi0), 0.0))
     sim = PlantSim(plant if plant is not None else p, sc)
-    hal = _Hal()
+    hal = StandInHal()  # adc/enc set from the plant, duty read back, 250 us per ticks_us call
     app = App(hal, gains=_Gains(fd), config={"arm_tilt_mrad": 500, "watchdog_ms": 10000, "epoch": 0})
     c = app.ctrl
     su = fd.lsb["u"]

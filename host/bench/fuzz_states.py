@@ -60,6 +60,9 @@ class SafetyViolation(AssertionError):
 class FuzzHal(HalBase):
     """Stand-in board: sensors set by the machine, every motor/enable write checked at once."""
 
+    # not host.boards.fwharness.StandInHal: this one checks every duty/enable write against the
+    # supervisor's state as it happens, and offers the supply, e-stop and open-wiper inputs
+
     def __init__(self) -> None:
         self.adc = 2048
         self.enc = 0

@@ -26,8 +26,8 @@ from sim.params import RobotParams
 if TYPE_CHECKING:
     import subprocess
 
-__all__ = ["Sequence3", "measurements", "controller_inputs", "FAKE_HAL", "INTS_SRC", "layout_of", "ref_lsb",
-           "app_process"]
+__all__ = ["Sequence3", "measurements", "controller_inputs", "FAKE_HAL", "StandInHal", "INTS_SRC", "layout_of",
+           "ref_lsb", "app_process"]
 
 # a scripted HAL for MicroPython/CPython runs of the app: the test sets adc/enc and
 # reads duty; ticks advance by `inc` us per call (two calls per step)
@@ -52,6 +52,33 @@ class Hal(_HalBase):
         s.t = (s.t + s.inc) & 0x3FFFFFFF
         return s.t
 """
+
+_NS: dict = {}
+exec(compile(FAKE_HAL, "<FAKE_HAL>", "exec"), _NS)
+
+
+class StandInHal(_NS["Hal"]):  # type: ignore[misc,valid-type]
+    """:data:`FAKE_HAL`'s ``Hal`` under CPython: the one stand-in HAL (the MicroPython scripts
+    paste the same source; the firmware tests, ``host/bench/catch.py``).
+
+    Parameters
+    ----------
+    **values : int
+        Start values of its attributes: ``adc``, ``enc``, ``duty``, ``t``, ``inc`` (the
+        microseconds each ``ticks_us`` call advances), ``n_set``.
+
+    Raises
+    ------
+    TypeError
+        A name that is not one of its attributes.
+    """
+
+    def __init__(self, **values: int) -> None:
+        super().__init__()
+        for k, v in values.items():
+            if not hasattr(self, k):
+                raise TypeError(f"StandInHal has no attribute {k!r}")
+            setattr(self, k, v)
 
 
 def layout_of(fd: FixedDesign) -> list[tuple[str, int]]:
