@@ -8,6 +8,16 @@
 * ``long`` (minutes; left out of ``make test``) is ``slow`` too, so ``-m "not slow"`` (which
   replaces the default ``-m 'not long'``) leaves it out as well.
 
+One test body on every interpreter it applies to: a test that takes the ``interp`` fixture runs
+once per interpreter -- ``cpython`` (in-process), ``unix`` (the 64-bit unix port), ``wasm`` (the
+32-bit WebAssembly port, marked ``wasm``), ``rp2040`` (the emulated Pico's raw REPL, marked
+``rp2040``, so skipped when missing and ``slow``) -- or over the ones its ``interps`` marker names
+(``@pytest.mark.interps("cpython", "unix")``).  ``interp`` is a ``fwharness.Interp``:
+``interp.run(code, timeout)`` runs a firmware snippet there and returns what it printed,
+``interp.name`` says where, ``interp.alloc_run`` is that port's allocation probe.  The emulated
+board behind ``rp2040`` boots once for the session (``emulated_repl``: seconds of wall time) and
+each run starts from cleared globals.
+
 The test helpers live in modules of this folder, imported by name (the folder is on the path):
 ``fwharness`` (the firmware run in an interpreter: the stand-in HAL ``StandInHal``/``FAKE_HAL``,
 print-and-parse ``CHK_SRC``/``parse_ints``, allocation probes), ``proto_helpers`` (the protocol's
@@ -20,8 +30,17 @@ from __future__ import annotations
 
 import functools
 import shutil
+from typing import TYPE_CHECKING, Iterator
 
 import pytest
+
+import fwharness as H
+
+if TYPE_CHECKING:
+    from host.boards.rp2040.board import EmulatedBoard
+
+# the marker each interpreter's runs carry (their requirements: pytest_collection_modifyitems)
+_INTERP_MARKS = {"wasm": pytest.mark.wasm, "rp2040": pytest.mark.rp2040}
 
 
 @functools.lru_cache(maxsize=None)
@@ -61,3 +80,36 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             why = wasm_missing()
             if why:
                 item.add_marker(pytest.mark.skip(reason=why))
+
+
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
+    # a test taking `interp` runs once per interpreter (its `interps` marker's, else all), each
+    # run carrying its interpreter's marker
+    if "interp" not in metafunc.fixturenames:
+        return
+    m = metafunc.definition.get_closest_marker("interps")
+    names = m.args if m is not None else H.INTERPRETERS
+    bad = [n for n in names if n not in H.INTERPRETERS]
+    if bad:
+        raise pytest.UsageError(f"{metafunc.definition.nodeid}: unknown interpreters {bad}")
+    metafunc.parametrize("interp", [pytest.param(n, id=n, marks=_INTERP_MARKS.get(n, ())) for n in names],
+                         indirect=True)
+
+
+@pytest.fixture(scope="session")
+def emulated_repl(tmp_path_factory: pytest.TempPathFactory) -> Iterator["EmulatedBoard"]:
+    """The emulated Pico booted to its REPL with the ``make firmware`` bundle importable, once
+    for the session (the board's own ``main.py`` empty)."""
+    from host.boards.rp2040.board import EmulatedBoard, build_bundle
+
+    bundle = build_bundle(tmp_path_factory.mktemp("bundle"))
+    with EmulatedBoard(bundle, main=False) as b:
+        yield b
+
+
+@pytest.fixture
+def interp(request: pytest.FixtureRequest) -> H.Interp:
+    """The interpreter of this run (``request.param``, from :func:`pytest_generate_tests`)."""
+    name = request.param
+    board = request.getfixturevalue("emulated_repl") if name == "rp2040" else None
+    return H.Interp(name, board)

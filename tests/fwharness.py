@@ -10,8 +10,10 @@ re-exported here: tests import this module (``import fwharness as H``).
 
 from __future__ import annotations
 
+import contextlib
+import io
 import math
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
@@ -22,6 +24,9 @@ from host.boards.fwharness import (  # noqa: F401 - re-exported for the tests
 from host.boards.mpyrun import run_unix, run_wasm
 from host.design.export import FixedDesign, export
 from sim.params import RobotParams
+
+if TYPE_CHECKING:
+    from host.boards.rp2040.board import EmulatedBoard
 
 #: the report's four closed-loop cases as :func:`measurements` keywords: the 0.1 rad tilt (report
 #: section 3), the 0.2 m reference step (section 3.3), the square wave 0 <-> 0.2 m every 2.2 s (Fig. 3.11)
@@ -75,6 +80,101 @@ def run(name, fn):
     micropython.heap_unlock()
     print(name, ok)
 """
+
+
+#: the interpreters a firmware snippet runs on, in conftest's ``interp`` fixture order
+INTERPRETERS = ("cpython", "unix", "wasm", "rp2040")
+
+# the raw REPL keeps a script's globals for the next one: each run on the emulated board starts
+# from the imports only (an earlier run's sequences are not the next one's heap to carry)
+REPL_CLEAR = ("for _k in [k for k in globals() if not k.startswith('__')]:\n    del globals()[_k]\n"
+              "import gc\ngc.collect()\n")
+
+
+def run_cpython(code: str, timeout: float = 0.0) -> str:
+    """Run a firmware snippet in this CPython process (fresh globals); return what it printed.
+
+    Parameters
+    ----------
+    code : str
+        Python source; it can ``from firmware import ...``.
+    timeout : float
+        Unused (the snippet runs in-process, to its end): the other runners' signature.
+
+    Returns
+    -------
+    str
+        Its standard output.
+    """
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        exec(compile(code, "<firmware snippet>", "exec"), {})
+    return buf.getvalue()
+
+
+class Interp:
+    """One interpreter a test body runs a firmware snippet on (conftest's ``interp`` fixture).
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`INTERPRETERS`: ``cpython`` (in-process), ``unix`` (the 64-bit unix port),
+        ``wasm`` (the 32-bit WebAssembly port under node), ``rp2040`` (the emulated Pico's raw
+        REPL, the ``make firmware`` bundle importable).
+    board : EmulatedBoard, optional
+        The booted board (``rp2040`` only), shared by every run: its globals are cleared before
+        each (:data:`REPL_CLEAR`).
+
+    Attributes
+    ----------
+    alloc_run : str or None
+        The allocation probe's ``run(name, fn)`` source on this interpreter: :data:`UNIX_LOCK_RUN`
+        (``name 1`` when ``fn`` allocated) on the unix port, :data:`WASM_ALLOC_RUN` (``name bytes``)
+        on the WebAssembly port; ``None`` where there is none here.
+    """
+
+    def __init__(self, name: str, board: "EmulatedBoard | None" = None) -> None:
+        if name not in INTERPRETERS:
+            raise ValueError(f"unknown interpreter {name!r}: one of {INTERPRETERS}")
+        if (name == "rp2040") != (board is not None):
+            raise ValueError("a board is given for rp2040 and only for it")
+        self.name = name
+        self.board = board
+        self.alloc_run = {"unix": UNIX_LOCK_RUN, "wasm": WASM_ALLOC_RUN}.get(name)
+
+    def __repr__(self) -> str:
+        return f"Interp({self.name!r})"
+
+    def run(self, code: str, timeout: float = 120.0) -> str:
+        """Run ``code`` on this interpreter and return what it printed.
+
+        Parameters
+        ----------
+        code : str
+            MicroPython-compatible source; it can ``from firmware import ...``.
+        timeout : float
+            Seconds it may take: wall seconds on the unix and WebAssembly ports, emulated seconds
+            on the board; unused under CPython (in-process).
+
+        Returns
+        -------
+        str
+            Its standard output.
+
+        Raises
+        ------
+        host.boards.mpyrun.MicroPythonError
+            The code raised under a MicroPython port (the board: ``BoardExecError``).
+        """
+        if self.name == "cpython":
+            return run_cpython(code)
+        if self.name == "unix":
+            return run_unix(code, timeout=timeout)
+        if self.name == "wasm":
+            return run_wasm(code, timeout=timeout)
+        assert self.board is not None
+        self.board.exec(REPL_CLEAR, timeout=30)
+        return self.board.exec(code, timeout=timeout)
 
 
 def parse_ints(out: str) -> dict[str, int]:

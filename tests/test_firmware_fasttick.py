@@ -5,17 +5,20 @@ SupplyV.update against Sensors/Supervisor/Motor/Timing/Pacer and App._supply on 
 pseudo-random and extreme inputs (rails, encoder wraps, every supervisor state,
 watchdog/stall/tilt/track limits, supply scaling and undervoltage, tick-clock wraps, telemetry
 dividers and heartbeats): every result and every attribute after every call.  Under the
-MicroPython unix port (real viper code) and under CPython (the decorator a no-op).  A whole
-App with the viper emitter builds these classes and steps allocation-free.
+MicroPython unix port (real viper code), on the emulated RP2040 (the armv6m build, a tenth of
+the iterations) and under CPython (the decorator a no-op): one test body, conftest's ``interp``.
+A whole App with the viper emitter builds these classes and steps allocation-free.
 """
 
 from __future__ import annotations
+
+import pytest
 
 import fwharness as H
 from host.boards.mpyrun import run_unix
 
 SCRIPT = r"""
-DIV = 1  # iterations / DIV (the emulated board: tests/test_rp2040_fast_equal.py)
+DIV = 1  # iterations / DIV (the emulated board: METHODS_DIV)
 from firmware import gains as G
 from firmware.controller import Controller
 from firmware.sensors import Sensors
@@ -294,13 +297,15 @@ def _check(out: str, div: int = 1) -> None:
     assert int(lines["bad"].split()[0]) == 0, out
 
 
-def test_viper_methods_equal_the_plain_ones_on_the_unix_port() -> None:
-    _check(run_unix(SCRIPT, timeout=240))
+# the script's iterations divided on the emulated board (it runs at ~0.15x real time)
+METHODS_DIV = {"rp2040": 10}
 
 
-def test_cpython_fallback_equals_the_plain_ones(capsys) -> None:
-    exec(compile(SCRIPT, "fasttick_script", "exec"), {})
-    _check(capsys.readouterr().out)
+@pytest.mark.interps("cpython", "unix", "rp2040")
+def test_viper_methods_equal_the_plain_ones(interp: H.Interp) -> None:
+    # the viper build on the unix port and the board's armv6m .mpy, the CPython fallback
+    div = METHODS_DIV.get(interp.name, 1)
+    _check(interp.run(SCRIPT.replace("DIV = 1 ", f"DIV = {div} ", 1), timeout=240), div)
 
 
 def test_app_with_viper_builds_them_and_steps_allocation_free() -> None:
@@ -489,10 +494,6 @@ def _check_app(out: str) -> None:
     assert int(lines["app_bad"]) == 0, out
 
 
-def test_viper_step_equals_app_step_on_the_unix_port() -> None:
-    _check_app(run_unix(APP_EQ, timeout=240))
-
-
-def test_viper_step_equals_app_step_under_cpython(capsys) -> None:
-    exec(compile(APP_EQ, "fasttick_app", "exec"), {})
-    _check_app(capsys.readouterr().out)
+@pytest.mark.interps("cpython", "unix")  # the emulated board's fewer ticks: test_rp2040_fast_equal.py
+def test_viper_step_equals_app_step(interp: H.Interp) -> None:
+    _check_app(interp.run(APP_EQ, timeout=240))

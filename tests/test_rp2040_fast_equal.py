@@ -6,44 +6,30 @@ test_firmware_fasttick.py); a 64-bit port's words never overflow the way a 32-bi
 small ints could.  Here the same scripts run on the emulated Pico from the bundle
 ``make firmware`` builds (viper compiled for armv6m), fewer iterations (the emulator runs at
 ~0.15x real time): the controller step of the three emitters on a closed-loop sequence and
-its extremes, every per-tick method of the viper classes against the plain one, and whole
-Apps tick by tick (App.step against StepV.step).  One booted board for the module.
+its extremes, and whole Apps tick by tick (App.step against StepV.step).  Every per-tick method
+of the viper classes against the plain one runs on the board in test_firmware_fasttick.py (its
+``rp2040`` run).  The session's booted board (conftest's ``emulated_repl``).
 """
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import pytest
 
 import fwharness as H
 import test_firmware_fastpath as FP
 import test_firmware_fasttick as FT
-from host.boards.rp2040.board import EmulatedBoard, build_bundle
+from host.boards.rp2040.board import EmulatedBoard
 
 pytestmark = [pytest.mark.slow, pytest.mark.rp2040]
 
-METHODS_DIV = 10  # per-tick methods: a tenth of the unix port's iterations
 APP_DIV = 4  # whole apps: 1500 ticks per HAL kind
 
 
-# the raw REPL keeps a script's globals for the next one: each test starts from the imports only
-# (an earlier test's sequences and the first App pair are not the next test's heap to carry)
-_CLEAR = ("for _k in [k for k in globals() if not k.startswith('__')]:\n    del globals()[_k]\n"
-          "import gc\ngc.collect()\n")
-
-
-@pytest.fixture(scope="module")
-def _booted(tmp_path_factory: pytest.TempPathFactory):
-    bundle: Path = build_bundle(tmp_path_factory.mktemp("bundle"))
-    with EmulatedBoard(bundle, main=False) as b:
-        yield b
-
-
 @pytest.fixture
-def board(_booted: EmulatedBoard) -> EmulatedBoard:
-    _booted.exec(_CLEAR, timeout=30)
-    return _booted
+def board(emulated_repl: EmulatedBoard) -> EmulatedBoard:
+    # each test starts from the imports only (fwharness.REPL_CLEAR)
+    emulated_repl.exec(H.REPL_CLEAR, timeout=30)
+    return emulated_repl
 
 
 def test_controller_step_of_every_emitter_equal_on_the_board(board: EmulatedBoard) -> None:
@@ -64,11 +50,6 @@ def _seq() -> tuple[list[int], list[int], list[int]]:
     rl = FP.FD.tables["RLIM"][0]
     ext = [(ylx, ylp, rl), (-ylx, -ylp, -rl), (ylx, -ylp, rl), (-ylx, ylp, -rl)] * 150
     return s.yx + [e[0] for e in ext], s.yp + [e[1] for e in ext], s.r + [e[2] for e in ext]
-
-
-def test_viper_methods_equal_the_plain_ones_on_the_board(board: EmulatedBoard) -> None:
-    code = FT.SCRIPT.replace("DIV = 1 ", f"DIV = {METHODS_DIV} ", 1)
-    FT._check(board.exec(code, timeout=120), METHODS_DIV)
 
 
 def test_viper_step_equals_app_step_on_the_board(board: EmulatedBoard) -> None:
