@@ -92,7 +92,7 @@ REPL_CLEAR = ("for _k in [k for k in globals() if not k.startswith('__')]:\n    
 
 
 def run_cpython(code: str, timeout: float = 0.0) -> str:
-    """Run a firmware snippet in this CPython process (fresh globals); return what it printed.
+    """Run a firmware snippet in this CPython process (fresh globals, run as a script); return what it printed.
 
     Parameters
     ----------
@@ -108,7 +108,7 @@ def run_cpython(code: str, timeout: float = 0.0) -> str:
     """
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
-        exec(compile(code, "<firmware snippet>", "exec"), {})
+        exec(compile(code, "<firmware snippet>", "exec"), {"__name__": "__main__"})
     return buf.getvalue()
 
 

@@ -129,13 +129,7 @@ def _check(vals: list[int]) -> None:
 
 
 def test_app_excitation_cpython() -> None:
-    import contextlib
-    import io
-
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        exec(compile(APP_SCRIPT, "<app>", "exec"), {"__name__": "__main__"})
-    _check([int(v) for v in buf.getvalue().split()])
+    _check([int(v) for v in H.run_cpython(APP_SCRIPT).split()])
 
 
 def test_app_excitation_micropython_heap_locked() -> None:

@@ -23,13 +23,12 @@ and bits), and docs/firmware.md documents every flag.
 
 from __future__ import annotations
 
-import contextlib
-import io
 import re
 from pathlib import Path
 
 import pytest
 
+import fwharness as H
 from firmware import msgtable as T
 from firmware import supervisor as S
 from host.boards.mpyrun import run_unix
@@ -475,17 +474,10 @@ def _parse(out: str) -> dict[str, int]:
     return obs
 
 
-def _run_cpython(code: str) -> str:
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        exec(compile(code, "<safety-scenarios>", "exec"), {"__name__": "__safety__"})
-    return buf.getvalue()
-
-
 @pytest.fixture(scope="module", params=["cpython", "unix"])
 def obs(request) -> dict[str, int]:
     code = COMMON + SCENARIOS
-    out = _run_cpython(code) if request.param == "cpython" else run_unix(code, timeout=300)
+    out = H.run_cpython(code) if request.param == "cpython" else run_unix(code, timeout=300)
     return _parse(out)
 
 
