@@ -12,7 +12,7 @@ except ImportError:
 
 from . import fixmath
 from . import msgtable as T
-from .controller import LIM_GHB
+from .controller import LIM_GHB, LIM_HPX
 from .supervisor import ARMED, BALANCING
 
 # the parameters with a derived integer (Params._apply_param)
@@ -112,10 +112,15 @@ class Params:
             if self._hal_motor is not None:  # (None until __init__ binds the motor output)
                 self._set_motor = self._hal_motor if self._msign > 0 else self._motor_neg
         elif i == T.P_GEAR_PLAY:
-            # the play operator's half-width (encoder counts) and the predictor's gap model
+            # the predictor's gap model and half the play in x LSB (the controller's wheel side)
             g = p[i]
-            self.sensors.play = g >> 1
-            self.ctrl.lim[LIM_GHB] = self._gap_ticks((g << self.table[self.off["FMT"]]) >> 1)
+            h = (g << self.table[self.off["FMT"]]) >> 1
+            ghb = self._gap_ticks(h)
+            self.ctrl.lim[LIM_GHB] = ghb
+            self.ctrl.lim[LIM_HPX] = h
+            # the controller finds the wheel side from the gap model; the sensors' play operator
+            # only where there is no gap model (a drive without its back-EMF constants)
+            self.sensors.play = 0 if ghb else g >> 1
 
     def param_get(self, index):
         # the value, or 0 for an index out of range (the dispatcher checks first)

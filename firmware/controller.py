@@ -55,6 +55,10 @@ _BUDGET = const(0xFFFFF)
 # properties on the class: with one, MicroPython looks every attribute store up in the class first)
 LIM_GHB = const(4)
 LIM_GAP = const(5)
+# ... and the half play in x LSB, then the gap model's last d values (oldest first): the wheel
+# side the x measurement stands for is found from the gap at the measurement's time
+LIM_HPX = const(6)
+LIM_GH = const(7)
 # crossing the play: while the gap is open toward the force, the force is raised to what reaches
 # the flank, at most the clamp >> CROSS_SHIFT (a quarter: a stronger crossing hits the flank hard
 # enough to break the 5 m/s^2 limit, a weaker one leaves the limit cycle; docs/parameters.md)
@@ -77,7 +81,7 @@ class Controller:
         self.off, self.length = layout_offsets(layout)
         d = flat[self.off["HDR"] + 1]
         self.d = d
-        self.lim = fixmath.zeros(6)
+        self.lim = fixmath.zeros(LIM_GH + (d if d > 0 else 0))
         self.m = fixmath.zeros(8)
         self.sm = fixmath.zeros(4)
         self.rf = fixmath.zeros(4)
@@ -335,7 +339,10 @@ class Controller:
         self.u = 0
         self.u_raw = 0
         self.vh = 0
-        self.lim[LIM_GAP] = 0
+        lim = self.lim
+        for i in range(LIM_GAP, len(lim)):
+            if i != LIM_HPX:
+                lim[i] = 0
         self.ramp = False
         self._use(False)
 
@@ -460,6 +467,25 @@ class Controller:
         lim = self.lim
         sm = self.sm
         rf = self.rf
+        l = lim[LIM_GHB]
+        if l:
+            # gear play: the encoder reads the motor side.  With the motor side on a flank (the
+            # gap model at the measurement's time) the wheel is half the play behind it; while
+            # it crosses the play the encoder says nothing about the wheel but that it is within
+            # half the play of the motor side: the prediction, held inside that window
+            v = lim[LIM_GH] if self.d > 0 else lim[LIM_GAP]
+            h = lim[LIM_HPX]
+            if v >= l:
+                yx = yx - h
+            elif v <= -l:
+                yx = yx + h
+            else:
+                v = p[0]
+                if v < yx - h:
+                    v = yx - h
+                elif v > yx + h:
+                    v = yx + h
+                yx = v
         ex = yx - p[0]
         ep = yp - p[2]
         est = self.est
@@ -595,6 +621,10 @@ class Controller:
             else:
                 ue = 0
             lim[LIM_GAP] = v
+            for i in range(d - 1):
+                lim[LIM_GH + i] = lim[LIM_GH + 1 + i]
+            if d > 0:
+                lim[LIM_GH + d - 1] = v
         # update: p = xf + (Ad - I) xf + Bd b0 (delta form), then shift the buffer
         if d > 0:
             b0 = b[0]

@@ -389,8 +389,9 @@ PARAMS = (
      "motor direction on top of firmware/board.py MOTOR_SIGN: -1 flips it (0 counts as +1)"),
     (P_GEAR_PLAY, "gear_play", "count", 0, 255, 0,
      "gear play between the motor's encoder and the wheels, in encoder counts (robot.toml "
-     "motor.backlash; upright commission sets it): the estimator follows the wheel side through a "
-     "play operator and its predictor is given only the force the gear passes (0: no play)"),
+     "motor.backlash; upright commission sets it): the estimator takes the wheel side half the play "
+     "behind the encoder while the gear drives, its own prediction inside the play while the motor "
+     "crosses it, and its predictor is given only the force the gear passes (0: no play)"),
 )
 
 # ---- status values: read-only board figures, read with PARAM_GET(STATUS_BASE + k) ----

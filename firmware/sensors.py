@@ -39,7 +39,8 @@ class Sensors:
         self.delta = 0
         self.primed = False
         # gear play: the encoder reads the motor side; yx follows it through a play operator of
-        # half-width play (counts; 0: none), the wheel side's estimate wpos
+        # half-width play (counts; 0: none), the wheel side's estimate wpos -- only where the
+        # controller has no gap model (appparams: it finds the wheel side itself otherwise)
         self.play = 0
         self.wpos = 0
 

@@ -208,6 +208,11 @@ def test_commission_a_realistic_cart_refuses_or_verifies(tmp_path) -> None:
     data, err, after, lines = _commission(plant, tmp_path / "c")
     st = json.loads((tmp_path / "c" / "commission.json").read_text())
     assert not any(t["fell"] for t in data.get("balance", {}).get("tries", []))
+    if "design1" in st["done"]:
+        # the balancing run's table knows the play the cart-only run found (the firmware's gear_play)
+        play = data["cart"]["estimates"].get("backlash", 0.0)
+        assert play > 3e-4  # the 1 mm of this plant, found by the dry fit
+        assert load_params(tmp_path / "c" / "robot_stage1.toml").values["motor.backlash"] == pytest.approx(play)
     if err is None and not all(v.get("pass", True) for v in data["verify"].values()):
         # the commissioning ran to its end and its own verification says FAIL (the CLI exits 1 with
         # "verification FAIL"): a refusal at the last stage, in the robot's own telemetry. Seen at
@@ -258,3 +263,17 @@ def test_bench_identification_errors_against_the_robots_truth() -> None:
     assert e["err_coulomb"] == pytest.approx(0.25 - plant.values["cart.coulomb"])  # absolute, N
     assert "err_backlash" not in e and "err_mL" not in e  # not estimated (nan) or not in the data
     assert id_errors({}, plant) == {}
+
+
+def test_a_cart_with_gear_play_is_designed_with_the_lower_clamp() -> None:
+    # the force clamp of both designs: the margin design's own, or PLAY_A_CMD for a play between
+    # the verification's limit and PLAY_A_CMD_MAX (docs/parameters.md: the engagement's peak)
+    from host.operate.commission import PLAY_A_CMD, PLAY_A_CMD_MAX, VERIFY_PLAY_MAX, play_a_cmd
+
+    p = load_params()
+    assert play_a_cmd(p) == Mg.A_CMD
+    assert play_a_cmd(p.replace(**{"motor.backlash": 0.5 * VERIFY_PLAY_MAX})) == Mg.A_CMD
+    assert play_a_cmd(p.replace(**{"motor.backlash": 1e-3})) == (PLAY_A_CMD,)
+    assert play_a_cmd(p.replace(**{"motor.backlash": PLAY_A_CMD_MAX})) == (PLAY_A_CMD,)
+    assert play_a_cmd(p.replace(**{"motor.backlash": 2 * PLAY_A_CMD_MAX})) == Mg.A_CMD
+    assert PLAY_A_CMD < min(Mg.A_CMD)

@@ -39,6 +39,7 @@ c0 = Controller(LAYOUT, FLAT)
 c1 = Controller(LAYOUT, FLAT)
 c2 = Controller(LAYOUT, FLAT)
 c0.lim[4] = c1.lim[4] = c2.lim[4] = GHB
+c0.lim[6] = c1.lim[6] = c2.lim[6] = HPX
 n = len(YX)
 bad = 0
 free = 0
@@ -48,7 +49,7 @@ for k in range(n):
     u2 = fastpath.step_viper(c2, YX[k], YP[k], R[k])
     if u0 != u1 or u0 != u2 or c0.vh != c1.vh or c0.vh != c2.vh or c0.integ != c2.integ:
         bad += 1
-    if c0.lim[5] != c1.lim[5] or c0.lim[5] != c2.lim[5] or list(c0.b) != list(c1.b) or list(c0.b) != list(c2.b):
+    if list(c0.lim) != list(c1.lim) or list(c0.lim) != list(c2.lim) or list(c0.b) != list(c1.b) or list(c0.b) != list(c2.b):
         bad += 1
     if c0.lim[5] not in (-GHB, GHB):
         free += 1
@@ -85,13 +86,13 @@ for em in ('native', 'viper'):
 """
 
 
-@pytest.mark.parametrize("ghb, play", [(0, 0), (4000, 19)], ids=["no gear play", "gear play"])
-def test_native_and_viper_equal_bytecode(seq, ghb: int, play: int) -> None:
-    # with gear play the gap model (Controller.lim[4], [5]: LIM_GHB, LIM_GAP) and the play operator (param gear_play) run too
+@pytest.mark.parametrize("ghb, hpx, play", [(0, 0, 0), (4000, 1200, 19)], ids=["no gear play", "gear play"])
+def test_native_and_viper_equal_bytecode(seq, ghb: int, hpx: int, play: int) -> None:
+    # with gear play the gap model (Controller.lim[4], [5]: LIM_GHB, LIM_GAP; the wheel side from lim[6:]) runs too
     yx, yp, r = seq
     code = (H.INTS_SRC + f"LAYOUT = {tuple(H.layout_of(FD))!r}\nFLAT = tuple(ints({' '.join(map(str, FD.flat()))!r}))\n"
             + f"YX = ints({H._ints(yx)!r})\nYP = ints({H._ints(yp)!r})\nR = ints({H._ints(r)!r})\n"
-            + f"GHB = {ghb}\nPLAY = {play}\n" + SCRIPT)
+            + f"GHB = {ghb}\nHPX = {hpx}\nPLAY = {play}\n" + SCRIPT)
     out = dict(line.split() for line in run_unix(code, timeout=120).splitlines() if line.strip())
     assert int(out["n"]) == len(yx) and int(out["bad"]) == 0
     # the sequence crosses the play model's gap (the force reverses) and rests on a flank

@@ -19,7 +19,7 @@ import fwharness as H
 from firmware import gains as G
 from firmware import msgtable as T
 from firmware.app import App
-from firmware.controller import CROSS_SHIFT, Controller
+from firmware.controller import CROSS_SHIFT, LIM_GAP, LIM_GHB, LIM_HPX, Controller
 from firmware.sensors import Sensors
 from firmware.store import MIGRATED, NAMES, ConfigStore, encode
 from firmware.supervisor import BALANCING
@@ -108,6 +108,39 @@ def test_without_play_every_force_passes() -> None:
         assert c.b[c.d - 1] == u and c.lim[5] == 0
 
 
+def test_the_x_measurement_stands_for_the_wheel_side_of_the_play() -> None:
+    # on a flank (the gap model at the measurement's time: d ticks back, the sensor delay the
+    # predictor covers) the wheel is half the play behind the motor side the encoder reads; while
+    # the motor side crosses, the encoder only bounds the wheel to within half the play of it, and
+    # the estimator's own prediction is taken inside that window.  The reduced-order observer
+    # (est 1) takes the measurement as its x, so the filter's x is the wheel side found.
+    c = Controller(G.LAYOUT, G.FLAT)
+    assert c.d > 0 and len(c.lim) == 7 + c.d
+    c.reset(0, 0)
+    c.est = 1
+    h, ghb = 400, 3000
+    c.lim[LIM_GHB], c.lim[LIM_HPX] = ghb, h
+    seen = []
+    for k in range(80):
+        gap_then = c.lim[7]  # the gap model d ticks ago (oldest of its history)
+        p0 = c.p[0]
+        ym = 1000 + (40 * k if k < 40 else 3200 - 40 * k)  # the motor side, forward then back
+        u = c.step(ym, 0, 0)
+        seen.append((gap_then, p0, ym, u))
+        if gap_then >= ghb:
+            want = ym - h
+        elif gap_then <= -ghb:
+            want = ym + h
+        else:
+            want = min(max(p0, ym - h), ym + h)
+        assert c.xf[0] == max(-c.lim[0], min(c.lim[0], want)), (k, seen[-1])
+    gaps = [g for g, _, _, _ in seen]
+    # both flanks and the crossing between them were exercised
+    assert max(gaps) >= ghb and min(gaps) <= -ghb and any(-ghb < g < ghb for g in gaps), gaps
+    c.reset(0, 0)
+    assert all(c.lim[i] == 0 for i in range(LIM_GAP, len(c.lim)) if i != LIM_HPX) and c.lim[LIM_HPX] == h
+
+
 def test_the_play_operator_follows_the_wheel_side() -> None:
     s = Sensors(G.FLAT, Controller(G.LAYOUT, G.FLAT).off)
     s.play = 5
@@ -133,7 +166,10 @@ def test_gear_play_parameter_derives_both_and_is_refused_while_balancing() -> No
     ce = float(smot.back_emf_damping(P))
     for counts in (2, 10, 19, 60):
         assert app.param_set(T.P_GEAR_PLAY, counts) == T.OK
-        assert app.sensors.play == counts // 2
+        # the controller finds the wheel side (half the play in x LSB); the sensors' play
+        # operator stays off while there is a gap model
+        assert app.sensors.play == 0
+        assert app.ctrl.lim[LIM_HPX] == (counts << app.sensors.qx) >> 1
         # half the play in force x ticks: the motor side crosses it at the no-load speed u / ce
         half_m = 0.5 * counts / float(ssens.enc_counts_per_m(P))
         want = half_m * ce * float(P.rate) / fd.lsb["u"]

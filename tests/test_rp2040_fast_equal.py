@@ -37,7 +37,7 @@ def test_controller_step_of_every_emitter_equal_on_the_board(board: EmulatedBoar
     yx, yp, r = yx[-900:], yp[-900:], r[-900:]  # the end of the run and every extreme
     code = (H.INTS_SRC + f"LAYOUT = {tuple(H.layout_of(FP.FD))!r}\nFLAT = tuple(ints({' '.join(map(str, FP.FD.flat()))!r}))\n"
             + f"YX = ints({H._ints(yx)!r})\nYP = ints({H._ints(yp)!r})\nR = ints({H._ints(r)!r})\n"
-            + "GHB = 4000\n" + FP.SCRIPT.split(H.FAKE_HAL)[0])  # with the gear-play model on
+            + "GHB = 4000\nHPX = 1200\n" + FP.SCRIPT.split(H.FAKE_HAL)[0])  # with the gear-play model on
     out = dict(line.split() for line in board.exec(code, timeout=60).splitlines() if line.strip())
     assert int(out["n"]) == len(yx) and int(out["bad"]) == 0
 

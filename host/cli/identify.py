@@ -40,8 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the robot file the board runs: masses, drive, sensors (default sim/robot.toml)")
     parser.add_argument("--out", default=None, metavar="TOML", help="write the identified robot file here")
     parser.add_argument("--json", default=None, metavar="FILE", help="write the estimates and intervals as JSON")
-    parser.add_argument("--fc", type=A.in_range(1.0, 60.0, unit="Hz"), default=10.0,
-                        help="low-pass of the balancing-run signals, Hz (default 10)")
+    parser.add_argument("--fc", type=A.in_range(1.0, 60.0, unit="Hz"), default=None,
+                        help="low-pass of the balancing-run signals, Hz (default 10, lowered for the gear "
+                             "play the cart-only run finds)")
     parser.add_argument("--max-delay", type=A.in_range(0.0, 0.1, unit="s"), default=0.03,
                         help="largest sensor delay searched, s (default 0.03)")
     parser.add_argument("--boot", type=A.int_range(0, 10000), default=100,

@@ -63,7 +63,7 @@ from sim.motor import DUTY_MAX
 from sim.params import SCHEMA, RobotParams
 
 __all__ = ["LogError", "RunLog", "read_log", "identify", "identify_cart", "identified_params", "robot_toml",
-           "PARAM_NAMES", "STAGE1_EXTRA", "truth_of"]
+           "PARAM_NAMES", "STAGE1_EXTRA", "truth_of", "play_fc", "FC_HZ"]
 
 PARAM_NAMES = ("I", "mL", "b", "kt", "ke", "delay", "pot_offset")
 """Estimated parameters: pivot inertia term (kg m^2), m*L (kg m), cart friction (N s/m), force
@@ -80,6 +80,30 @@ BIAS_FLOOR = {"I": 0.05, "mL": 0.04}
 estimates for the method's bias (the equation-error fit through the low-pass)."""
 MIN_BAL_S = 5.0
 """Board seconds of balancing excitation a log needs at least."""
+FC_HZ = 10.0
+"""Hz: the balancing run's low-pass (:func:`identify`'s ``fc``) on a cart without gear play."""
+PLAY_XDD = 0.5
+"""m/s^2: what the balancing run's low-pass may leave of the encoder's jump across the gear play in
+the cart's acceleration (:func:`play_fc`)."""
+FC_MIN_HZ = 2.0
+"""Hz: the lowest balancing-run low-pass :func:`play_fc` chooses (the pendulum's motion under the
+balancing loop lies below it)."""
+
+
+def play_fc(backlash: float, fc: float = FC_HZ) -> float:
+    """The balancing run's low-pass (Hz) for a cart with ``backlash`` m of gear play.
+
+    The encoder sits on the motor: each reversal moves it across the play while the cart does not
+    follow, a displacement of up to ``backlash`` in the cart's position that the pendulum never
+    feels.  Through a low-pass at ``fc`` its second derivative is of the order of ``backlash (2 pi
+    fc)^2`` (12 m/s^2 for 3 mm at 10 Hz, against 1-2 m/s^2 of true acceleration): an error in the
+    regressor that biases ``Leq`` high, the pivot inertia with it (``J`` +57-87 % at 3 mm and 10 Hz
+    on the commission bench's corner robots, +2-8 % at 2 Hz).  The cut-off is lowered until that
+    term is :data:`PLAY_XDD`, at least :data:`FC_MIN_HZ`; without play ``fc`` itself.
+    """
+    if not backlash > 0.0:
+        return fc
+    return max(FC_MIN_HZ, min(fc, math.sqrt(PLAY_XDD / backlash) / (2.0 * math.pi)))
 
 
 def check_balancing_log(lg: RunLog, rate: float, fc: float) -> None:
@@ -253,7 +277,7 @@ def _derive(f: dict[str, Any], params: RobotParams, d: int, dt: float,
             "pot_offset": v["sensors.pot_offset"] + f["beta"] * cpr}
 
 
-def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float = 10.0, max_delay: float = 0.03,
+def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float | None = None, max_delay: float = 0.03,
              n_boot: int = 100, block_s: float = 0.5, seed: int = 0) -> dict[str, Any]:
     """Estimate :data:`PARAM_NAMES` with 95 % confidence intervals from excitation logs.
 
@@ -263,8 +287,9 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float = 10.0, m
         At least one balancing run; a cart-only run with a coast-down for ``b`` and ``ke``.
     params : RobotParams
         The known constants (masses, g, drive, sensor scales, loop rate; one row per tick).
-    fc : float
-        Cut-off (Hz) of the zero-phase low-pass applied to every signal of a balancing run.
+    fc : float, optional
+        Cut-off (Hz) of the zero-phase low-pass applied to every signal of a balancing run;
+        default :data:`FC_HZ`, lowered for the gear play the cart-only stage found (:func:`play_fc`).
     max_delay : float
         Largest sensor delay searched (s), in whole samples.
     n_boot : int
@@ -294,20 +319,22 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float = 10.0, m
                                          f"{params.rate:g} Hz: record every tick (telem_div 1, as upright board "
                                          "excite does) with the loop rate of --params")
     M, m, g = params.M, params.m, params.g
-    sos = signal.butter(4, fc, fs=1.0 / dt, output="sos")
-    edge = int(math.ceil(3.0 / (fc * dt)))
     dmax = int(round(max_delay / dt))
     carts = [lg for lg in logs if lg.cart_only]
     bals = [lg for lg in logs if not lg.cart_only]
     for lg in bals:
-        check_balancing_log(lg, params.rate, fc)
+        check_balancing_log(lg, params.rate, fc or FC_HZ)
     has_coast = any(lg.coast.any() for lg in carts)
-    cres = None
+    # the first stage (identify_cart): the drive, the friction, the delay and the latency, open
+    # loop; the balancing rows then see the same timing and deadband (and its gear play, the
+    # low-pass: play_fc)
+    cres = identify_cart(carts, params, max_delay=max_delay) if carts else None
+    if fc is None:
+        fc = play_fc(float(cres["estimates"].get("backlash", 0.0)) if cres is not None else 0.0)
+    sos = signal.butter(4, fc, fs=1.0 / dt, output="sos")
+    edge = int(math.ceil(3.0 / (fc * dt)))
     fl, db = 0.0, 0.0
-    if carts:
-        # the first stage (identify_cart): the drive, the friction, the delay and the latency,
-        # open loop; the balancing rows then see the same timing and deadband
-        cres = identify_cart(carts, params, max_delay=max_delay)
+    if cres is not None:
         cf = cres["fit"]
         d, fl, db = int(cres["fit_delay"]), float(cf["f"]), float(cf["deadband"])
         sse = list(cres["delay_sse"])
