@@ -224,7 +224,7 @@ def test_gear_play_keeps_the_report_acceleration_limit_on_a_cart_with_play() -> 
 def test_the_emulated_board_balances_a_cart_with_play_with_gear_play_on(tmp_path) -> None:
     # the bundle's main.py on the emulated Pico (HalPico, the paced loop with the heap locked,
     # the UART link), the plant with 1.5 mm of play on its pins: gear_play set over the link while
-    # disarmed and read back, the step run (play operator and gap model every tick: an allocation
+    # disarmed and read back, the step run (the wheel side and the gap model every tick: an allocation
     # would raise MemoryError under the locked heap and stop the robot), requests answered while
     # balancing, and the firmware's own clock saw no late tick
     import dataclasses
