@@ -460,6 +460,27 @@ class Controller:
             return q
         return r
 
+    def wheel_x(self, yx):
+        # gear play: the wheel side the x measurement yx (the motor side) stands for.  With the
+        # motor side on a flank (the gap model at the measurement's time: d ticks back) the wheel
+        # is half the play behind it; while it crosses the play the encoder says nothing about
+        # the wheel but that it is within half the play of it: the prediction, held inside that
+        # window.  Called by step() only with gear play (integers only, no allocation)
+        lim = self.lim
+        l = lim[LIM_GHB]
+        v = lim[LIM_GH] if self.d > 0 else lim[LIM_GAP]
+        h = lim[LIM_HPX]
+        if v >= l:
+            return yx - h
+        if v <= -l:
+            return yx + h
+        v = self.p[0]
+        if v < yx - h:
+            return yx - h
+        if v > yx + h:
+            return yx + h
+        return v
+
     # ---- the hot path: one control tick, integers only, no allocation ----
     def step(self, yx, yp, r):
         p = self.p
@@ -467,25 +488,10 @@ class Controller:
         lim = self.lim
         sm = self.sm
         rf = self.rf
-        l = lim[LIM_GHB]
-        if l:
-            # gear play: the encoder reads the motor side.  With the motor side on a flank (the
-            # gap model at the measurement's time) the wheel is half the play behind it; while
-            # it crosses the play the encoder says nothing about the wheel but that it is within
-            # half the play of the motor side: the prediction, held inside that window
-            v = lim[LIM_GH] if self.d > 0 else lim[LIM_GAP]
-            h = lim[LIM_HPX]
-            if v >= l:
-                yx = yx - h
-            elif v <= -l:
-                yx = yx + h
-            else:
-                v = p[0]
-                if v < yx - h:
-                    v = yx - h
-                elif v > yx + h:
-                    v = yx + h
-                yx = v
+        if lim[LIM_GHB]:
+            # gear play: the encoder reads the motor side (wheel_x: out of line, so that the
+            # step's code without play stays as compact as it was)
+            yx = int(self.wheel_x(yx))
         ex = yx - p[0]
         ep = yp - p[2]
         est = self.est

@@ -21,7 +21,6 @@ _INTEG_SHIFT = const(6)
 _INTEG_HALF = const(32)
 LIM_GHB = const(4)
 LIM_GAP = const(5)
-LIM_HPX = const(6)
 LIM_GH = const(7)
 CROSS_SHIFT = const(2)
 
@@ -33,21 +32,8 @@ def step_native(c, yx, yp, r):
     lim = c.lim
     sm = c.sm
     rf = c.rf
-    l = lim[LIM_GHB]
-    if l:
-        v = lim[LIM_GH] if c.d > 0 else lim[LIM_GAP]
-        h = lim[LIM_HPX]
-        if v >= l:
-            yx = yx - h
-        elif v <= -l:
-            yx = yx + h
-        else:
-            v = p[0]
-            if v < yx - h:
-                v = yx - h
-            elif v > yx + h:
-                v = yx + h
-            yx = v
+    if lim[LIM_GHB]:
+        yx = int(c.wheel_x(yx))
     ex = yx - p[0]
     ep = yp - p[2]
     est = c.est
@@ -242,21 +228,8 @@ def step_viper(c, yx: int, yp: int, r: int) -> int:
     lim = ptr32(c.lim)
     sm = ptr32(c.sm)
     rf = ptr32(c.rf)
-    l = (((lim[LIM_GHB] + sb) & msk) - sb)
-    if l:
-        v = (((lim[LIM_GH] + sb) & msk) - sb) if int(c.d) > 0 else (((lim[LIM_GAP] + sb) & msk) - sb)
-        h = (((lim[LIM_HPX] + sb) & msk) - sb)
-        if v >= l:
-            yx = yx - h
-        elif v <= -l:
-            yx = yx + h
-        else:
-            v = (((p[0] + sb) & msk) - sb)
-            if v < yx - h:
-                v = yx - h
-            elif v > yx + h:
-                v = yx + h
-            yx = v
+    if (((lim[LIM_GHB] + sb) & msk) - sb):
+        yx = int(c.wheel_x(yx))
     ex = yx - (((p[0] + sb) & msk) - sb)
     ep = yp - (((p[2] + sb) & msk) - sb)
     est = int(c.est)
