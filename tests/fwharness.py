@@ -182,8 +182,24 @@ def parse_ints(out: str) -> dict[str, int]:
     return {k: int(v) for k, v in (line.split() for line in out.splitlines() if line.strip())}
 
 
-def _flat_src(fd: FixedDesign) -> str:
+def ints_src(**seqs: Sequence[int]) -> str:
+    """Integer sequences as MicroPython source, one ``NAME = ints('...')`` line each (``ints`` is
+    :data:`INTS_SRC`'s, so this goes after it)."""
+    return "".join(f"{name} = ints({_ints(v)!r})\n" for name, v in seqs.items())
+
+
+def flat_src(fd: FixedDesign) -> str:
+    """:data:`INTS_SRC` and a design's table as MicroPython source: ``LAYOUT`` (concrete) and
+    ``FLAT`` (a tuple), what ``Controller(LAYOUT, FLAT)`` takes."""
     return INTS_SRC + f"LAYOUT = {tuple(layout_of(fd))!r}\nFLAT = tuple(ints({_ints(fd.flat())!r}))\n"
+
+
+def gains_src(name: str, fd: FixedDesign) -> str:
+    """A stand-in ``firmware.gains`` module for ``App(hal, gains=...)`` as MicroPython source: a
+    class ``name`` with the design's ``VERSION``, ``CRC``, ``LAYOUT`` and ``FLAT`` (after
+    :data:`INTS_SRC`)."""
+    return (f"class {name}:\n    pass\n{name}.VERSION = {fd.tables['HDR'][0]}\n{name}.CRC = {fd.crc()}\n"
+            f"{name}.LAYOUT = {tuple(layout_of(fd))!r}\n{name}.FLAT = tuple(ints({_ints(fd.flat())!r}))\n")
 
 
 def mp_controller_run(fd: FixedDesign, yx: Sequence[int], yp: Sequence[int], r: Sequence[int],
@@ -194,8 +210,8 @@ def mp_controller_run(fd: FixedDesign, yx: Sequence[int], yp: Sequence[int], r: 
     """
     code = (
         "from array import array\nfrom firmware.controller import Controller\n"
-        + _flat_src(fd)
-        + f"YX = ints({_ints(yx)!r})\nYP = ints({_ints(yp)!r})\nR = ints({_ints(r)!r})\n"
+        + flat_src(fd)
+        + ints_src(YX=yx, YP=yp, R=r)
         + """
 c = Controller(LAYOUT, FLAT)
 n = len(YX)
@@ -244,6 +260,89 @@ def fixed_controller(params: RobotParams, fd: FixedDesign) -> Callable[[int, flo
         return c.step(yx, yp, ref_lsb(fd, xr)) * su
 
     return f
+
+
+def check_force_against_float(fd: FixedDesign, s: Sequence3, tol: float, name: str) -> None:
+    """The firmware controller over a scenario's sequences: under the unix port and CPython bit for
+    bit alike, and its force within ``tol`` N of the float controller's on the same inputs.
+
+    Parameters
+    ----------
+    fd : FixedDesign
+        The table it runs.
+    s : Sequence3
+        The scenario (:func:`measurements`), which must exercise the controller (a peak force over
+        0.1 N).
+    tol : float
+        The bound on the largest force difference, N.
+    name : str
+        The scenario's name, for the failure message.
+
+    Raises
+    ------
+    AssertionError
+        The interpreters differ, the scenario is idle or the force is off by more than ``tol``.
+    """
+    u_mp, v_mp = mp_controller_run(fd, s.yx, s.yp, s.r)
+    u_py, v_py = py_controller_run(fd, s.yx, s.yp, s.r)
+    assert u_mp == u_py and v_mp == v_py  # MicroPython == CPython, bit for bit
+    u = np.array(u_mp) * fd.lsb["u"]
+    err = np.max(np.abs(u - s.u_float))
+    assert np.max(np.abs(s.u_float)) > 0.1  # the scenario exercises the controller
+    assert err <= tol, f"{name}: {err:.4f} N > {tol:.4f} N"
+
+
+def check_closed_loops_agree(params: RobotParams, ctrl: object, fd: FixedDesign, scenario: dict, tol: float,
+                             name: str) -> None:
+    """A report scenario (:data:`REPORT_SCENARIOS`) closed by the float controller and by the
+    firmware's (:func:`fixed_controller`, CPython), quantised sensors both: the angles agree within
+    ``tol`` rad and the firmware's loop keeps the report's constraint (|phi| < 0.3 rad).
+
+    Parameters
+    ----------
+    params : RobotParams
+        The plant.
+    ctrl : DiscreteController
+        The float controller ``fd`` was exported from.
+    fd : FixedDesign
+        Its fixed-point table.
+    scenario : dict
+        :func:`host.design.discrete.simulate_loop` keywords: ``x0``, ``duration``, optional
+        ``x_ref`` and ``disturbance``.
+    tol : float
+        The bound on the largest angle difference, rad.
+    name : str
+        The scenario's name, for the failure message.
+
+    Raises
+    ------
+    AssertionError
+        The loops differ by more than ``tol`` or the firmware's tilts past 0.3 rad.
+    """
+    from host.design.discrete import simulate_loop
+
+    kw = scenario
+    a = simulate_loop(params, ctrl, kw["x0"], kw["duration"], x_ref=kw.get("x_ref", 0.0), quantise=True,
+                      disturbance=kw.get("disturbance"))
+    b = simulate_loop(params, ctrl, kw["x0"], kw["duration"], x_ref=kw.get("x_ref", 0.0), quantise=True,
+                      disturbance=kw.get("disturbance"), controller=fixed_controller(params, fd))
+    err = np.max(np.abs(a["phi"] - b["phi"]))
+    assert err <= tol, f"{name}: {err:.5f} rad"
+    assert np.max(np.abs(b["phi"])) < 0.3  # the report's constraint
+
+
+def check_wasm_equals_cpython(fd: FixedDesign, s: Sequence3, n: int = 1000) -> None:
+    """The firmware controller over the first ``n`` ticks of a scenario: the 32-bit WebAssembly
+    port's forces and speed estimates equal CPython's bit for bit.
+
+    Raises
+    ------
+    AssertionError
+        They differ.
+    """
+    u_w, v_w = mp_controller_run(fd, s.yx[:n], s.yp[:n], s.r[:n], runner="wasm")
+    u_py, v_py = py_controller_run(fd, s.yx[:n], s.yp[:n], s.r[:n])
+    assert u_w == u_py and v_w == v_py
 
 
 def default_design() -> FixedDesign:

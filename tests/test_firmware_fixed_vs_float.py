@@ -49,15 +49,9 @@ def sequences():
 
 @pytest.mark.parametrize("name", sorted(SCENARIOS))
 def test_command_within_twenty_force_lsb_of_float(sequences, name) -> None:
-    s = sequences[name]
-    u_mp, v_mp = H.mp_controller_run(FD, s.yx, s.yp, s.r)
-    u_py, v_py = H.py_controller_run(FD, s.yx, s.yp, s.r)
-    assert u_mp == u_py and v_mp == v_py  # MicroPython == CPython, bit for bit
-    u = np.array(u_mp) * FD.lsb["u"]
-    err = np.max(np.abs(u - s.u_float))
-    assert np.max(np.abs(s.u_float)) > 0.1  # the scenario exercises the controller
-    # 1.5 % of the force clamp (see U_TOL: measured 0.026-0.033 N; docs/firmware.md)
-    assert err <= U_TOL, f"{name}: {err:.4f} N > {U_TOL:.4f} N"
+    # MicroPython == CPython bit for bit; within 1.5 % of the force clamp of the float controller
+    # (see U_TOL: measured 0.026-0.033 N; docs/firmware.md)
+    H.check_force_against_float(FD, sequences[name], U_TOL, name)
 
 
 def test_speed_estimate_matches_the_float_prediction(sequences) -> None:
@@ -78,23 +72,13 @@ def test_speed_estimate_matches_the_float_prediction(sequences) -> None:
 
 @pytest.mark.parametrize("name", ["tilt_0.1", "ref_step_0.2", "push_0.2N"])
 def test_closed_loops_agree_in_phi(name) -> None:
-    kw = SCENARIOS[name]
-    a = simulate_loop(P, FD.ctrl, kw["x0"], kw["duration"], x_ref=kw.get("x_ref", 0.0), quantise=True,
-                      disturbance=kw.get("disturbance"))
-    b = simulate_loop(P, FD.ctrl, kw["x0"], kw["duration"], x_ref=kw.get("x_ref", 0.0), quantise=True,
-                      disturbance=kw.get("disturbance"), controller=H.fixed_controller(P, FD))
-    err = np.max(np.abs(a["phi"] - b["phi"]))
-    assert err <= PHI_TOL, f"{name}: {err:.5f} rad"  # two ADC counts (measured 0.0009-0.0016 rad)
-    assert np.max(np.abs(b["phi"])) < 0.3  # the report's constraint
+    # two ADC counts (measured 0.0009-0.0016 rad); the report's constraint |phi| < 0.3 rad
+    H.check_closed_loops_agree(P, FD.ctrl, FD, SCENARIOS[name], PHI_TOL, name)
 
 
 @pytest.mark.wasm
 def test_32bit_port_gives_the_same_numbers(sequences) -> None:
-    s = sequences["tilt_0.1"]
-    n = 1000
-    u_w, v_w = H.mp_controller_run(FD, s.yx[:n], s.yp[:n], s.r[:n], runner="wasm")
-    u_py, v_py = H.py_controller_run(FD, s.yx[:n], s.yp[:n], s.r[:n])
-    assert u_w == u_py and v_w == v_py
+    H.check_wasm_equals_cpython(FD, sequences["tilt_0.1"], n=1000)
 
 
 @pytest.mark.parametrize("x0, ref", [([0, 0, 0.1, 0], 0.0), ([0, 0, 0, 0], 0.2)], ids=["tilt_0.1", "ref_step_0.2"])

@@ -98,14 +98,7 @@ def test_the_firmware_form_is_the_gopinath_observer() -> None:
 
 @pytest.mark.parametrize("name", sorted(SCENARIOS))
 def test_command_within_twenty_force_lsb_of_float(sequences, name) -> None:
-    s = sequences[name]
-    u_mp, v_mp = H.mp_controller_run(FD, s.yx, s.yp, s.r)
-    u_py, v_py = H.py_controller_run(FD, s.yx, s.yp, s.r)
-    assert u_mp == u_py and v_mp == v_py  # MicroPython == CPython, bit for bit
-    u = np.array(u_mp) * FD.lsb["u"]
-    assert np.max(np.abs(s.u_float)) > 0.1
-    err = np.max(np.abs(u - s.u_float))
-    assert err <= U_TOL, f"{name}: {err:.4f} N > {U_TOL:.4f} N"  # measured 0.024-0.027 N
+    H.check_force_against_float(FD, sequences[name], U_TOL, name)  # measured 0.024-0.027 N
 
 
 def test_speed_estimate_matches_the_float_prediction(sequences) -> None:
@@ -123,14 +116,7 @@ def test_speed_estimate_matches_the_float_prediction(sequences) -> None:
 
 @pytest.mark.parametrize("name", ["tilt_0.1", "ref_step_0.2", "push_0.2N"])
 def test_closed_loops_agree_in_phi(name) -> None:
-    kw = SCENARIOS[name]
-    a = simulate_loop(P, RED, kw["x0"], kw["duration"], x_ref=kw.get("x_ref", 0.0), quantise=True,
-                      disturbance=kw.get("disturbance"))
-    b = simulate_loop(P, RED, kw["x0"], kw["duration"], x_ref=kw.get("x_ref", 0.0), quantise=True,
-                      disturbance=kw.get("disturbance"), controller=H.fixed_controller(P, FD))
-    err = np.max(np.abs(a["phi"] - b["phi"]))
-    assert err <= PHI_TOL, f"{name}: {err:.5f} rad"  # measured 0.0004-0.0006 rad
-    assert np.max(np.abs(b["phi"])) < 0.3
+    H.check_closed_loops_agree(P, RED, FD, SCENARIOS[name], PHI_TOL, name)  # measured 0.0004-0.0006 rad
 
 
 def test_skipping_the_identity_rows_changes_nothing(sequences) -> None:
@@ -150,9 +136,7 @@ def test_native_and_viper_steps_equal_bytecode(sequences) -> None:
     # the generated fast path (firmware/fastpath.py) takes the same branch under the unix port
     s = sequences["ref_step_0.2"]
     n = 600
-    code = (H.INTS_SRC + f"LAYOUT = {tuple(H.layout_of(FD))!r}\nFLAT = tuple(ints({' '.join(map(str, FD.flat()))!r}))\n"
-            + f"YX = ints({' '.join(map(str, s.yx[:n]))!r})\nYP = ints({' '.join(map(str, s.yp[:n]))!r})\n"
-            + f"R = ints({' '.join(map(str, s.r[:n]))!r})\n" + """
+    code = (H.flat_src(FD) + H.ints_src(YX=s.yx[:n], YP=s.yp[:n], R=s.r[:n]) + """
 from firmware.controller import Controller
 from firmware.fastpath import step_native, step_viper
 cs = [Controller(LAYOUT, FLAT) for _ in range(3)]
@@ -173,11 +157,7 @@ print(cs[0].est, bad)
 @pytest.mark.wasm
 @pytest.mark.skipif(not wasm_available(), reason="node / MicroPython WebAssembly port not installed")
 def test_32bit_port_gives_the_same_numbers(sequences) -> None:
-    s = sequences["tilt_0.1"]
-    n = 1000
-    u_w, v_w = H.mp_controller_run(FD, s.yx[:n], s.yp[:n], s.r[:n], runner="wasm")
-    u_py, v_py = H.py_controller_run(FD, s.yx[:n], s.yp[:n], s.r[:n])
-    assert u_w == u_py and v_w == v_py
+    H.check_wasm_equals_cpython(FD, sequences["tilt_0.1"], n=1000)
 
 
 def test_unknown_estimator_is_refused() -> None:
