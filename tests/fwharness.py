@@ -52,17 +52,19 @@ for line in OUT:
 """
 
 # allocation of fn() in bytes on the WebAssembly port (no heap_lock() there: a gc.mem_alloc()
-# delta with the collector off), printed as "name bytes"
+# delta with the collector off): alloc_bytes(fn) returns it, run(name, fn) prints "name bytes"
 WASM_ALLOC_RUN = """
 import gc
-def run(name, fn):
+def alloc_bytes(fn):
     gc.collect()
     gc.disable()
     a = gc.mem_alloc()
     fn()
     b = gc.mem_alloc()
     gc.enable()
-    print(name, b - a)
+    return b - a
+def run(name, fn):
+    print(name, alloc_bytes(fn))
 """
 
 
@@ -79,6 +81,30 @@ def run(name, fn):
         ok = 1
     micropython.heap_unlock()
     print(name, ok)
+"""
+
+
+# an app on FAKE_HAL armed, then stepped n times under micropython.heap_lock() (unix port) with
+# the sensors wiggling (the ADC around upright, the encoder across its 16-bit wrap):
+# steps_locked(hal, app, n) is 1 when no step allocated, 0 when one did
+APP_STEPS_LOCKED = """
+import micropython
+def steps_locked(hal, app, n):
+    hal.adc = 2048
+    app.step()
+    app.cmd_arm()
+    app.step()
+    micropython.heap_lock()
+    try:
+        for k in range(n):
+            hal.adc = 2048 + (k % 11) - 5
+            hal.enc = (65530 + (k % 9)) & 0xFFFF
+            app.step()
+        ok = 1
+    except MemoryError:
+        ok = 0
+    micropython.heap_unlock()
+    return ok
 """
 
 

@@ -165,8 +165,7 @@ def test_fault_stops_excitation(mode: int) -> None:
     assert app.sup.state == 2 and app.exc.on == 0
 
 
-WASM_SCRIPT = H.FAKE_HAL + """
-import gc
+WASM_SCRIPT = H.FAKE_HAL + H.WASM_ALLOC_RUN + """
 from array import array
 from firmware.app import App
 hal = Hal()
@@ -187,19 +186,10 @@ def phase(mode, n):
         app.step()
         app.fill_telemetry(tel)
 
-def measure(fn):
-    gc.collect()
-    gc.disable()
-    a = gc.mem_alloc()
-    fn()
-    b = gc.mem_alloc()
-    gc.enable()
-    return b - a
-
-d1 = measure(lambda: phase(1, 1500))
+d1 = alloc_bytes(lambda: phase(1, 1500))
 st1 = app.sup.state
 r2 = app.cmd_excite(2, amp_max, 3)
-d2 = measure(lambda: phase(2, 300))
+d2 = alloc_bytes(lambda: phase(2, 300))
 
 def big(n):
     x = 0
@@ -207,13 +197,12 @@ def big(n):
         x = (1 << 30) + k
     return x
 
-dc = measure(lambda: big(200))
+dc = alloc_bytes(lambda: big(200))
 print(r1, r2, st1, d1, d2, dc)
 """
 
 
-@pytest.mark.skipif(not __import__("host.boards.mpyrun", fromlist=["x"]).wasm_available(),
-                    reason="node / MicroPython WebAssembly port not installed")
+@pytest.mark.wasm  # skipped without the WebAssembly port (tests/conftest.py)
 def test_excitation_allocates_nothing_32bit_wasm() -> None:
     from host.boards.mpyrun import run_wasm
 

@@ -24,14 +24,7 @@ FD = export()
 FD_KI = export(ki=40.0, deadband=300)
 
 
-def _gains_src(name, fd) -> str:
-    return (
-        f"class {name}:\n    pass\n{name}.VERSION = {fd.tables['HDR'][0]}\n{name}.CRC = {fd.crc()}\n"
-        f"{name}.LAYOUT = {tuple(H.layout_of(fd))!r}\n{name}.FLAT = tuple(ints({' '.join(map(str, fd.flat()))!r}))\n"
-    )
-
-
-BODY = H.INTS_SRC + H.FAKE_HAL + _gains_src("G0", FD) + _gains_src("G1", FD_KI) + f"""
+BODY = H.INTS_SRC + H.FAKE_HAL + H.gains_src("G0", FD) + H.gains_src("G1", FD_KI) + f"""
 from firmware.app import App
 from firmware import msgtable as T
 BLOB = bytes.fromhex({FD.blob().hex()!r})

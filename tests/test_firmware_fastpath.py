@@ -20,8 +20,9 @@ P = load_params()
 FD = export(P, ki=40.0)
 
 
-@pytest.fixture(scope="module")
-def seq():
+def seq_with_extremes() -> tuple[list[int], list[int], list[int]]:
+    """The controller's inputs (yx, yp, r): a closed-loop run (a tilt, then a reference step), then
+    every sign pattern of the extremes (also test_rp2040_fast_equal.py's)."""
     s = H.measurements(P, FD, [0, 0, 0.1, 0], 3.0, x_ref=lambda t: 0.3 if t > 1.0 else 0.0)
     # append extremes: measurements far past the clamps, reference at its limit
     ylx = FD.tables["YLIM"][0] << FD.fmt["QX"]
@@ -31,10 +32,15 @@ def seq():
     return s.yx + [e[0] for e in ext], s.yp + [e[1] for e in ext], s.r + [e[2] for e in ext]
 
 
-SCRIPT = """
+@pytest.fixture(scope="module")
+def seq():
+    return seq_with_extremes()
+
+
+# the three emitters' controller steps on the sequence (YX, YP, R; GHB, HPX: the gear-play model)
+STEPS = """
 from firmware.controller import Controller
 from firmware import fastpath
-import micropython
 c0 = Controller(LAYOUT, FLAT)
 c1 = Controller(LAYOUT, FLAT)
 c2 = Controller(LAYOUT, FLAT)
@@ -60,28 +66,17 @@ print('n', n)
 print('bad', bad)
 print('last', u0)
 print('free', free)
-""" + H.FAKE_HAL + """
+"""
+
+# a whole app with each fast emitter (PLAY: the gear play parameter) steps allocation-free
+APP = H.FAKE_HAL + H.APP_STEPS_LOCKED + """
 from firmware.app import App
 from firmware import msgtable as T
 for em in ('native', 'viper'):
     hal = Hal()
     app = App(hal, config={'watchdog_ms': 0, 'emitter': em})
     app.param_set(T.P_GEAR_PLAY, PLAY)
-    hal.adc = 2048
-    app.step()
-    app.cmd_arm()
-    app.step()
-    micropython.heap_lock()
-    try:
-        for k in range(3000):
-            hal.adc = 2048 + (k % 11) - 5
-            hal.enc = (65530 + (k % 9)) & 0xFFFF
-            app.step()
-        ok = 1
-    except MemoryError:
-        ok = 0
-    micropython.heap_unlock()
-    print('alloc_free_' + em, ok)
+    print('alloc_free_' + em, steps_locked(hal, app, 3000))
     print('state_' + em, app.sup.state)
 """
 
@@ -90,9 +85,7 @@ for em in ('native', 'viper'):
 def test_native_and_viper_equal_bytecode(seq, ghb: int, hpx: int, play: int) -> None:
     # with gear play the gap model (Controller.lim[4], [5]: LIM_GHB, LIM_GAP; the wheel side from lim[6:]) runs too
     yx, yp, r = seq
-    code = (H.INTS_SRC + f"LAYOUT = {tuple(H.layout_of(FD))!r}\nFLAT = tuple(ints({' '.join(map(str, FD.flat()))!r}))\n"
-            + f"YX = ints({H._ints(yx)!r})\nYP = ints({H._ints(yp)!r})\nR = ints({H._ints(r)!r})\n"
-            + f"GHB = {ghb}\nHPX = {hpx}\nPLAY = {play}\n" + SCRIPT)
+    code = H.flat_src(FD) + H.ints_src(YX=yx, YP=yp, R=r) + f"GHB = {ghb}\nHPX = {hpx}\nPLAY = {play}\n" + STEPS + APP
     out = dict(line.split() for line in run_unix(code, timeout=120).splitlines() if line.strip())
     assert int(out["n"]) == len(yx) and int(out["bad"]) == 0
     # the sequence crosses the play model's gap (the force reverses) and rests on a flank

@@ -257,31 +257,14 @@ print('supply_n', n)
 print('bad', sum(bad.values()), bad)
 """
 
-APP = H.FAKE_HAL + r"""
-import micropython
+APP = H.FAKE_HAL + H.APP_STEPS_LOCKED + r"""
 from firmware.app import App
 from firmware import fasttick as F
 hal = Hal()
 app = App(hal, config={'watchdog_ms': 0, 'emitter': 'viper'})
 print('classes', int(isinstance(app.sensors, F.SensorsV)) + int(isinstance(app.sup, F.SupervisorV))
       + int(isinstance(app.motor, F.MotorV)) + int(isinstance(app.timing, F.TimingV)))
-hal.adc = 2048
-app.step()
-app.cmd_arm()
-app.step()
-k = 0
-ok = 0  # globals made before the lock (a new global may grow the module's dict)
-micropython.heap_lock()
-try:
-    for k in range(2000):
-        hal.adc = 2048 + (k % 11) - 5
-        hal.enc = (65530 + (k % 9)) & 0xFFFF
-        app.step()
-    ok = 1
-except MemoryError:
-    ok = 0
-micropython.heap_unlock()
-print('alloc_free', ok)
+print('alloc_free', steps_locked(hal, app, 2000))
 print('state', app.sup.state)
 """
 

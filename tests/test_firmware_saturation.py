@@ -23,14 +23,7 @@ FD = export(P)
 FD_KI = export(P, ki=40.0, deadband=500, catch=None)
 
 
-def _gains_src(name, fd) -> str:
-    return (
-        f"class {name}:\n    pass\n{name}.VERSION = {fd.tables['HDR'][0]}\n{name}.CRC = {fd.crc()}\n"
-        f"{name}.LAYOUT = {tuple(H.layout_of(fd))!r}\n{name}.FLAT = tuple(ints({' '.join(map(str, fd.flat()))!r}))\n"
-    )
-
-
-SCRIPT = H.CHK_SRC + H.INTS_SRC + H.FAKE_HAL + _gains_src("G0", FD) + _gains_src("G1", FD_KI) + """
+SCRIPT = H.CHK_SRC + H.INTS_SRC + H.FAKE_HAL + H.gains_src("G0", FD) + H.gains_src("G1", FD_KI) + """
 from firmware.app import App
 from firmware import msgtable as T
 from firmware.supervisor import BALANCING

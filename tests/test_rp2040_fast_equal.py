@@ -33,23 +33,12 @@ def board(emulated_repl: EmulatedBoard) -> EmulatedBoard:
 
 
 def test_controller_step_of_every_emitter_equal_on_the_board(board: EmulatedBoard) -> None:
-    yx, yp, r = _seq()
+    yx, yp, r = FP.seq_with_extremes()
     yx, yp, r = yx[-900:], yp[-900:], r[-900:]  # the end of the run and every extreme
-    code = (H.INTS_SRC + f"LAYOUT = {tuple(H.layout_of(FP.FD))!r}\nFLAT = tuple(ints({' '.join(map(str, FP.FD.flat()))!r}))\n"
-            + f"YX = ints({H._ints(yx)!r})\nYP = ints({H._ints(yp)!r})\nR = ints({H._ints(r)!r})\n"
-            + "GHB = 4000\nHPX = 1200\n" + FP.SCRIPT.split(H.FAKE_HAL)[0])  # with the gear-play model on
+    code = (H.flat_src(FP.FD) + H.ints_src(YX=yx, YP=yp, R=r)
+            + "GHB = 4000\nHPX = 1200\n" + FP.STEPS)  # with the gear-play model on
     out = dict(line.split() for line in board.exec(code, timeout=60).splitlines() if line.strip())
     assert int(out["n"]) == len(yx) and int(out["bad"]) == 0
-
-
-def _seq() -> tuple[list[int], list[int], list[int]]:
-    # test_firmware_fastpath.py's sequence (its fixture's body): a closed-loop run, then extremes
-    s = H.measurements(FP.P, FP.FD, [0, 0, 0.1, 0], 3.0, x_ref=lambda t: 0.3 if t > 1.0 else 0.0)
-    ylx = FP.FD.tables["YLIM"][0] << FP.FD.fmt["QX"]
-    ylp = FP.FD.tables["YLIM"][1] << FP.FD.fmt["QP"]
-    rl = FP.FD.tables["RLIM"][0]
-    ext = [(ylx, ylp, rl), (-ylx, -ylp, -rl), (ylx, -ylp, rl), (-ylx, ylp, -rl)] * 150
-    return s.yx + [e[0] for e in ext], s.yp + [e[1] for e in ext], s.r + [e[2] for e in ext]
 
 
 def test_viper_step_equals_app_step_on_the_board(board: EmulatedBoard) -> None:
