@@ -108,6 +108,74 @@ def steps_locked(hal, app, n):
 """
 
 
+def host_frames_src(nbytes: int, nframes: int) -> str:
+    """A scripted host for a MicroPython script of the board's loop and link, as source.
+
+    It defines ``layout``, ``table``, ``enc`` (the firmware's codec, CRC table and encoder);
+    ``add(tick, mid, a=0, b=0, c=0)``, which seals a command as the host does (the integrity check
+    of a command that moves the cart), frames it and queues it in ``STREAM`` with the tick it is
+    released at (``REL[i]``, ``END[i]``: the i-th frame's release tick and end offset; ``NF``
+    frames, ``POS`` bytes); and ``HostEnd``, the base of a stand-in ``machine.UART``: ``write``
+    decodes what the board sends, counting the frames by message id (``count``), with ``rd`` and
+    ``frame`` for the subclass's reads (how much of ``STREAM``, how many frames, have gone).
+
+    Parameters
+    ----------
+    nbytes : int
+        The size of ``STREAM``.
+    nframes : int
+        How many frames ``add`` may queue.
+
+    Returns
+    -------
+    str
+        MicroPython (and CPython) source.
+    """
+    return f"""
+from array import array
+from firmware import codec, crc16, framing
+from firmware.crc32 import seal
+layout = codec.Layout()
+table = crc16.make_table()
+enc = framing.Encoder(layout, table)
+STREAM = bytearray({nbytes})
+REL = array('i', [0] * {nframes})  # release tick of each frame
+END = array('i', [0] * {nframes})  # end offset of each frame in STREAM
+NF = 0
+POS = 0
+VALS = array('i', [0] * 4)
+
+
+def add(tick, mid, a=0, b=0, c=0):
+    global NF, POS
+    VALS[0] = a
+    VALS[1] = b
+    VALS[2] = c
+    seal(layout, mid, VALS, 0, enc.raw, 2)  # the integrity check of a command that moves the cart
+    n = enc.encode(mid, NF & 0xFF, VALS, 0)
+    STREAM[POS:POS + n] = enc.out[:n]
+    POS += n
+    REL[NF] = tick
+    END[NF] = POS
+    NF += 1
+
+
+class HostEnd:
+    def __init__(s):
+        s.rd = 0
+        s.frame = 0
+        s.dec = framing.Decoder(layout, table)
+        s.count = array('i', [0] * 32)
+
+    def write(s, mv):
+        dec = s.dec
+        for i in range(len(mv)):
+            mid = dec.feed(mv[i])
+            if mid >= 0:
+                s.count[mid] += 1
+"""
+
+
 #: the interpreters a firmware snippet runs on, in conftest's ``interp`` fixture order
 INTERPRETERS = ("cpython", "unix", "wasm", "rp2040")
 
@@ -289,25 +357,11 @@ def fixed_controller(params: RobotParams, fd: FixedDesign) -> Callable[[int, flo
 
 
 def check_force_against_float(fd: FixedDesign, s: Sequence3, tol: float, name: str) -> None:
-    """The firmware controller over a scenario's sequences: under the unix port and CPython bit for
-    bit alike, and its force within ``tol`` N of the float controller's on the same inputs.
-
-    Parameters
-    ----------
-    fd : FixedDesign
-        The table it runs.
-    s : Sequence3
-        The scenario (:func:`measurements`), which must exercise the controller (a peak force over
-        0.1 N).
-    tol : float
-        The bound on the largest force difference, N.
-    name : str
-        The scenario's name, for the failure message.
-
-    Raises
-    ------
-    AssertionError
-        The interpreters differ, the scenario is idle or the force is off by more than ``tol``.
+    """Assert that the firmware controller running table ``fd`` over scenario ``s``
+    (:func:`measurements`) gives the same numbers bit for bit under the unix port and CPython,
+    that the scenario exercises the controller (a peak force over 0.1 N), and that its force is
+    within ``tol`` N of the float controller's on the same inputs; ``name`` (the scenario's)
+    heads the failure message.
     """
     u_mp, v_mp = mp_controller_run(fd, s.yx, s.yp, s.r)
     u_py, v_py = py_controller_run(fd, s.yx, s.yp, s.r)
@@ -320,30 +374,11 @@ def check_force_against_float(fd: FixedDesign, s: Sequence3, tol: float, name: s
 
 def check_closed_loops_agree(params: RobotParams, ctrl: object, fd: FixedDesign, scenario: dict, tol: float,
                              name: str) -> None:
-    """A report scenario (:data:`REPORT_SCENARIOS`) closed by the float controller and by the
-    firmware's (:func:`fixed_controller`, CPython), quantised sensors both: the angles agree within
-    ``tol`` rad and the firmware's loop keeps the report's constraint (|phi| < 0.3 rad).
-
-    Parameters
-    ----------
-    params : RobotParams
-        The plant.
-    ctrl : DiscreteController
-        The float controller ``fd`` was exported from.
-    fd : FixedDesign
-        Its fixed-point table.
-    scenario : dict
-        :func:`host.design.discrete.simulate_loop` keywords: ``x0``, ``duration``, optional
-        ``x_ref`` and ``disturbance``.
-    tol : float
-        The bound on the largest angle difference, rad.
-    name : str
-        The scenario's name, for the failure message.
-
-    Raises
-    ------
-    AssertionError
-        The loops differ by more than ``tol`` or the firmware's tilts past 0.3 rad.
+    """Assert that a report scenario (:data:`REPORT_SCENARIOS`: ``simulate_loop`` keywords) on
+    plant ``params``, closed once by the float controller ``ctrl`` and once by its table ``fd`` in
+    the firmware's controller (:func:`fixed_controller`, CPython), quantised sensors both, gives
+    angles within ``tol`` rad of each other, and that the firmware's loop keeps the report's
+    constraint (|phi| < 0.3 rad); ``name`` heads the failure message.
     """
     from host.design.discrete import simulate_loop
 
@@ -358,14 +393,8 @@ def check_closed_loops_agree(params: RobotParams, ctrl: object, fd: FixedDesign,
 
 
 def check_wasm_equals_cpython(fd: FixedDesign, s: Sequence3, n: int = 1000) -> None:
-    """The firmware controller over the first ``n`` ticks of a scenario: the 32-bit WebAssembly
-    port's forces and speed estimates equal CPython's bit for bit.
-
-    Raises
-    ------
-    AssertionError
-        They differ.
-    """
+    """Assert that the firmware controller over the first ``n`` ticks of a scenario gives the same
+    forces and speed estimates bit for bit on the 32-bit WebAssembly port as under CPython."""
     u_w, v_w = mp_controller_run(fd, s.yx[:n], s.yp[:n], s.r[:n], runner="wasm")
     u_py, v_py = py_controller_run(fd, s.yx[:n], s.yp[:n], s.r[:n])
     assert u_w == u_py and v_w == v_py

@@ -15,35 +15,12 @@ from firmware.supervisor import ARMED, BALANCING, F_WATCHDOG
 import fwharness as H
 from host.boards.mpyrun import run_unix
 
-SCRIPT = H.FAKE_HAL + """
+SCRIPT = H.FAKE_HAL + H.host_frames_src(4096, 64) + """
 import micropython
-from array import array
-from firmware import codec, crc16, framing
 from firmware import msgtable as T
 from firmware.app import App
 from firmware.link_serial import SerialLink
-from firmware.crc32 import seal
 
-layout = codec.Layout()
-table = crc16.make_table()
-enc = framing.Encoder(layout, table)
-STREAM = bytearray(4096)
-REL = array('i', [0] * 64)   # release tick of each frame
-END = array('i', [0] * 64)   # end offset of each frame in STREAM
-NF = 0
-pos = 0
-vals = array('i', [0] * 4)
-def add(tick, mid, a=0, b=0):
-    global NF, pos
-    vals[0] = a
-    vals[1] = b
-    seal(layout, mid, vals, 0, enc.raw, 2)  # the integrity check of a command that moves the cart
-    n = enc.encode(mid, NF & 0xFF, vals, 0)
-    STREAM[pos:pos + n] = enc.out[:n]
-    pos += n
-    REL[NF] = tick
-    END[NF] = pos
-    NF += 1
 add(2, T.PARAM_SET, T.P_TELEM_DIV, 50)
 add(3, T.ARM)
 add(5, T.SET_REFERENCE, 100000)
@@ -51,14 +28,10 @@ for k in range(1, 11):
     add(100 * k, T.REQUEST, T.TIMING)
     add(100 * k, T.HOST_HEARTBEAT)  # only host heartbeats (and set-points) feed the watchdog
 
-class FakeUart:
+class FakeUart(HostEnd):
     def __init__(s, app):
+        HostEnd.__init__(s)
         s.app = app
-        s.rd = 0
-        s.frame = 0
-        s.dec = framing.Decoder(layout, table)
-        s.count = array('i', [0] * 32)
-        s.nbytes = 0
     def any(s):
         return 1 if s.frame < NF and REL[s.frame] <= s.app.tick else 0
     def readinto(s, buf, n):
@@ -77,13 +50,6 @@ class FakeUart:
         if s.rd >= end:
             s.frame += 1
         return k
-    def write(s, mv):
-        n = len(mv)
-        s.nbytes += n
-        for i in range(n):
-            mid = s.dec.feed(mv[i])
-            if mid >= 0:
-                s.count[mid] += 1
 
 hal = Hal()
 # the fake encoder never moves: no-motion check off; arming epoch 0 (the scripted ARM's)

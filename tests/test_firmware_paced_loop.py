@@ -30,13 +30,12 @@ from host.boards.mpyrun import run_unix, run_wasm
 
 N_TICKS = 2000
 
-SCRIPT = """
+SCRIPT = H.host_frames_src(8192, 400) + """
 import gc
-from array import array
-from firmware import codec, crc16, framing, gains
+from firmware import gains
 from firmware import msgtable as T
 from firmware.app import App
-from firmware.crc32 import seal, of as crc32_of
+from firmware.crc32 import of as crc32_of
 from firmware.link_serial import SerialLink
 from firmware.hal_base import Hal as HalBase
 
@@ -70,31 +69,6 @@ class Hal(HalBase):
         else:
             s.t = t + s.inc
         return s.t
-
-
-layout = codec.Layout()
-table = crc16.make_table()
-enc = framing.Encoder(layout, table)
-STREAM = bytearray(8192)
-REL = array('i', [0] * 400)  # release tick (the HAL's step count) of each frame
-END = array('i', [0] * 400)  # end offset of each frame in STREAM
-NF = 0
-POS = 0
-VALS = array('i', [0] * 4)
-
-
-def add(tick, mid, a=0, b=0, c=0):
-    global NF, POS
-    VALS[0] = a
-    VALS[1] = b
-    VALS[2] = c
-    seal(layout, mid, VALS, 0, enc.raw, 2)  # the integrity check of a command that moves the cart
-    n = enc.encode(mid, NF & 0xFF, VALS, 0)
-    STREAM[POS:POS + n] = enc.out[:n]
-    POS += n
-    REL[NF] = tick
-    END[NF] = POS
-    NF += 1
 
 
 add(60, T.PARAM_SET, T.P_TELEM_DIV, 1)
@@ -137,14 +111,12 @@ for k in range(1810, 2050, 40):
     add(k, T.HOST_HEARTBEAT)
 
 
-class FakeUart:
-    # machine.UART's surface: any() = bytes waiting, readinto(buf, n), write(buf)
+class FakeUart(HostEnd):
+    # machine.UART's surface: any() = bytes waiting, readinto(buf, n), write(buf); a frame is
+    # released at its tick (REL) of the HAL's step count
     def __init__(s, hal):
+        HostEnd.__init__(s)
         s.hal = hal
-        s.rd = 0
-        s.frame = 0
-        s.dec = framing.Decoder(layout, table)
-        s.count = array('i', [0] * 32)
         s.over = 0  # readinto asked for more than any() said: a blocking read on rp2
         s.maxreq = 0
 
@@ -170,13 +142,6 @@ class FakeUart:
         while s.frame < NF and END[s.frame] <= s.rd:
             s.frame += 1
         return k
-
-    def write(s, mv):
-        dec = s.dec
-        for i in range(len(mv)):
-            mid = dec.feed(mv[i])
-            if mid >= 0:
-                s.count[mid] += 1
 
 
 hal = Hal()
