@@ -117,7 +117,10 @@ def host_frames_src(nbytes: int, nframes: int) -> str:
     released at (``REL[i]``, ``END[i]``: the i-th frame's release tick and end offset; ``NF``
     frames, ``POS`` bytes); and ``HostEnd``, the base of a stand-in ``machine.UART``: ``write``
     decodes what the board sends, counting the frames by message id (``count``), with ``rd`` and
-    ``frame`` for the subclass's reads (how much of ``STREAM``, how many frames, have gone).
+    ``frame`` (how much of ``STREAM``, how many frames, have gone) and ``give(buf, k)``, which
+    hands the next ``k`` bytes to the subclass's ``readinto``; ``report()`` prints the frames the
+    board sent by message (``telem_state``, ``telem_ctrl``, ``heartbeat``, ``param_value``,
+    ``timing``, ``ack``, ``nack``).
 
     Parameters
     ----------
@@ -134,6 +137,7 @@ def host_frames_src(nbytes: int, nframes: int) -> str:
     return f"""
 from array import array
 from firmware import codec, crc16, framing
+from firmware import msgtable as T
 from firmware.crc32 import seal
 layout = codec.Layout()
 table = crc16.make_table()
@@ -167,12 +171,27 @@ class HostEnd:
         s.dec = framing.Decoder(layout, table)
         s.count = array('i', [0] * 32)
 
+    def give(s, buf, k):
+        # the next k bytes of STREAM into buf (a read); the frames they complete have gone
+        rd = s.rd
+        for i in range(k):
+            buf[i] = STREAM[rd + i]
+        s.rd = rd + k
+        while s.frame < NF and END[s.frame] <= s.rd:
+            s.frame += 1
+        return k
+
     def write(s, mv):
         dec = s.dec
         for i in range(len(mv)):
             mid = dec.feed(mv[i])
             if mid >= 0:
                 s.count[mid] += 1
+
+    def report(s):
+        # what the board sent, as "name count" lines (parse_ints)
+        for name in ('telem_state', 'telem_ctrl', 'heartbeat', 'param_value', 'timing', 'ack', 'nack'):
+            print(name, s.count[getattr(T, name.upper())])
 """
 
 

@@ -134,14 +134,7 @@ class FakeUart(HostEnd):
             s.over += 1
         if n > s.maxreq:
             s.maxreq = n
-        k = n if n < a else a
-        rd = s.rd
-        for i in range(k):
-            buf[i] = STREAM[rd + i]
-        s.rd = rd + k
-        while s.frame < NF and END[s.frame] <= s.rd:
-            s.frame += 1
-        return k
+        return s.give(buf, n if n < a else a)
 
 
 hal = Hal()
@@ -168,13 +161,7 @@ print('faults', app.sup.faults)
 print('over', uart.over)
 print('maxreq', uart.maxreq)
 print('unread', NF - uart.frame)
-print('telem_state', uart.count[T.TELEM_STATE])
-print('telem_ctrl', uart.count[T.TELEM_CTRL])
-print('heartbeat', uart.count[T.HEARTBEAT])
-print('param_value', uart.count[T.PARAM_VALUE])
-print('timing', uart.count[T.TIMING])
-print('ack', uart.count[T.ACK])
-print('nack', uart.count[T.NACK])
+uart.report()
 print('drops', uart.dec.drops())
 print('ref', app.ref_um)
 print('nchunk', NCHUNK)
