@@ -37,35 +37,31 @@ from host.link import messages as M
 ROOT = Path(__file__).resolve().parents[1]
 
 # ---- the scenario script (MicroPython and CPython) ----
-COMMON = """
+COMMON = H.FAKE_HAL + """
 from firmware.app import App
 from firmware import msgtable as T
 from firmware import supervisor as S
 from firmware import gains as G
 from firmware import codec, commands, crc16
 from firmware.crc32 import seal, of as crc32_of
-from firmware.hal_base import Hal as HalBase
 
 def chk(name, v):
     print('OBS ' + name + ' ' + str(int(v)))
 
-class Hal(HalBase):
-    # not fwharness.FAKE_HAL: slow steps, the enable pin and every duty checked against the state
-    # stand-in board: a clock that advances `inc` us per read, `delay[n]` us more while the
-    # n-th step reads the encoder (a slow step); every duty and enable recorded and checked
+StandIn = Hal
+
+class Hal(StandIn):
+    # fwharness.FAKE_HAL's stand-in board with slow steps, the enable pin and every duty checked
+    # against the state: the clock advances `inc` us per read, `delay[n]` us more while the n-th
+    # step reads the encoder (a slow step); every duty and enable recorded and checked
     def __init__(s):
-        s.adc = 2048
-        s.enc = 0
-        s.duty = 0
+        StandIn.__init__(s)
         s.en = 0
-        s.t = 0
         s.inc = 10
         s.n = 0
         s.delay = {}
         s.app = None
         s.bad = 0
-    def read_angle_raw(s):
-        return s.adc
     def read_encoder(s):
         s.n += 1
         d = s.delay.get(s.n, 0)
@@ -73,7 +69,7 @@ class Hal(HalBase):
             s.t = (s.t + d) & 0x3FFFFFFF
         return s.enc
     def set_motor(s, d):
-        s.duty = d
+        StandIn.set_motor(s, d)
         a = s.app
         if d != 0 and a is not None and (a.sup.state != S.BALANCING or a.sup.faults):
             s.bad += 1
@@ -82,17 +78,15 @@ class Hal(HalBase):
         a = s.app
         if on and a is not None and a.sup.state != S.BALANCING:
             s.bad += 1
-    def ticks_us(s):
-        s.t = (s.t + s.inc) & 0x3FFFFFFF
-        return s.t
 
 class Watch:
     # a link stand-in: run() polls it after every step; records the first step with a flag
-    # and the first balancing step
-    def __init__(s, hal, app, flag):
+    # and the first balancing step; arms the app at step `arm_at` (-1: never)
+    def __init__(s, hal, app, flag, arm_at=-1):
         s.hal = hal
         s.app = app
         s.flag = flag
+        s.arm_at = arm_at
         s.first = -1
         s.first_bal = -1
         s.fault_duty = -1
@@ -100,6 +94,8 @@ class Watch:
         s.n_late = -1
     def poll(s):
         a = s.app
+        if s.hal.n == s.arm_at:
+            a.cmd_arm()
         if s.first < 0 and a.sup.faults & s.flag:
             s.first = s.hal.n
             s.fault_duty = s.hal.duty
@@ -259,20 +255,8 @@ chk('disarmed_state', app.sup.state)
 chk('disarmed_n_late', app.n_late)
 chk('disarmed_timing_ok', app.sup.timing_ok)
 
-class ArmAt:
-    def __init__(s, hal, app, at):
-        s.hal = hal
-        s.app = app
-        s.at = at
-        s.first_bal = -1
-    def poll(s):
-        if s.hal.n == s.at:
-            s.app.cmd_arm()
-        if s.first_bal < 0 and s.app.sup.state == S.BALANCING:
-            s.first_bal = s.hal.n
-
 hal, app = fresh()
-a = ArmAt(hal, app, 5)
+a = Watch(hal, app, 0, arm_at=5)  # no flag watched: armed at step 5, the first balancing step
 app.set_link(a)
 hal.delay[50] = 3 * P
 app.run(100, lock=False)
