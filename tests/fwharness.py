@@ -18,8 +18,8 @@ from typing import TYPE_CHECKING, Callable, Sequence
 import numpy as np
 
 from host.boards.fwharness import (  # noqa: F401 - re-exported for the tests
-    FAKE_HAL, INTS_SRC, Sequence3, StandInHal, _ints, app_process, controller_inputs, layout_of, measurements,
-    ref_lsb,
+    FAKE_HAL, INTS_SRC, PipedApp, Sequence3, StandInHal, _ints, app_process, controller_inputs, layout_of,
+    measurements, ref_lsb,
 )
 from host.boards.mpyrun import run_unix, run_wasm
 from host.design.export import FixedDesign, export
@@ -424,31 +424,21 @@ def default_design() -> FixedDesign:
     return export()
 
 
-APP_LOOP = FAKE_HAL + """
-import sys
-from firmware.app import App
-hal = Hal()
-app = App(hal, config=CONFIG)
-hal.adc = ADC0
-hal.enc = ENC0
-app.step()
-app.cmd_set_reference(REF_UM)
-app.cmd_arm()
-while True:
-    line = sys.stdin.readline()
-    if not line:
-        break
-    w = line.split()
-    hal.adc = int(w[0])
-    hal.enc = int(w[1])
+# the hooks of PipedApp's loop for MicroPythonApp: the reference set before arming (REF_UM) and
+# by a third word; the reply "duty u_lsb state faults"
+_REF_HOOKS = """
+def start(app):
+    app.cmd_set_reference(REF_UM)
+def command(app, w):
     if len(w) > 2:
         app.cmd_set_reference(int(w[2]))
-    app.step()
-    sys.stdout.write('%d %d %d %d\\n' % (hal.duty, app.ctrl.u, app.sup.state, app.sup.faults))
+    return 0
+def reply(hal, app, r):
+    return '%d %d %d %d\\n' % (hal.duty, app.ctrl.u, app.sup.state, app.sup.faults)
 """
 
 
-class MicroPythonApp:
+class MicroPythonApp(PipedApp):
     """The whole firmware app in a MicroPython unix-port process, stepped over a pipe.
 
     Each :meth:`step` sends one sensor reading (ADC counts, 16-bit encoder counter,
@@ -459,31 +449,12 @@ class MicroPythonApp:
 
     def __init__(self, adc0: int, enc0: int, ref_um: int = 0, config: dict | None = None) -> None:
         cfg = {"watchdog_ms": 0, **(config or {})}
-        self.proc = app_process(f"CONFIG = {cfg!r}\nADC0 = {adc0}\nENC0 = {enc0}\nREF_UM = {ref_um}\n" + APP_LOOP)
+        super().__init__(f"REF_UM = {ref_um}\n" + _REF_HOOKS, cfg, adc0, enc0)
 
     def step(self, adc: int, enc: int, ref_um: int | None = None) -> tuple[int, int, int, int]:
         """One control tick; returns ``(duty, u_lsb, state, faults)``."""
-        assert self.proc.stdin is not None and self.proc.stdout is not None
-        self.proc.stdin.write(f"{adc} {enc}\n" if ref_um is None else f"{adc} {enc} {ref_um}\n")
-        self.proc.stdin.flush()
-        line = self.proc.stdout.readline()
-        if not line:
-            err = self.proc.stderr.read() if self.proc.stderr else ""
-            raise RuntimeError(f"MicroPython app stopped: {err}")
-        a, b, c, d = (int(v) for v in line.split())
+        a, b, c, d = self.tick(adc, enc) if ref_um is None else self.tick(adc, enc, ref_um)
         return a, b, c, d
-
-    def close(self) -> None:
-        """End the interpreter."""
-        if self.proc.stdin:
-            self.proc.stdin.close()
-        self.proc.wait(timeout=10)
-
-    def __enter__(self) -> "MicroPythonApp":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def app_closed_loop(params: RobotParams, x0: Sequence[float], duration: float, *, x_ref: float = 0.0,

@@ -27,7 +27,7 @@ if TYPE_CHECKING:
     import subprocess
 
 __all__ = ["Sequence3", "measurements", "controller_inputs", "FAKE_HAL", "StandInHal", "INTS_SRC", "layout_of",
-           "ref_lsb", "app_process"]
+           "ref_lsb", "app_process", "APP_PIPE", "PipedApp"]
 
 # a scripted HAL for MicroPython/CPython runs of the app: the test sets adc/enc and
 # reads duty; ticks advance by `inc` us per call (two calls per step)
@@ -173,3 +173,82 @@ def app_process(code: str) -> "subprocess.Popen[str]":
     env = dict(os.environ, MICROPYPATH=f"{ROOT}:.frozen")
     return subprocess.Popen([micropython_exe(), "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, bufsize=1, env=env, cwd=ROOT)
+
+
+# the firmware App on FAKE_HAL, one tick a line over a pipe: a line "adc enc [word ...]" sets the
+# sensors, command(app, w) acts on its words (w: the line split; its result r), app.step() runs and
+# reply(hal, app, r) goes back as one line.  The script defines CONFIG, ADC0, ENC0 and the hooks:
+# start(app) runs after the first step, before the app is armed.
+APP_PIPE = """
+import sys
+from firmware.app import App
+hal = Hal()
+app = App(hal, config=CONFIG)
+hal.adc = ADC0
+hal.enc = ENC0
+app.step()
+start(app)
+app.cmd_arm()
+while True:
+    line = sys.stdin.readline()
+    if not line:
+        break
+    w = line.split()
+    hal.adc = int(w[0])
+    hal.enc = int(w[1])
+    r = command(app, w)
+    app.step()
+    sys.stdout.write(reply(hal, app, r))
+"""
+
+
+class PipedApp:
+    """The whole firmware app (:data:`FAKE_HAL`, the shipped gain table) in a MicroPython unix-port
+    process, armed after its first step and stepped one tick a line over a pipe (:data:`APP_PIPE`).
+
+    Parameters
+    ----------
+    hooks : str
+        MicroPython source defining ``start(app)``, ``command(app, w)`` and ``reply(hal, app, r)``
+        (the last returns one line, ``\\n`` included), and whatever they use.
+    config : dict
+        The ``App`` config.
+    adc0, enc0 : int
+        The sensors of the first step (ADC counts, 16-bit encoder counter).
+
+    Notes
+    -----
+    Use as a context manager, or :meth:`close` it.
+    """
+
+    def __init__(self, hooks: str, config: dict, adc0: int, enc0: int) -> None:
+        self.proc = app_process(f"CONFIG = {config!r}\nADC0 = {adc0}\nENC0 = {enc0}\n" + FAKE_HAL + hooks + APP_PIPE)
+
+    def tick(self, adc: int, enc: int, *words: int) -> list[int]:
+        """One control tick: the sensors and the hooks' words in, the reply's integers out.
+
+        Raises
+        ------
+        RuntimeError
+            The interpreter stopped (its standard error in the message).
+        """
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(" ".join(str(int(v)) for v in (adc, enc, *words)) + "\n")
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        if not line:
+            err = self.proc.stderr.read() if self.proc.stderr else ""
+            raise RuntimeError(f"MicroPython app stopped: {err}")
+        return [int(v) for v in line.split()]
+
+    def close(self) -> None:
+        """End the interpreter (its standard input closed)."""
+        if self.proc.stdin:
+            self.proc.stdin.close()
+        self.proc.wait(timeout=10)
+
+    def __enter__(self) -> "PipedApp":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -256,30 +256,21 @@ def _cell(v: Any) -> str:
     return str(int(f)) if f.is_integer() else f"{f:.6g}"
 
 
-FW_LOOP = """
-import sys
+# the hooks of host.boards.fwharness.PipedApp's loop: EXCITE(mode, amp_mn, div) from a line's
+# words 3-5 (its result r, -1 without); the reply is the duty, the state, the telemetry the board
+# would send (x, phi, force), the excitation's mode and r
+_EXCITE_HOOKS = """
 from array import array
-from firmware.app import App
-hal = Hal()
-app = App(hal, config=CONFIG)
 tel = array('i', [0] * 8)
-hal.adc = ADC0
-hal.enc = ENC0
-app.step()
-app.cmd_arm()
-while True:
-    line = sys.stdin.readline()
-    if not line:
-        break
-    w = line.split()
-    hal.adc = int(w[0])
-    hal.enc = int(w[1])
-    r = -1
+def start(app):
+    pass
+def command(app, w):
     if len(w) > 2:
-        r = app.cmd_excite(int(w[2]), int(w[3]), int(w[4]))
-    app.step()
+        return app.cmd_excite(int(w[2]), int(w[3]), int(w[4]))
+    return -1
+def reply(hal, app, r):
     app.fill_telemetry(tel)
-    sys.stdout.write('%d %d %d %d %d %d %d\\n' % (hal.duty, app.sup.state, tel[0], tel[2], tel[5], app.exc.mode, r))
+    return '%d %d %d %d %d %d %d\\n' % (hal.duty, app.sup.state, tel[0], tel[2], tel[5], app.exc.mode, r)
 """
 
 
@@ -296,7 +287,7 @@ def firmware_balancing_log(plant: RobotParams, *, seconds: float = 30.0, amp_mn:
     RuntimeError
         The interpreter stopped, the board refused EXCITE, or it stopped balancing.
     """
-    from host.boards.fwharness import FAKE_HAL, app_process
+    from host.boards.fwharness import PipedApp
 
     rate = plant.rate
     Ts = 1.0 / rate
@@ -304,22 +295,14 @@ def firmware_balancing_log(plant: RobotParams, *, seconds: float = 30.0, amp_mn:
     sim = PlantSim(plant, Scenario(name="identify_fw", duration=seconds + start_s, seed=seed, noise=noise), seed=seed)
     adc0, enc0 = sim.read()
     cfg = {"watchdog_ms": 0, "stall_ms": 0, "arm_tilt_mrad": 150}
-    code = f"CONFIG = {cfg!r}\nADC0 = {adc0}\nENC0 = {enc0}\n" + FAKE_HAL + FW_LOOP
-    proc = app_process(code)
-    assert proc.stdin is not None and proc.stdout is not None
     n0 = int(round(start_s * rate))
     n = sim.n_ticks
     rows = np.zeros((n - n0, 5))
-    try:
+    with PipedApp(_EXCITE_HOOKS, cfg, adc0, enc0) as fw:
         for k in range(n):
             adc, enc = sim.read()
-            extra = f" 1 {amp_mn} {div}" if k == n0 else ""
-            proc.stdin.write(f"{adc} {enc}{extra}\n")
-            proc.stdin.flush()
-            line = proc.stdout.readline()
-            if not line:
-                raise RuntimeError(f"MicroPython app stopped: {proc.stderr.read() if proc.stderr else ''}")
-            duty, state, tx, tp, tf, mode, r = (int(v) for v in line.split())
+            words = (1, amp_mn, div) if k == n0 else ()
+            duty, state, tx, tp, tf, mode, r = fw.tick(adc, enc, *words)
             if k == n0 and r != 0:
                 raise RuntimeError(f"EXCITE refused by the firmware (reason {r})")
             if k >= n0:
@@ -327,8 +310,5 @@ def firmware_balancing_log(plant: RobotParams, *, seconds: float = 30.0, amp_mn:
                     raise RuntimeError(f"the firmware stopped balancing at tick {k} (state {state})")
                 rows[k - n0] = (tx * 1e-4, tp * 1e-4, tf * 0.01, duty, mode)
             sim.step(duty)
-    finally:
-        proc.stdin.close()
-        proc.wait(timeout=10)
     m = len(rows)
     return _rows(rows[:, 0], rows[:, 1], rows[:, 3], rows[:, 2], np.full(m, 2), 1, rate)
