@@ -5,10 +5,8 @@
 from __future__ import annotations
 
 import os
-import select
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -16,6 +14,7 @@ import pytest
 
 from host.boards import flash as F
 from host.boards.vport import PTMX, slave_of
+from proto_helpers import PtyBridge
 
 ROOT = Path(__file__).resolve().parent.parent
 MICROPYTHON = Path(sys.executable).parent / "micropython"
@@ -46,42 +45,11 @@ def test_silent_port_gives_up_in_seconds_saying_what_it_waited_for() -> None:
     assert took < 30  # mpremote alone: minutes
 
 
-class _Cable:
-    """Two ptys, their masters joined: a process on A's slave, the tool on B's slave."""
-
-    def __init__(self) -> None:
-        self.fa = os.open(PTMX, os.O_RDWR | os.O_NOCTTY)
-        self.a = slave_of(self.fa)
-        self.fb = os.open(PTMX, os.O_RDWR | os.O_NOCTTY)
-        self.b = slave_of(self.fb)
-        self._stop = False
-        self._t = threading.Thread(target=self._pump, daemon=True)
-        self._t.start()
-
-    def _pump(self) -> None:
-        while not self._stop:
-            try:
-                r = select.select([self.fa, self.fb], [], [], 0.1)[0]
-            except (OSError, ValueError):
-                return
-            for fd in r:
-                try:
-                    os.write(self.fb if fd == self.fa else self.fa, os.read(fd, 4096))
-                except OSError:
-                    pass
-
-    def close(self) -> None:
-        self._stop = True
-        self._t.join(timeout=1)
-        os.close(self.fa)
-        os.close(self.fb)
-
-
 @pytest.mark.slow
 def test_the_upright_link_is_named_with_what_to_do() -> None:
     from host.boards.vport import VirtualBoard
 
-    cable = _Cable()
+    cable = PtyBridge()  # a process on its end a, the tool on b
     board = VirtualBoard(cable.a, mode="realtime").start()
     try:
         with pytest.raises(F.FlashError, match="answers with the upright link's frames") as exc:
@@ -94,7 +62,7 @@ def test_the_upright_link_is_named_with_what_to_do() -> None:
 
 @pytest.mark.slow
 def test_a_real_repl_is_found_and_mpremote_gets_a_time_limit(tmp_path) -> None:
-    cable = _Cable()
+    cable = PtyBridge()  # a process on its end a, the tool on b
     tty = os.open(cable.a, os.O_RDWR)
     repl = subprocess.Popen([str(MICROPYTHON)], stdin=tty, stdout=tty, stderr=tty, start_new_session=True)
     os.close(tty)
