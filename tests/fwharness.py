@@ -26,7 +26,7 @@ from host.design.export import FixedDesign, export
 from sim.params import RobotParams
 
 if TYPE_CHECKING:
-    from host.boards.rp2040.board import EmulatedBoard
+    from host.boards.rp2040.board import EmulatedBoard, StepResult
 
 #: the report's four closed-loop cases as :func:`measurements` keywords: the 0.1 rad tilt (report
 #: section 3), the 0.2 m reference step (section 3.3), the square wave 0 <-> 0.2 m every 2.2 s (Fig. 3.11)
@@ -288,6 +288,40 @@ class Interp:
         assert self.board is not None
         self.board.exec(REPL_CLEAR, timeout=30)
         return self.board.exec(code, timeout=timeout)
+
+
+def collect_pins(b: "EmulatedBoard", ms: int, until: Callable[[list, list], bool] | None = None
+                 ) -> tuple[list, list, list, "StepResult | None"]:
+    """Run the emulated board ``ms`` milliseconds, one at a time, gathering what its pins did.
+
+    Parameters
+    ----------
+    b : EmulatedBoard
+        The board (its watched pins and PWM events configured).
+    ms : int
+        The most milliseconds to run.
+    until : callable, optional
+        ``until(edges, resets)``, asked after each millisecond: true ends the run early.
+
+    Returns
+    -------
+    edges, pwm_events, resets : list
+        The watched pins' edges, the PWM compare writes and the resets, in order.
+    last : StepResult or None
+        The last millisecond's result (its pin levels); ``None`` when ``ms`` is 0.
+    """
+    edges: list = []
+    ev: list = []
+    resets: list = []
+    r = None
+    for _ in range(ms):
+        r = b.run(1000)
+        edges += r.edges
+        ev += r.pwm_events
+        resets += r.resets
+        if until is not None and until(edges, resets):
+            break
+    return edges, ev, resets, r
 
 
 def parse_ints(out: str) -> dict[str, int]:

@@ -23,6 +23,7 @@ import pytest
 from firmware import board as BOARD
 from firmware import msgtable as T
 from firmware.supervisor import F_ESTOP
+import fwharness as H
 from host.boards.rp2040.board import EmulatedBoard
 
 pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
@@ -50,28 +51,16 @@ def _board() -> EmulatedBoard:
     return b
 
 
-def _collect(b: EmulatedBoard, ms: int, until=None):
-    edges, ev, resets = [], [], []
-    for _ in range(ms):
-        r = b.run(1000)
-        edges += r.edges
-        ev += r.pwm_events
-        resets += r.resets
-        if until is not None and until(edges, resets):
-            break
-    return edges, ev, resets, r
-
-
 def test_estop_cuts_pwm_and_enable_within_microseconds() -> None:
     with _board() as b:
         assert b.run(100).en == 0  # the driver is off until the supervisor balances
         b.usb_write(b"app.sup.arm()\napp.run(400)\nprint('done', app.sup.state, app.sup.faults)\n\x04")
-        edges, ev, _, _ = _collect(b, 150)
+        edges, ev, _, _ = H.collect_pins(b, 150)
         assert any(p == BOARD.EN_PIN and v == 1 for p, _, v in edges), "never balanced"
         assert any(e[1] != 0 for e in ev), "the motor never ran"
         t0 = b.cycles
         b.set_pin(BOARD.ESTOP_PIN, 0)
-        edges, ev, _, r = _collect(b, 20)
+        edges, ev, _, r = H.collect_pins(b, 20)
         en_low = [c for p, c, v in edges if p == BOARD.EN_PIN and v == 0]
         pwm0 = [c for c, cmp_, *_ in ev if cmp_ == 0]
         if en_low and pwm0:
@@ -92,7 +81,7 @@ def test_hung_loop_is_reset_by_the_hardware_watchdog(kind: str) -> None:
         link = "app._read_enc = enc\n" if kind == "step" else "app.set_link(Stuck())\n"
         b.exec(link)
         b.usb_write(b"app.sup.arm()\napp.run(1000)\n\x04")
-        edges, ev, resets, r = _collect(b, 600, until=lambda e, rs: bool(rs))
+        edges, ev, resets, r = H.collect_pins(b, 600, until=lambda e, rs: bool(rs))
         hang = [c for p, c, v in edges if p == MARK and v == 1]
         assert hang and resets, (hang, resets)
         assert any(p == BOARD.EN_PIN and v == 1 for p, _, v in edges if p == BOARD.EN_PIN and _ < hang[0])
@@ -121,7 +110,7 @@ def test_direction_changes_only_with_the_pwm_output_low() -> None:
         b._request({"cmd": "config", "watch": [BOARD.DIR_PIN, BOARD.EN_PIN, BOARD.PWM_PIN], "pwm_edges": True})
         b.usb_write(b"import time\nfor k in range(40):\n    hal.set_motor(20000 if k % 2 else -20000)\n"
                     b"    time.sleep_us(170 + 13 * k)\nhal.set_motor(0)\n\x04")
-        edges, _, _, _ = _collect(b, 30)
+        edges, _, _, _ = H.collect_pins(b, 30)
         level = 0
         flips = 0
         for p, c, v in sorted(edges, key=lambda e: e[1]):

@@ -30,6 +30,7 @@ import pytest
 
 from firmware import board as BOARD
 from firmware import msgtable as T
+import fwharness as H
 from host.boards.rp2040.board import EmulatedBoard
 
 pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
@@ -61,31 +62,20 @@ U = machine.UART(1, 9600, tx=machine.Pin(4), rx=machine.Pin(5))
 BIG = bytes(4000)  # 4 s of line: a hang far past the watchdog (20 kB no longer fits in one piece beside the App)
 
 
-def m_step(d):
+HANG = 0  # at the AT-th non-zero duty m_motor: 0 goes on, 1 hangs, 2 hangs with interrupts off
+
+
+def m_motor(d):
+    # the motor command, the non-zero ones counted (N)
     motor(d)
     if d:
         N[0] += 1
-        if N[0] == AT:
+        if HANG and N[0] == AT:
             led.value(1)
+            if HANG == 2:
+                machine.disable_irq()
             while True:
                 pass
-
-
-def m_irq(d):
-    motor(d)
-    if d:
-        N[0] += 1
-        if N[0] == AT:
-            led.value(1)
-            machine.disable_irq()
-            while True:
-                pass
-
-
-def m_count(d):
-    motor(d)
-    if d:
-        N[0] += 1
 
 
 def e_hal():
@@ -104,10 +94,10 @@ class Stuck:
 """
 
 INJECT = {
-    "step": "app._set_motor = m_step\n",
-    "poll": "app._set_motor = m_count\napp.set_link(Stuck())\n",
-    "hal": "app._set_motor = m_count\napp._read_enc = e_hal\n",
-    "irq_off": "app._set_motor = m_irq\n",
+    "step": "HANG = 1\napp._set_motor = m_motor\n",
+    "poll": "app._set_motor = m_motor\napp.set_link(Stuck())\n",
+    "hal": "app._set_motor = m_motor\napp._read_enc = e_hal\n",
+    "irq_off": "HANG = 2\napp._set_motor = m_motor\n",
 }
 
 
@@ -117,19 +107,6 @@ def board():
         b._request({"cmd": "config", "watch": [BOARD.DIR_PIN, BOARD.EN_PIN, MARK]})
         b.set_adc(2048 + 30)  # a little off upright: the controller drives the motor
         yield b
-
-
-def _collect(b: EmulatedBoard, ms: int, until=None):
-    edges, ev, resets = [], [], []
-    r = None
-    for _ in range(ms):
-        r = b.run(1000)
-        edges += r.edges
-        ev += r.pwm_events
-        resets += r.resets
-        if until is not None and until(edges, resets):
-            break
-    return edges, ev, resets, r
 
 
 def test_refresh_costs_microseconds_per_tick(board: EmulatedBoard) -> None:
@@ -152,7 +129,7 @@ def test_timeout_follows_the_loop_period(board: EmulatedBoard, period: int) -> N
     board.exec(f"import firmware.board as B\nfrom firmware.hal_pico import HalPico\nhal = HalPico(B)\n"
                f"hal.set_period({period})", timeout=3.0)
     board.usb_write(b"hal.set_enable(1)\nhal.set_motor(1000)\n\x04")
-    edges, ev, _, _ = _collect(board, 20 + 2 * period // 1000,
+    edges, ev, _, _ = H.collect_pins(board, 20 + 2 * period // 1000,
                                until=lambda e, r: any(p == BOARD.EN_PIN and v == 0 for p, _, v in e))
     board._read_until(b"\x04", 1e6)
     en = [(c, v) for p, c, v in edges if p == BOARD.EN_PIN]
@@ -171,7 +148,7 @@ def test_balancing_loop_never_trips_it(board: EmulatedBoard) -> None:
                "app.set_link(SerialLink(hal.uart(), app))\n", timeout=5.0)
     board.usb_write(b"app.sup.arm()\napp.run(600)\nprint('done', app.sup.state, app.sup.faults, app.n_late, "
                     b"hal.deadman_trips())\n\x04")
-    edges, ev, _, _ = _collect(board, 1400, until=lambda e, r: any(p == BOARD.EN_PIN and v == 0 for p, _, v in e))
+    edges, ev, _, _ = H.collect_pins(board, 1400, until=lambda e, r: any(p == BOARD.EN_PIN and v == 0 for p, _, v in e))
     out = board._read_until(b"\x04", 3e6).decode()
     state, faults, late, trips = (int(v) for v in out.split("done")[1].split()[:4])
     assert state == 2 and faults == 0 and late == 0, out
@@ -189,7 +166,7 @@ def test_balancing_loop_never_trips_it(board: EmulatedBoard) -> None:
 def test_a_hang_cuts_the_enable_within_three_periods(board: EmulatedBoard, kind: str) -> None:
     board.exec(SETUP + f"AT = {AT}\n" + INJECT[kind], timeout=5.0)
     board.usb_write(b"app.sup.arm()\napp.run(2000)\n\x04")
-    edges, ev, resets, _ = _collect(board, 900, until=lambda e, rs: bool(rs))
+    edges, ev, resets, _ = H.collect_pins(board, 900, until=lambda e, rs: bool(rs))
     hang = [c for p, c, v in edges if p == MARK and v == 1]
     assert hang and resets, (kind, hang, resets)
     t_hang = hang[0]
@@ -243,7 +220,7 @@ def test_the_emulation_of_the_pins_is_exact() -> None:
                    f"hal.set_period({PERIOD_US})", timeout=3.0)
             b.set_encoder(300)
             b.usb_write(code)
-            edges, ev, _, _ = _collect(b, 45)
+            edges, ev, _, _ = H.collect_pins(b, 45)
             out = b._read_until(b"\x04", 1e6).decode()
             seen.append((edges, ev, out))
     (e0, p0, o0), (e1, p1, o1) = seen
