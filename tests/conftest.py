@@ -34,7 +34,10 @@ from typing import TYPE_CHECKING, Iterator
 
 import pytest
 
-import fwharness as H
+# the shared checks in the helper modules report their values as the tests' own asserts do
+pytest.register_assert_rewrite("fwharness", "tool_helpers")
+
+import fwharness as H  # noqa: E402
 
 if TYPE_CHECKING:
     from host.boards.rp2040.board import EmulatedBoard

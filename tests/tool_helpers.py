@@ -21,6 +21,19 @@ def log_summary(stderr: str) -> tuple[int, int, str]:
     return int(line.split("upright board: ")[1].split()[0]), int(line.split("(")[1].split()[0]), line
 
 
+def logged_rows(proc: Any, out: Path) -> tuple[list[dict[str, str]], str]:
+    """A finished ``upright board log --out out.csv``: it exited 0, and the file holds the rows its
+    summary line counts, one per TELEM_STATE + TELEM_CTRL pair.  Returns the rows and the summary
+    line."""
+    import csv
+
+    assert proc.returncode == 0, proc.stderr
+    rows = list(csv.DictReader(out.open()))
+    n_rows, frames, line = log_summary(proc.stderr)
+    assert len(rows) == n_rows == frames // 2
+    return rows, line
+
+
 def http_json(url: str, data: bytes | None = None, headers: dict | None = None,
               timeout: float = 10) -> tuple[int, dict]:
     """GET (or POST ``data``) ``url``: the status and the JSON body, also of an HTTP error."""
