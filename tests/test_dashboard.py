@@ -25,6 +25,7 @@ import time
 import urllib.error
 import urllib.request
 from pathlib import Path
+from typing import Iterator
 from urllib.parse import urlsplit
 
 import pytest
@@ -111,115 +112,108 @@ class _Board(Link):
         return sum(1 for t, n in self.log if n == name and t >= since)
 
 
+@pytest.fixture
+def linked(tmp_path: Path) -> Iterator[tuple[_Board, Hub]]:
+    """A hub on a :class:`_Board` that answers through it; closed at the end."""
+    board = _Board()
+    hub = Hub(board, {"mode": "test"}, tmp_path)
+    board.hub = hub
+    try:
+        yield board, hub
+    finally:
+        hub.close()
+
+
 @pytest.mark.slow
-def test_host_heartbeat_only_while_a_live_page_asked_for_the_arm(tmp_path: Path) -> None:
-    board = _Board()
-    hub = Hub(board, {"mode": "test"}, tmp_path)
-    board.hub = hub
-    try:
-        # no page: nothing is fed, and the arm is refused to anyone but a live page
-        for _ in range(5):
-            hub.tick_keepalive()
-            time.sleep(0.03)
-        assert board.count(KEEP) == 0
-        with pytest.raises(PermissionError):
-            hub.arm("cli")
-        page = hub.connect()
+def test_host_heartbeat_only_while_a_live_page_asked_for_the_arm(linked: tuple[_Board, Hub]) -> None:
+    board, hub = linked
+    # no page: nothing is fed, and the arm is refused to anyone but a live page
+    for _ in range(5):
+        hub.tick_keepalive()
+        time.sleep(0.03)
+    assert board.count(KEEP) == 0
+    with pytest.raises(PermissionError):
+        hub.arm("cli")
+    page = hub.connect()
+    hub.ping(page.id)
+    hub.arm(page.id)
+    assert hub.feeding and board.state == 2
+    # the pump feeds the board while the page pings
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 1.5:
+        hub.tick_keepalive()
         hub.ping(page.id)
-        hub.arm(page.id)
-        assert hub.feeding and board.state == 2
-        # the pump feeds the board while the page pings
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < 1.5:
-            hub.tick_keepalive()
-            hub.ping(page.id)
-            time.sleep(0.02)
-        assert 7 <= board.count(KEEP, t0) <= 22  # every 0.1 s (15 on an idle machine)
-        # the page goes silent (a frozen or closed tab): feeding stops, the board is disarmed
-        t1 = time.monotonic()
-        while hub.feeding and time.monotonic() - t1 < 3:
-            hub.tick_keepalive()
-            time.sleep(0.02)
-        assert not hub.feeding
-        gone = time.monotonic() - t1
-        assert PAGE_TIMEOUT_S - 0.1 <= gone <= PAGE_TIMEOUT_S + 1.0
-        deadline = time.monotonic() + 2
-        while board.state != 0 and time.monotonic() < deadline:
-            time.sleep(0.02)
-        assert board.state == 0 and board.count("disarm", t1) >= 1
-        n = board.count(KEEP)
-        for _ in range(10):
-            hub.tick_keepalive()
-            time.sleep(0.02)
-        assert board.count(KEEP) == n  # no more heartbeat
-        assert "last page closed" in hub.events[-1]["text"]
-    finally:
-        hub.close()
+        time.sleep(0.02)
+    assert 7 <= board.count(KEEP, t0) <= 22  # every 0.1 s (15 on an idle machine)
+    # the page goes silent (a frozen or closed tab): feeding stops, the board is disarmed
+    t1 = time.monotonic()
+    while hub.feeding and time.monotonic() - t1 < 3:
+        hub.tick_keepalive()
+        time.sleep(0.02)
+    assert not hub.feeding
+    gone = time.monotonic() - t1
+    assert PAGE_TIMEOUT_S - 0.1 <= gone <= PAGE_TIMEOUT_S + 1.0
+    deadline = time.monotonic() + 2
+    while board.state != 0 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert board.state == 0 and board.count("disarm", t1) >= 1
+    n = board.count(KEEP)
+    for _ in range(10):
+        hub.tick_keepalive()
+        time.sleep(0.02)
+    assert board.count(KEEP) == n  # no more heartbeat
+    assert "last page closed" in hub.events[-1]["text"]
 
 
-def test_a_closed_event_stream_disarms_at_once(tmp_path: Path) -> None:
-    board = _Board()
-    hub = Hub(board, {"mode": "test"}, tmp_path)
-    board.hub = hub
-    try:
-        page = hub.connect()
-        hub.ping(page.id)
-        hub.arm(page.id)
-        t0 = time.monotonic()
-        hub.disconnect(page)
-        deadline = time.monotonic() + 2
-        while board.state != 0 and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert board.state == 0 and time.monotonic() - t0 < 0.5
-        assert not hub.feeding and not hub.arm_requested
-    finally:
-        hub.close()
+def test_a_closed_event_stream_disarms_at_once(linked: tuple[_Board, Hub]) -> None:
+    board, hub = linked
+    page = hub.connect()
+    hub.ping(page.id)
+    hub.arm(page.id)
+    t0 = time.monotonic()
+    hub.disconnect(page)
+    deadline = time.monotonic() + 2
+    while board.state != 0 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert board.state == 0 and time.monotonic() - t0 < 0.5
+    assert not hub.feeding and not hub.arm_requested
 
 
-def test_telemetry_rows_pair_and_count_losses(tmp_path: Path) -> None:
-    board = _Board()
-    hub = Hub(board, {"mode": "test"}, tmp_path)
-    try:
-        ts, tc = M.BY_NAME["telem_state"], M.BY_NAME["telem_ctrl"]
-        hub.record_start()
-        for seq in (1, 2, 4):  # seq 3 lost
-            hub.on_message(ts(x=1000 * seq, xdot=0, phi=-20, phidot=0), seq)
-            hub.on_message(tc(ref=2000, force=150, duty=-300, step_us=90), seq)
-        hub.on_message(ts(x=1, xdot=0, phi=0, phidot=0), 5)  # half a pair
-        hub.on_message(tc(ref=0, force=0, duty=0, step_us=0), 6)
-        st = hub.record_stop()
-        assert st["rows"] == 3 and hub.n == 3
-        assert hub.lost == 1 and hub.half_pairs == 1
-        lines = hub.record_bytes().decode().splitlines()
-        assert lines[0].split(",")[:3] == ["n", "t", "x"]
-        first = lines[1].split(",")
-        assert [float(v) for v in first[2:10]] == [0.1, 0.0, -0.002, 0.0, 0.2, 1.5, -300, 90]
-    finally:
-        hub.close()
+def test_telemetry_rows_pair_and_count_losses(linked: tuple[_Board, Hub]) -> None:
+    _, hub = linked
+    ts, tc = M.BY_NAME["telem_state"], M.BY_NAME["telem_ctrl"]
+    hub.record_start()
+    for seq in (1, 2, 4):  # seq 3 lost
+        hub.on_message(ts(x=1000 * seq, xdot=0, phi=-20, phidot=0), seq)
+        hub.on_message(tc(ref=2000, force=150, duty=-300, step_us=90), seq)
+    hub.on_message(ts(x=1, xdot=0, phi=0, phidot=0), 5)  # half a pair
+    hub.on_message(tc(ref=0, force=0, duty=0, step_us=0), 6)
+    st = hub.record_stop()
+    assert st["rows"] == 3 and hub.n == 3
+    assert hub.lost == 1 and hub.half_pairs == 1
+    lines = hub.record_bytes().decode().splitlines()
+    assert lines[0].split(",")[:3] == ["n", "t", "x"]
+    first = lines[1].split(",")
+    assert [float(v) for v in first[2:10]] == [0.1, 0.0, -0.002, 0.0, 0.2, 1.5, -300, 90]
 
 
-def test_the_heartbeat_crc_byte_confirms_an_upload_and_flags_another_table(tmp_path: Path) -> None:
+def test_the_heartbeat_crc_byte_confirms_an_upload_and_flags_another_table(linked: tuple[_Board, Hub]) -> None:
     # the heartbeat carries only the low 8 bits of the active table's CRC-16: a heartbeat after an
     # upload must confirm that table, not replace its CRC by one byte (CI caught 116 == 0xF574 & 0xFF)
-    board = _Board()
-    hub = Hub(board, {"mode": "test"}, tmp_path)
-    board.hub = hub
-    try:
-        hb = M.BY_NAME["heartbeat"]
-        vals = {f.name: 0 for f in hb.FIELDS}
-        blob = G.design_table("shipped")[0]
-        crc = hub.upload_gains(blob, "shipped")
-        assert crc == G.M.crc16(blob)
-        hub.on_message(hb(**{**vals, "gains_crc": crc & 0xFF}), 1)
-        assert hub.gains["crc"] == crc and hub.gains["label"] == "shipped"
-        other = (crc + 1) & 0xFF  # the board now runs a table this dashboard did not upload
-        hub.on_message(hb(**{**vals, "gains_crc": other}), 2)
-        assert hub.gains["crc"] is None and hub.gains["crc_low8"] == other
-        assert "reported by the board" in hub.gains["label"]
-        hub.on_message(hb(**{**vals, "gains_crc": crc & 0xFF}), 3)  # back to the uploaded one
-        assert hub.gains["crc"] == crc and hub.gains["label"] == "shipped"
-    finally:
-        hub.close()
+    _, hub = linked
+    hb = M.BY_NAME["heartbeat"]
+    vals = {f.name: 0 for f in hb.FIELDS}
+    blob = G.design_table("shipped")[0]
+    crc = hub.upload_gains(blob, "shipped")
+    assert crc == G.M.crc16(blob)
+    hub.on_message(hb(**{**vals, "gains_crc": crc & 0xFF}), 1)
+    assert hub.gains["crc"] == crc and hub.gains["label"] == "shipped"
+    other = (crc + 1) & 0xFF  # the board now runs a table this dashboard did not upload
+    hub.on_message(hb(**{**vals, "gains_crc": other}), 2)
+    assert hub.gains["crc"] is None and hub.gains["crc_low8"] == other
+    assert "reported by the board" in hub.gains["label"]
+    hub.on_message(hb(**{**vals, "gains_crc": crc & 0xFF}), 3)  # back to the uploaded one
+    assert hub.gains["crc"] == crc and hub.gains["label"] == "shipped"
 
 
 # ---------------------------------------------------------------- the server, over HTTP
