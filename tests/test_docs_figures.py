@@ -77,3 +77,20 @@ def test_every_default_clamp_in_prose_is_the_shipped_one() -> None:
     for where, found in quotes.items():
         assert found, f"{where} no longer quotes the default clamp"
         assert {float(v) for v in found} == {d.A_CMD_DEFAULT}, (where, found)
+
+
+def test_the_gear_play_figures_quoted_are_the_commissionings_and_identifications() -> None:
+    # docs/parameters.md, "The wheel side in the measurement" and "Identifying the pendulum on a
+    # cart with play": the clamp for a cart with play, its range, and the identification's low-pass
+    from host.operate import commission as C
+    from host.studies import identify as I
+
+    doc = _text("docs/parameters.md")
+    m = re.search(r"`VERIFY_PLAY_MAX` \(([\d.]+) mm\), up to `PLAY_A_CMD_MAX` \(([\d.]+) mm\), with the clamp "
+                  r"`PLAY_A_CMD` = ([\d.]+) m/s", doc)
+    assert m, "docs/parameters.md no longer states the clamp for a cart with gear play"
+    assert (float(m.group(1)) * 1e-3, float(m.group(2)) * 1e-3, float(m.group(3))) == (
+        C.VERIFY_PLAY_MAX, C.PLAY_A_CMD_MAX, C.PLAY_A_CMD)
+    m = re.search(r"until that term is ([\d.]+) m/s² \(`PLAY_XDD`\), at least ([\d.]+) Hz", doc)
+    assert m, "docs/parameters.md no longer states the identification's low-pass for gear play"
+    assert (float(m.group(1)), float(m.group(2))) == (I.PLAY_XDD, I.FC_MIN_HZ)
