@@ -198,9 +198,12 @@ class HostEnd:
 #: the interpreters a firmware snippet runs on, in conftest's ``interp`` fixture order
 INTERPRETERS = ("cpython", "unix", "wasm", "rp2040")
 
-# the raw REPL keeps a script's globals for the next one: each run on the emulated board starts
-# from the imports only (an earlier run's sequences are not the next one's heap to carry)
+# the raw REPL keeps a script's globals and imported modules for the next one: each run on the
+# emulated board starts from an empty heap but the interpreter's own (an earlier run's sequences
+# and firmware modules are not the next one's heap to carry: with them the board's heap was too
+# fragmented for test_rp2040_fast_equal's 6.5 kB array after the fasttick and catch runs)
 REPL_CLEAR = ("for _k in [k for k in globals() if not k.startswith('__')]:\n    del globals()[_k]\n"
+              "import sys\nfor _k in [k for k in sys.modules if k.startswith('firmware')]:\n    del sys.modules[_k]\n"
               "import gc\ngc.collect()\n")
 
 
