@@ -474,12 +474,7 @@ class Controller:
             return yx - h
         if v <= -l:
             return yx + h
-        v = self.p[0]
-        if v < yx - h:
-            return yx - h
-        if v > yx + h:
-            return yx + h
-        return v
+        return yx + fixmath.clamp(self.p[0] - yx, h)
 
     # ---- the hot path: one control tick, integers only, no allocation ----
     def step(self, yx, yp, r):
