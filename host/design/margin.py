@@ -187,6 +187,9 @@ class MarginDesign:
         Worst quantisation error of the exported force row (output LSB; bound :data:`FORCE_LSB_MAX`).
     tried : list of dict
         Every candidate scored: name, worst ratio, falls, failing points, force LSB.
+    runners_up : list of MarginCandidate
+        The other candidates, best first (the push-scored ones by their final key, then the rest
+        by the push-free one): what a robot's failed verification tries next.
     """
 
     candidate: MarginCandidate
@@ -195,6 +198,7 @@ class MarginDesign:
     margin: float
     force_lsb: float
     tried: list[dict[str, Any]] = field(default_factory=list)
+    runners_up: list[MarginCandidate] = field(default_factory=list)
 
     @property
     def precise(self) -> bool:
@@ -263,6 +267,7 @@ def design_with_margin(params: RobotParams, box: UncertaintySet, cands: Sequence
     scored.sort(key=lambda s: s[0])
     best: MarginDesign | None = None
     best_key: tuple[Any, ...] = ()
+    pushed: list[tuple[tuple[Any, ...], MarginCandidate]] = []
     for _, c, _, lsb in scored[:max(1, int(top))]:
         ev = evaluate(params, c, box, push=True, engine=engine)
         worst = scoped_score(ev)[0]
@@ -273,9 +278,13 @@ def design_with_margin(params: RobotParams, box: UncertaintySet, cands: Sequence
                 t["worst_ratio_push"] = worst
                 t["nominal_ratio_push"] = at
         key = (lsb > FORCE_LSB_MAX, at > 1.0 - margin, worst)
+        pushed.append((key, c))
         if best is None or key < best_key:
             best, best_key = md, key
         if worst <= 1.0 - margin and lsb <= FORCE_LSB_MAX:
             break
     assert best is not None
+    seen = {c.name for _, c in pushed}
+    best.runners_up = [c for _, c in sorted(pushed, key=lambda s: s[0]) if c is not best.candidate] + \
+        [c for _, c, _, _ in scored if c.name not in seen]
     return best

@@ -48,7 +48,8 @@ from sim.params import RobotParams, load_params
 
 __all__ = ["STAGES", "CommissionError", "Commission", "telemetry_metrics", "PHI_BOUND", "STATE_FILE", "weighed",
            "COULOMB_COMP", "compensation_counts", "deadband_counts", "drive_params", "XDD_LOWPASS_HZ", "VERIFY_PLAY_MAX",
-           "PLAY_A_CMD", "PLAY_A_CMD_MAX", "play_a_cmd"]
+           "PLAY_A_CMD", "PLAY_A_CMD_MAX", "play_a_cmd", "CART_DIV",
+           "VERIFY_FALLBACKS", "integral_gains"]
 
 STAGES = ("identity", "sensors", "calibrate", "cart", "design1", "balance", "identify", "design2", "verify", "save")
 STATE_FILE = "commission.json"
@@ -70,6 +71,19 @@ the friction (``make bench`` section ``realism``, ``upright commission``'s note 
 0.8-1.0 x the friction settle the step at 0.25-0.5 N where no compensation settles none; 1.2 x breaks
 the acceleration limit)."""
 CART_S, COAST_S, BAL_TRY_S, BAL_S = 8.0, 3.0, 2.0, 15.0
+VERIFY_FALLBACKS = 2
+"""Runners-up of the final design the verification tries, best first, when the robot fails the
+chosen one on a check the host can judge: the design ranks by the model over the identification's
+box (in-model: no friction, no play), the robot judges.  Not after a fall (no more risk on the
+robot); none better on the robot: the first choice stays in force."""
+CART_DIV = 16
+"""Control ticks per PRBS bit of the cart-only run: 32 ms at 500 Hz, about three time constants of
+the drive (the cart's mass against its back-EMF damping, ~30 ms), so the cart reaches speed within
+a bit and is moving at the disarm -- the coast-down's start speed is what the friction is measured
+from. At 4 ticks (8 ms) the cart only dithered at a few mm/s on the virtual robot, stopped within a
+count after the disarm, and the first stage read b 8.0 N s/m for 0.5; on a cart with gear play the
+motor side spent most bits crossing the play (the commission bench's lockstep robots ran at 4 until
+this was passed by the stage itself, and their dry fits were refused at 1.0-2.8 encoder counts)."""
 BAL_DIV = 8  # control ticks per PRBS bit of the balancing run (16 ms: slow enough to move the pendulum)
 
 
@@ -156,8 +170,16 @@ def _write_csv(cols: dict[str, np.ndarray], path: Path) -> Path:
 
 
 def weighed(design: RobotParams, plant: RobotParams) -> RobotParams:
-    """``design`` with the masses of ``plant`` (what a person weighs before commissioning)."""
-    keys = ("cart.M", "pendulum.m", "pendulum.m_cam", "pendulum.m_shaft")
+    """``design`` with the masses and the motor supply of ``plant`` (what a person weighs and measures
+    before commissioning).
+
+    The supply as well: a cart-only log gives the duty's force gain ``n gear V kt / (r R)``, not
+    ``kt`` apart from ``V`` -- with the robot file's supply 15 % off the robot's, ``kt`` came out
+    15 % off and the back-EMF damping (one motor constant, ``kt^2``) 32 %, and the dry fit's Coulomb
+    friction took up the difference (0.73-0.86 N for 0.5 on the realistic set's vertices).  The
+    realistic set's designs assume the supply known (``supply_measured``: the firmware scales the
+    duty by the supply it reads)."""
+    keys = ("cart.M", "pendulum.m", "pendulum.m_cam", "pendulum.m_shaft", "motor.V_supply")
     ch = {k: plant.values[k] for k in keys if k in plant.values and not math.isnan(float(plant.values[k]))}
     return design.replace(**ch)
 
@@ -370,7 +392,8 @@ class Commission:
     def _cart_run(self, amp: float) -> tuple[float, Any]:
         # one cart-only run: (how far the cart went, m; the run) -- run None: the stall check cut it
         try:
-            run = self.robot.excite(2, amp, seconds=CART_S * (0.6 if self.fast else 1.0), coast_s=COAST_S)
+            run = self.robot.excite(2, amp, seconds=CART_S * (0.6 if self.fast else 1.0), coast_s=COAST_S,
+                                   div=CART_DIV)
         except BoardError as exc:
             if "stall" in str(exc):
                 return 0.0, None
@@ -475,21 +498,60 @@ class Commission:
         # step in the 2 % band (the bench's note); the robot's own verification judges it
         box = confidence_box(res, pid, realism={}, push_points=2 if self.fast else 4)
         a = play_a_cmd(pid)
-        md = design_with_margin(pid, box, candidates(ki=(0.0, 1.0), a_cmd=a, names=("shipped", "x2")) if self.fast
-                                else candidates(a_cmd=a), top=2 if self.fast else 3)
+        ki = integral_gains(pid, self.fast)
+        md = design_with_margin(pid, box, candidates(ki=ki, a_cmd=a, names=("shipped", "x2")) if self.fast
+                                else candidates(ki=ki, a_cmd=a), top=2 if self.fast else 3)
         self.state["data"]["design2"] = md.candidate.as_dict(pid) | {
             "worst_ratio": md.worst_ratio, "margin": md.margin, "force_lsb": md.force_lsb, "meets": md.meets,
-            "precise": md.precise,
+            "precise": md.precise, "runners_up": [_cand_state(c) for c in md.runners_up[:VERIFY_FALLBACKS]],
             "rows": md.rows(pid), "tried": md.tried, "box": {k: list(v) for k, v in box.factors.items()} | {
                 "delay": list(box.delay)}}
-        self._upload("robot_id", md.candidate, f"final design {md.candidate.name} (margin {100 * md.margin:.0f} %)")
+        label = f"final design {md.candidate.name} (margin {100 * md.margin:.0f} %)"
+        self.state["data"]["design2"]["table_label"] = label
+        self._upload("robot_id", md.candidate, label)
         self.say(f"  worst ratio over the box {md.worst_ratio:.3f} (margin {100 * md.margin:.0f} %), "
                  f"force row {md.force_lsb:.1f} LSB")
 
     def _verify(self) -> None:
+        # the design's ranking is the model's, the verification the robot's: a design the robot fails
+        # on a check it can measure gives way to the next of the design's runners-up
+        pid = self._params("robot_id")
+        d2 = self.state["data"]["design2"]
+        first = d2.get("table_label", self.state["data"]["table"]["label"])
+        if self.state["data"]["table"]["label"] != first:  # resumed after a runner-up was in force
+            self._upload("robot_id", _cand_of(d2), first)
+        out = self._verify_once(pid)
+        tries = [{"name": d2["name"], "measured_ok": not _fails_measurably(out, pid)}]
+        fell = any(m.get("fell") for m in out.values())
+        if _fails_measurably(out, pid) and not fell:  # after a fall, no more risk on the robot
+            for cd in d2.get("runners_up", [])[:VERIFY_FALLBACKS]:
+                cand = _cand_of(cd)
+                self.say(f"  the robot failed {tries[-1]['name']}: the design's runner-up {cand.name}")
+                self._upload("robot_id", cand, f"final design {cand.name} (runner-up: the robot failed {d2['name']})")
+                o2 = self._verify_once(pid, suffix=f"_{cand.name}")
+                tries.append({"name": cand.name, "measured_ok": not _fails_measurably(o2, pid)})
+                if tries[-1]["measured_ok"]:
+                    out = o2
+                    for k in ("ref_step_20cm", "push_0p2N_5s"):  # the verification in force
+                        q = self.out / f"verify_{k}_{cand.name}.csv"
+                        if q.exists():
+                            q.replace(self.out / f"verify_{k}.csv")
+                    t = next((t for t in d2.get("tried", []) if t.get("name") == cand.name), {})
+                    w = float(t.get("worst_ratio_push", t.get("worst_ratio", math.nan)))
+                    self.state["data"]["design2"] = d2 | cand.as_dict(pid) | {
+                        "chosen_by_model": d2["name"], "worst_ratio": w, "margin": 1.0 - w, "meets": w <= 1.0,
+                        "force_lsb": float(t.get("force_lsb", math.nan)), "rows": []}
+                    break
+            else:
+                # none better on the robot: the model's choice stays in force
+                self._upload("robot_id", _cand_of(d2), first)
+        self.state["data"]["verify"] = out
+        self.state["data"]["verify_tries"] = tries
+
+    def _verify_once(self, pid: RobotParams, suffix: str = "") -> dict[str, Any]:
+        # the report's step and push on the robot, judged from telemetry; the logs to DIR/verify_*.csv
         from sim.scenario import load_scenario
 
-        pid = self._params("robot_id")
         out = {}
         for name in ("ref_step_20cm", "push_0p2N_5s"):
             sc = load_scenario(name)
@@ -502,13 +564,13 @@ class Commission:
             m["xdd_measurable"] = not play > VERIFY_PLAY_MAX
             m["pass"] = _verdict(m, pid) and m["xdd_measurable"]
             out[name] = m
-            _write_csv({k: v for k, v in lg.items()}, self.out / f"verify_{name}.csv")
+            _write_csv({k: v for k, v in lg.items()}, self.out / f"verify_{name}{suffix}.csv")
             self.say(f"  {name}: peak |phi| {m['peak_phi']:.3f} rad, peak |xdd| {m['peak_xddot']:.2f} m/s^2, "
                      f"settling {m['settle']:.2f} s -> {'PASS' if m['pass'] else 'FAIL'}"
                      + ("" if m["xdd_measurable"] else
                         f" (gear play {1e3 * play:.2f} mm: the motor's encoder does not see the cart's acceleration "
                         f"beyond {1e3 * VERIFY_PLAY_MAX:.1f} mm; measure it on the cart, or reduce the play)"))
-        self.state["data"]["verify"] = out
+        return out
 
     def _save(self) -> None:
         from host.operate.commission_report import write_report
@@ -516,6 +578,38 @@ class Commission:
         (self.out / "robot.toml").write_text((self.out / "robot_id.toml").read_text())
         write_report(self.out, self.state["data"])
         self.say(f"  wrote {self.out / 'robot.toml'} and {self.out / 'report.html'}")
+
+
+def integral_gains(p: RobotParams, fast: bool = False) -> tuple[float, ...]:
+    """The integral gains the final design tries for robot file ``p``: with the integral candidates
+    only where the cart-only run found dry friction (``cart.coulomb`` > 0) -- an offset for the integral
+    to remove.  The design's box is in-model (no friction): there the integral cannot show what it is
+    for, and its score against the candidate without it is the box's incidental ranking (on the
+    report's hard corner, an ideal cart, the integral candidate ranked first and the robot's step then
+    hunted a 6 mm offset for seconds, its tilt settling in 3.2 s against 1.5 s without it)."""
+    from host.design.margin import KI_DEFAULT
+
+    if not float(p.values.get("cart.coulomb", 0.0) or 0.0) > 0.0:
+        return (0.0,)
+    return (0.0, 0.5 * KI_DEFAULT) if fast else (0.0, 0.5 * KI_DEFAULT, KI_DEFAULT)
+
+
+def _fails_measurably(out: dict[str, Any], p: RobotParams) -> bool:
+    # a verified scenario that fails a check the host can judge (a play beyond VERIFY_PLAY_MAX
+    # leaves the acceleration unjudged: no other design reads it better)
+    return any("skipped" not in m and not _verdict(m, p) for m in out.values())
+
+
+def _cand_state(c: Any) -> dict[str, Any]:
+    # a candidate as commission.json keeps it (a resumed verification rebuilds it with _cand_of)
+    return {"name": c.name, "Q": list(c.Q), "R": c.R, "observer": c.observer, "a_cmd": c.a_cmd, "ki": c.ki}
+
+
+def _cand_of(d: dict[str, Any]) -> Any:
+    from host.design.robust import Candidate
+
+    return Candidate(str(d["name"]), tuple(float(v) for v in d["Q"]), float(d["R"]),  # type: ignore[arg-type]
+                     float(d["observer"]), float(d["a_cmd"]), ki=None if d.get("ki") is None else float(d["ki"]))
 
 
 def deadband_counts(p: RobotParams) -> int:

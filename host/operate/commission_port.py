@@ -31,18 +31,10 @@ import numpy as np
 
 from host.link import messages as M
 from host.operate.board import Board, BoardError, wait_state
-from host.operate.commission import drive_params
+from host.operate.commission import CART_DIV, drive_params
 from sim.params import RobotParams
 
 __all__ = ["PortRobot"]
-
-
-CART_DIV = 16
-"""Control ticks per PRBS bit of the cart-only run: 32 ms at 500 Hz, about three time constants of
-the drive (the cart's mass against its back-EMF damping, ~30 ms), so the cart reaches speed within
-a bit and is moving at the disarm -- the coast-down's start speed is what the friction is measured
-from. At 4 ticks (8 ms) the cart only dithered at a few mm/s on the virtual robot, stopped within a
-count after the disarm, and the first stage read b 8.0 N s/m for 0.5."""
 
 
 class _Stop(BoardError):

@@ -107,6 +107,9 @@ def write_report(out: Path, data: Mapping[str, Any]) -> Path:
                   f"force clamp {d2['u_max']:.3g} N, ki {d2['ki']:g} N/(m s); force row {d2['force_lsb']:.1f} LSB. "
                   f"Worst value/limit over the confidence box {d2['worst_ratio']:.3f}: margin "
                   f"{100 * d2['margin']:.0f} %.</p>",
+                  *([f"<p>The robot failed the model's first choice, {html.escape(d2['chosen_by_model'])}, in "
+                     "its verification: this runner-up of the same scoring is in force (the worst cases below "
+                     "are the scoring's, in the table of candidates).</p>"] if d2.get("chosen_by_model") else []),
                   _table(d2.get("rows", []), ["scenario", "constraint", "worst", "limit", "ratio", "verdict", "fails",
                                               "points", "at"]),
                   "<p>Candidates scored:</p>", _table(d2.get("tried", []), ["name", "worst_ratio", "worst_ratio_push",
@@ -116,6 +119,9 @@ def write_report(out: Path, data: Mapping[str, Any]) -> Path:
         parts.append("<h2>Verification on the robot</h2>")
         parts.append(_table([{"run": k, **v} for k, v in ver.items()],
                             ["run", "peak_phi", "peak_xddot", "settle", "fell", "pass", "skipped"]))
+        if len(data.get("verify_tries", [])) > 1:
+            parts += ["<p>Designs verified on the robot, in order:</p>",
+                      _table(data["verify_tries"], ["name", "measured_ok"])]
         for k in ver:
             p = out / f"verify_{k}.csv"
             if p.exists():
