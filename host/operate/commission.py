@@ -13,9 +13,7 @@ when done so that ``--resume`` starts after the last one:
                uploaded;
 ``balance``    balancing with the PRBS added, the amplitude starting small and growing (x1.6)
                while the peak tilt stays under half ``PHI_BOUND``; a run beyond ``PHI_BOUND``
-               stops its excitation at once and the amplitude backs off (/2); the long run stops
-               its excitation at half ``PHI_BOUND`` and, stopped early, backs off once more
-               -> ``balance.csv``;
+               stops its excitation at once and the amplitude backs off (/2) -> ``balance.csv``;
 ``identify``   :func:`host.studies.identify.identify` on both logs -> ``robot_id.toml`` with intervals;
 ``design2``    the design with margin over the identification's confidence box
                (:func:`host.design.margin.design_with_margin`), uploaded and saved;
@@ -86,9 +84,6 @@ from. At 4 ticks (8 ms) the cart only dithered at a few mm/s on the virtual robo
 count after the disarm, and the first stage read b 8.0 N s/m for 0.5; on a cart with gear play the
 motor side spent most bits crossing the play (the commission bench's lockstep robots ran at 4 until
 this was passed by the stage itself, and their dry fits were refused at 1.0-2.8 encoder counts)."""
-BAL_KEEP = 0.6
-"""A long balancing run whose excitation stopped after this fraction of its ``BAL_S`` is kept as it
-is (enough excitation to identify from); stopped before, it is run again at half the amplitude."""
 BAL_DIV = 8  # control ticks per PRBS bit of the balancing run (16 ms: slow enough to move the pendulum)
 
 
@@ -463,20 +458,7 @@ class Commission:
         if all(t["peak_phi"] == 0.0 for t in tries):
             raise CommissionError(f"balance: the pendulum did not move at up to {amp:.2f} N of excitation (the "
                                   "largest the stage-1 table allows): the cart sticks -- check the drive")
-        # the long run stops its excitation where the tries stop growing (half PHI_BOUND): a lightly
-        # damped mode it feeds for longer than a try can grow past what the tries saw (a vertex of the
-        # realistic set with 3 mm of play and 20 ms of delay: peaks 0.04 in the tries, then 0.07, 0.09,
-        # 0.14 over the long run's slow swings, and the pendulum fell after the stop at 0.15); stopped
-        # early, it is run once more at half the amplitude
-        for _ in range(2):
-            run = self.robot.excite(1, amp, seconds=BAL_S, div=BAL_DIV, phi_stop=0.5 * PHI_BOUND)
-            excited = int(np.count_nonzero(run.columns["excite"] > 0))
-            if run.fell or run.stopped_at is None or excited >= BAL_KEEP * BAL_S * float(p1.rate):
-                break
-            tries.append({"amplitude_n": amp, "peak_phi": float(np.max(np.abs(run.columns["phi"]))), "stopped": True,
-                          "fell": False, "long": True})
-            self.say(f"  {amp:.2f} N for {BAL_S:g} s: the tilt passed {0.5 * PHI_BOUND:g} rad -- stopped, backing off")
-            amp *= 0.5
+        run = self.robot.excite(1, amp, seconds=BAL_S, div=BAL_DIV, phi_stop=PHI_BOUND)
         if run.fell:
             raise CommissionError(f"balance: the pendulum fell at {amp:.2f} N")
         path = _write_csv(run.columns, self.out / "balance.csv")
