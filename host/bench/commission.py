@@ -119,6 +119,9 @@ def bench(n: int | None = None) -> dict[str, Any]:
                 row["refused"] = refused
                 row["verified"] = bool(ver) and all(v.get("pass", False) for v in ver.values())
                 row["margin"] = data.get("design2", {}).get("margin", math.nan)
+                # designs the robot's verification ran (more than one: the first choice failed on the robot)
+                row["designs_verified"] = len(data.get("verify_tries", []))
+                row["runner_up"] = bool(data.get("design2", {}).get("chosen_by_model"))
                 row.update(id_errors(data, plant))
                 if ver:
                     after = [true_verdict(r.run_scenario(sc), sc, plant) for sc in scen]
@@ -146,6 +149,9 @@ def bench(n: int | None = None) -> dict[str, Any]:
                  f"{f} {m}" for f, m in collections.Counter(r["fails"] for r in rows if r["fails"]).most_common())
                  or "none") + " (section realism: which plant-realism parameter makes it fail)",
              _id_note(rows),
+             f"the robot failed the design's first choice in its verification: "
+             f"{sum(r.get('designs_verified', 0) > 1 for r in rows)}, a runner-up then in force: "
+             f"{sum(r.get('runner_up', False) for r in rows)}",
              "worst design margin over the identification's box (1 - worst ratio): "
              + (f"{min(r['margin'] for r in rows if math.isfinite(r['margin'])):+.3f}"
                 if any(math.isfinite(r["margin"]) for r in rows) else "none designed")]
