@@ -213,7 +213,8 @@ def test_a_design_the_robot_fails_gives_way_to_the_runner_up(tmp_path) -> None:
     # the verification judges on the robot: the first choice is made one that settles the step far
     # too slowly (a fiftieth of the position weight), the design's own choice its runner-up
     from host.design.margin import candidates
-    from host.operate.commission import STAGES, Commission, _cand_of, _cand_state
+    from host.design.robust import Candidate
+    from host.operate.commission import STAGES, Commission
     from host.operate.commission_lockstep import LockstepRobot
 
     plant = load_params("sim/plants/soft_pendulum.toml")
@@ -226,7 +227,7 @@ def test_a_design_the_robot_fails_gives_way_to_the_runner_up(tmp_path) -> None:
     s = candidates(ki=(0.0,), a_cmd=(good["a_cmd"],), names=("shipped",))[0]
     slow = type(s)("slow", (s.Q[0] / 50, *s.Q[1:]), s.R, s.observer, s.a_cmd, ki=0.0)
     st["data"]["design2"] = good | slow.as_dict(pid) | {"table_label": "final design slow",
-                                                       "runners_up": [_cand_state(_cand_of(good))]}
+                                                       "runners_up": [Candidate.from_dict(good).as_dict(pid)]}
     (out / "commission.json").write_text(json.dumps(st))
     lines: list[str] = []
     with LockstepRobot(plant) as r:

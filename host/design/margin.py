@@ -44,12 +44,14 @@ from .robust import FORCE_LSB_MAX, Candidate, Evaluation, evaluate, shipped, wor
 from .uncertainty import UNCERTAINTY_REALISTIC, UncertaintySet, load_uncertainty, uncertainty_from_dict
 
 __all__ = ["IntegralController", "MarginCandidate", "MarginDesign", "confidence_box", "candidates",
-           "design_with_margin", "fixed_design", "MARGIN", "A_CMD", "KI_DEFAULT", "SCOPE", "scoped_score", "nominal_ratio"]
+           "design_with_margin", "fixed_design", "MARGIN", "A_CMD", "KI_DEFAULT", "KI_GAINS", "SCOPE", "scoped_score", "nominal_ratio"]
 
 MARGIN = 0.1
 """Required margin: every constraint's worst value at most ``1 - MARGIN`` of its limit over the box."""
 KI_DEFAULT = 2.0
 """N/(m s): the integral gain of the integral candidates (scaled by the design's position gain)."""
+KI_GAINS = (0.0, 0.5 * KI_DEFAULT, KI_DEFAULT)
+"""The integral gains :func:`candidates` tries by default (none, half, the default)."""
 
 
 MarginCandidate = Candidate
@@ -60,7 +62,7 @@ A_CMD = (4.73, 4.2)
 """m/s^2: the force clamps (from upright) :func:`candidates` tries by default."""
 
 
-def candidates(ki: Sequence[float] = (0.0, 0.5 * KI_DEFAULT, KI_DEFAULT), a_cmd: Sequence[float] = A_CMD,
+def candidates(ki: Sequence[float] = KI_GAINS, a_cmd: Sequence[float] = A_CMD,
                names: Sequence[str] | None = None) -> list[MarginCandidate]:
     """The candidates :func:`design_with_margin` scores: the shipped weights and a few around them
     (position weight x2 and x4, a faster estimator, a heavier tilt weight), each with every ``ki``

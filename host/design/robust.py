@@ -145,6 +145,12 @@ class Candidate:
 
         return force_clamp(params, self.a_cmd)
 
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "Candidate":
+        """The candidate an :meth:`as_dict` describes (``commission.json`` keeps its designs so)."""
+        return cls(str(d["name"]), tuple(float(v) for v in d["Q"]), float(d["R"]),  # type: ignore[arg-type]
+                   float(d["observer"]), float(d["a_cmd"]), ki=None if d.get("ki") is None else float(d["ki"]))
+
     def as_dict(self, params: RobotParams) -> dict[str, Any]:
         """JSON-friendly description (with the clamp in N and the export command)."""
         q = " ".join(f"{v:.6g}" for v in self.Q)

@@ -503,7 +503,7 @@ class Commission:
                                 else candidates(ki=ki, a_cmd=a), top=2 if self.fast else 3)
         self.state["data"]["design2"] = md.candidate.as_dict(pid) | {
             "worst_ratio": md.worst_ratio, "margin": md.margin, "force_lsb": md.force_lsb, "meets": md.meets,
-            "precise": md.precise, "runners_up": [_cand_state(c) for c in md.runners_up[:VERIFY_FALLBACKS]],
+            "precise": md.precise, "runners_up": [c.as_dict(pid) for c in md.runners_up[:VERIFY_FALLBACKS]],
             "rows": md.rows(pid), "tried": md.tried, "box": {k: list(v) for k, v in box.factors.items()} | {
                 "delay": list(box.delay)}}
         label = f"final design {md.candidate.name} (margin {100 * md.margin:.0f} %)"
@@ -513,21 +513,24 @@ class Commission:
                  f"force row {md.force_lsb:.1f} LSB")
 
     def _verify(self) -> None:
+        from host.design.robust import Candidate
+
         # the design's ranking is the model's, the verification the robot's: a design the robot fails
         # on a check it can measure gives way to the next of the design's runners-up
         pid = self._params("robot_id")
         d2 = self.state["data"]["design2"]
         first = d2.get("table_label", self.state["data"]["table"]["label"])
         if self.state["data"]["table"]["label"] != first:  # resumed after a runner-up was in force
-            self._upload("robot_id", _cand_of(d2), first)
+            self._upload("robot_id", Candidate.from_dict(d2), first)
         out = self._verify_once(pid)
         tries = [{"name": d2["name"], "measured_ok": not _fails_measurably(out, pid)}]
         fell = any(m.get("fell") for m in out.values())
         if _fails_measurably(out, pid) and not fell:  # after a fall, no more risk on the robot
             for cd in d2.get("runners_up", [])[:VERIFY_FALLBACKS]:
-                cand = _cand_of(cd)
+                cand = Candidate.from_dict(cd)
                 self.say(f"  the robot failed {tries[-1]['name']}: the design's runner-up {cand.name}")
-                self._upload("robot_id", cand, f"final design {cand.name} (runner-up: the robot failed {d2['name']})")
+                label = f"final design {cand.name} (runner-up: the robot failed {d2['name']})"
+                self._upload("robot_id", cand, label)
                 o2 = self._verify_once(pid, suffix=f"_{cand.name}")
                 tries.append({"name": cand.name, "measured_ok": not _fails_measurably(o2, pid)})
                 if tries[-1]["measured_ok"]:
@@ -539,12 +542,12 @@ class Commission:
                     t = next((t for t in d2.get("tried", []) if t.get("name") == cand.name), {})
                     w = float(t.get("worst_ratio_push", t.get("worst_ratio", math.nan)))
                     self.state["data"]["design2"] = d2 | cand.as_dict(pid) | {
-                        "chosen_by_model": d2["name"], "worst_ratio": w, "margin": 1.0 - w, "meets": w <= 1.0,
-                        "force_lsb": float(t.get("force_lsb", math.nan)), "rows": []}
+                        "chosen_by_model": d2["name"], "table_label": label, "worst_ratio": w, "margin": 1.0 - w,
+                        "meets": w <= 1.0, "force_lsb": float(t.get("force_lsb", math.nan)), "rows": []}
                     break
             else:
                 # none better on the robot: the model's choice stays in force
-                self._upload("robot_id", _cand_of(d2), first)
+                self._upload("robot_id", Candidate.from_dict(d2), first)
         self.state["data"]["verify"] = out
         self.state["data"]["verify_tries"] = tries
 
@@ -587,29 +590,17 @@ def integral_gains(p: RobotParams, fast: bool = False) -> tuple[float, ...]:
     for, and its score against the candidate without it is the box's incidental ranking (on the
     report's hard corner, an ideal cart, the integral candidate ranked first and the robot's step then
     hunted a 6 mm offset for seconds, its tilt settling in 3.2 s against 1.5 s without it)."""
-    from host.design.margin import KI_DEFAULT
+    from host.design.margin import KI_GAINS
 
     if not float(p.values.get("cart.coulomb", 0.0) or 0.0) > 0.0:
         return (0.0,)
-    return (0.0, 0.5 * KI_DEFAULT) if fast else (0.0, 0.5 * KI_DEFAULT, KI_DEFAULT)
+    return KI_GAINS[:2] if fast else KI_GAINS
 
 
 def _fails_measurably(out: dict[str, Any], p: RobotParams) -> bool:
     # a verified scenario that fails a check the host can judge (a play beyond VERIFY_PLAY_MAX
     # leaves the acceleration unjudged: no other design reads it better)
     return any("skipped" not in m and not _verdict(m, p) for m in out.values())
-
-
-def _cand_state(c: Any) -> dict[str, Any]:
-    # a candidate as commission.json keeps it (a resumed verification rebuilds it with _cand_of)
-    return {"name": c.name, "Q": list(c.Q), "R": c.R, "observer": c.observer, "a_cmd": c.a_cmd, "ki": c.ki}
-
-
-def _cand_of(d: dict[str, Any]) -> Any:
-    from host.design.robust import Candidate
-
-    return Candidate(str(d["name"]), tuple(float(v) for v in d["Q"]), float(d["R"]),  # type: ignore[arg-type]
-                     float(d["observer"]), float(d["a_cmd"]), ki=None if d.get("ki") is None else float(d["ki"]))
 
 
 def deadband_counts(p: RobotParams) -> int:
