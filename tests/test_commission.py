@@ -259,6 +259,13 @@ def test_commission_a_realistic_cart_refuses_or_verifies(tmp_path) -> None:
         play = data["cart"]["estimates"].get("backlash", 0.0)
         assert play > 3e-4  # the 1 mm of this plant, found by the dry fit
         assert load_params(tmp_path / "c" / "robot_stage1.toml").values["motor.backlash"] == pytest.approx(play)
+    if "design2" in st["done"]:
+        # the final design's box is scored on the design model (in_model): with the robot file's 1 mm of
+        # play and 0.2 N of Coulomb friction in the batch's plant and none of the firmware's
+        # compensation in its controller, every run of the box hunts and every candidate scores 5.0
+        from host.design.robust import UNSETTLED
+
+        assert data["design2"]["worst_ratio"] < UNSETTLED, data["design2"]
     if err is None and not all(v.get("pass", True) for v in data["verify"].values()):
         # the commissioning ran to its end and its own verification says FAIL (the CLI exits 1 with
         # "verification FAIL"): a refusal at the last stage, in the robot's own telemetry. Seen at
@@ -279,6 +286,20 @@ def test_commission_a_realistic_cart_refuses_or_verifies(tmp_path) -> None:
         stage = str(err).split(":")[0]
         assert stage in STAGES and stage not in st["done"] and "\n" not in str(err)
         assert st["done"] == list(STAGES[:STAGES.index(stage)])
+
+
+def test_the_design_model_is_the_robot_without_its_plant_realism() -> None:
+    # what a commissioning's designs are scored on: the identified robot file with its Coulomb
+    # friction, play, deadband, minimum duty and pot nonlinearity at 0, everything else as it was
+    from host.design.uncertainty import REALISM, in_model
+
+    p = load_params("sim/plants/realistic_cart.toml")
+    q = in_model(p)
+    assert any(p.values.get(k, 0.0) != 0.0 for k in REALISM.values())
+    assert all(q.values.get(k, 0.0) == 0.0 for k in REALISM.values())
+    assert {k: v for k, v in q.values.items() if k not in REALISM.values()} == \
+        {k: v for k, v in p.values.items() if k not in REALISM.values()}
+    assert in_model(q) is q  # already the model: unchanged
 
 
 def test_the_lockstep_robot_says_when_the_board_refuses_the_excitation() -> None:

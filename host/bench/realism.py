@@ -49,9 +49,9 @@ LEVELS: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
 
 
 def _strip(plant: Any) -> Any:
-    from host.design.uncertainty import REALISM
+    from host.design.uncertainty import in_model
 
-    return plant.replace(**{key: 0.0 for key in REALISM.values() if key in plant.values})
+    return in_model(plant)
 
 
 def _runs(robot: Any, plant: Any, scen: Sequence[Any]) -> list[dict[str, Any]]:

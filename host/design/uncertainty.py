@@ -32,7 +32,7 @@ import numpy as np
 
 from sim.params import SCHEMA, RobotParams, read_toml
 
-__all__ = ["UNCERTAINTY_FILE", "FACTORS", "LAWS", "ROBOT_KEYS", "Axis", "scaled_values", "UncertaintyError", "Point", "UncertaintySet", "uncertainty_from_dict",
+__all__ = ["UNCERTAINTY_FILE", "in_model", "FACTORS", "LAWS", "ROBOT_KEYS", "Axis", "scaled_values", "UncertaintyError", "Point", "UncertaintySet", "uncertainty_from_dict",
            "load_uncertainty", "REALISM", "UNCERTAINTY_REALISTIC"]
 
 UNCERTAINTY_FILE = Path(__file__).resolve().parents[2] / "sim" / "uncertainty.toml"
@@ -55,6 +55,21 @@ REALISM: dict[str, str] = {"coulomb": "cart.coulomb", "stiction": "cart.stiction
                            "deadband": "motor.deadband", "duty_min": "motor.duty_min", "pot_inl": "sensors.pot_inl"}
 """Keys of an uncertainty file's ``[realism]`` table -> robot-file key (the batch parameter is the bare
 name, :data:`sim.batch.REALISM_KEYS`); ranges in the robot file's units."""
+
+def in_model(params: RobotParams) -> RobotParams:
+    """``params`` without its plant realism (every :data:`REALISM` key it sets, at 0): the design model.
+
+    A robot file written by ``upright identify`` or ``upright commission`` carries the Coulomb
+    friction, gear play and deadband the cart-only run measured; the table compensates the
+    deadband and most of the friction, and the firmware models the play.  A batch evaluation of a
+    linear design with that realism in its plant and none of the firmware's compensation in its
+    controller judges a robot nobody runs (at 3 mm of play and 0.5 N of Coulomb friction every run
+    of the box hunts, and every candidate scores a never-settling 5.0), so a design's box is scored
+    on the model the design is for, and the robot's own verification judges the rest.
+    """
+    zero = {key: 0.0 for key in REALISM.values() if float(params.values.get(key, 0.0)) != 0.0}
+    return params.replace(**zero) if zero else params
+
 
 ROBOT_KEYS: dict[str, tuple[str, ...]] = {
     "inertia": ("I",), "cart_mass": ("M",), "pendulum_mass": ("m_cam", "m_shaft"), "friction": ("b",),
