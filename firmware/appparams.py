@@ -12,12 +12,12 @@ except ImportError:
 
 from . import fixmath
 from . import msgtable as T
-from .controller import LIM_GHB, LIM_HPX
+from .controller import LIM_FC, LIM_GHB, LIM_HPX
 from .supervisor import ARMED, BALANCING
 
 # the parameters with a derived integer (Params._apply_param)
 _DERIVED = (T.P_TILT_LIMIT, T.P_ARM_TILT, T.P_WATCHDOG_MS, T.P_MAX_DUTY, T.P_POT_OFFSET, T.P_ADC_SIGN,
-            T.P_ENC_SIGN, T.P_MOTOR_SIGN, T.P_GEAR_PLAY)
+            T.P_ENC_SIGN, T.P_MOTOR_SIGN, T.P_GEAR_PLAY, T.P_CART_COULOMB)
 _SMALL = const(0x1FFFFFFF)
 
 
@@ -56,6 +56,27 @@ class Params:
         while s < 0:
             n >>= 1
             s += 1
+        return n
+
+    def _force_u(self, cn):
+        # a force in 0.01 N (telemetry's unit) in u LSB: the inverse of the telemetry's scale
+        # (0.01 N = u m >> s), cn 2**s / m in small ints (saturates at _SMALL)
+        o = self.off["TEL"]
+        t = self.table
+        m = t[o + 4]
+        s = t[o + 5]
+        if cn <= 0 or m <= 0:
+            return 0
+        n = cn
+        while s > 0 and n <= (_SMALL >> 1):
+            n <<= 1
+            s -= 1
+        n //= m
+        while s > 0:
+            if n > (_SMALL >> 1):
+                return _SMALL
+            n <<= 1
+            s -= 1
         return n
 
     def _apply_params(self):
@@ -121,6 +142,9 @@ class Params:
             # the controller finds the wheel side from the gap model; the sensors' play operator
             # only where there is no gap model (a drive without its back-EMF constants)
             self.sensors.play = 0 if ghb else g >> 1
+        elif i == T.P_CART_COULOMB:
+            # the predictor's force while the motor side is in the play (controller LIM_FC)
+            self.ctrl.lim[LIM_FC] = self._force_u(p[i])
 
     def param_get(self, index):
         # the value, or 0 for an index out of range (the dispatcher checks first)

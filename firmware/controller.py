@@ -55,10 +55,12 @@ _BUDGET = const(0xFFFFF)
 # properties on the class: with one, MicroPython looks every attribute store up in the class first)
 LIM_GHB = const(4)
 LIM_GAP = const(5)
-# ... and the half play in x LSB, then the gap model's last d values (oldest first): the wheel
+# ... and the half play in x LSB, the cart's Coulomb friction in u LSB (the predictor's force while
+# the motor side is in the play), then the gap model's last d values (oldest first): the wheel
 # side the x measurement stands for is found from the gap at the measurement's time
 LIM_HPX = const(6)
-LIM_GH = const(7)
+LIM_FC = const(7)
+LIM_GH = const(8)
 # crossing the play: while the gap is open toward the force, the force is raised to what reaches
 # the flank, at most the clamp >> CROSS_SHIFT (a quarter: a stronger crossing hits the flank hard
 # enough to break the 5 m/s^2 limit, a weaker one leaves the limit cycle; docs/parameters.md)
@@ -340,9 +342,9 @@ class Controller:
         self.u_raw = 0
         self.vh = 0
         lim = self.lim
-        for i in range(LIM_GAP, len(lim)):
-            if i != LIM_HPX:
-                lim[i] = 0
+        lim[LIM_GAP] = 0  # the motor side in the middle of the play, no history (HPX, FC: parameters)
+        for i in range(LIM_GH, len(lim)):
+            lim[i] = 0
         self.ramp = False
         self._use(False)
 
@@ -620,7 +622,18 @@ class Controller:
                 ue = v + l
                 v = -l
             else:
+                # in the play the gear drives nothing, and the cart's dry friction, which the
+                # table's compensation cancels only through the gear, brakes it: the predictor is
+                # given the Coulomb force against the estimated speed (without it the estimate
+                # coasts on while the cart slows, and the back-EMF compensation turns that speed
+                # error into force at the engagement: c_emf, 30-44 N s/m, x the error)
                 ue = 0
+                fc = lim[LIM_FC]
+                if fc:
+                    if p[1] > 0:
+                        ue = -fc
+                    elif p[1] < 0:
+                        ue = fc
             lim[LIM_GAP] = v
             for i in range(d - 1):
                 lim[LIM_GH + i] = lim[LIM_GH + 1 + i]

@@ -21,7 +21,8 @@ _INTEG_SHIFT = const(6)
 _INTEG_HALF = const(32)
 LIM_GHB = const(4)
 LIM_GAP = const(5)
-LIM_GH = const(7)
+LIM_FC = const(7)
+LIM_GH = const(8)
 CROSS_SHIFT = const(2)
 
 
@@ -159,6 +160,12 @@ def step_native(c, yx, yp, r):
             v = -l
         else:
             ue = 0
+            fc = lim[LIM_FC]
+            if fc:
+                if p[1] > 0:
+                    ue = -fc
+                elif p[1] < 0:
+                    ue = fc
         lim[LIM_GAP] = v
         for i in range(d - 1):
             lim[LIM_GH + i] = lim[LIM_GH + 1 + i]
@@ -355,6 +362,12 @@ def step_viper(c, yx: int, yp: int, r: int) -> int:
             v = -l
         else:
             ue = 0
+            fc = (((lim[LIM_FC] + sb) & msk) - sb)
+            if fc:
+                if (((p[1] + sb) & msk) - sb) > 0:
+                    ue = -fc
+                elif (((p[1] + sb) & msk) - sb) < 0:
+                    ue = fc
         lim[LIM_GAP] = v
         for i in range(d - 1):
             lim[LIM_GH + i] = (((lim[LIM_GH + 1 + i] + sb) & msk) - sb)

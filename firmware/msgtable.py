@@ -350,12 +350,14 @@ P_ADC_SIGN = const(10)
 P_ENC_SIGN = const(11)
 P_MOTOR_SIGN = const(12)
 P_GEAR_PLAY = const(13)
-N_PARAMS = const(14)
+P_CART_COULOMB = const(14)
+N_PARAMS = const(15)
 
 # parameters that change the drive or what the sensors mean (signs, offsets, the duty clamp,
 # the CAN node id the host reaches the board at): param_set is refused (ARMED) while armed or
 # balancing -- changed under a balancing robot they tip it
-DRIVE_PARAMS = (P_MAX_DUTY, P_NODE_ID, P_POT_OFFSET, P_ADC_SIGN, P_ENC_SIGN, P_MOTOR_SIGN, P_GEAR_PLAY)
+DRIVE_PARAMS = (P_MAX_DUTY, P_NODE_ID, P_POT_OFFSET, P_ADC_SIGN, P_ENC_SIGN, P_MOTOR_SIGN, P_GEAR_PLAY,
+                P_CART_COULOMB)
 
 # (index, name, unit, min, max, default, doc); every value an int with |v| < 2**30
 PARAMS = (
@@ -392,6 +394,10 @@ PARAMS = (
      "motor.backlash; upright commission sets it): the estimator takes the wheel side half the play "
      "behind the encoder while the gear drives, its own prediction inside the play while the motor "
      "crosses it, and its predictor is given only the force the gear passes (0: no play)"),
+    (P_CART_COULOMB, "cart_coulomb", "cN", 0, 1000, 0,
+     "the cart's Coulomb (sliding) friction in 0.01 N (robot.toml cart.coulomb; upright commission "
+     "sets it): with gear_play, the force the predictor is given against the estimated speed while "
+     "the motor side crosses the play (the table's compensation acts only through the gear)"),
 )
 
 # ---- status values: read-only board figures, read with PARAM_GET(STATUS_BASE + k) ----

@@ -94,3 +94,15 @@ def test_the_gear_play_figures_quoted_are_the_commissionings_and_identifications
     m = re.search(r"until that term is ([\d.]+) m/s² \(`PLAY_XDD`\), at least ([\d.]+) Hz", doc)
     assert m, "docs/parameters.md no longer states the identification's low-pass for gear play"
     assert (float(m.group(1)), float(m.group(2))) == (I.PLAY_XDD, I.FC_MIN_HZ)
+
+
+def test_the_board_parameters_the_gear_play_docs_name_are_the_firmwares() -> None:
+    # docs/parameters.md names the two board parameters of a cart with play and their units
+    from firmware import msgtable as T
+
+    doc = _text("docs/parameters.md")
+    units = {p[1]: p[2] for p in T.PARAMS}
+    m = re.search(r"\(board parameter `gear_play`, encoder counts;", doc)
+    assert m and units["gear_play"] == "count"
+    m = re.search(r"\(board parameter `cart_coulomb`, 0\.01 N;", doc)
+    assert m and units["cart_coulomb"] == "cN"

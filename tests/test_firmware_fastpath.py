@@ -37,15 +37,17 @@ def seq():
     return seq_with_extremes()
 
 
-# the three emitters' controller steps on the sequence (YX, YP, R; GHB, HPX: the gear-play model)
+# the three emitters' controller steps on the sequence (YX, YP, R; GHB, HPX, FC: the gear-play model,
+# FC the Coulomb force the predictor is given in the play, Controller.lim[LIM_FC])
 STEPS = """
-from firmware.controller import Controller
+from firmware.controller import Controller, LIM_FC
 from firmware import fastpath
 c0 = Controller(LAYOUT, FLAT)
 c1 = Controller(LAYOUT, FLAT)
 c2 = Controller(LAYOUT, FLAT)
 c0.lim[4] = c1.lim[4] = c2.lim[4] = GHB
 c0.lim[6] = c1.lim[6] = c2.lim[6] = HPX
+c0.lim[LIM_FC] = c1.lim[LIM_FC] = c2.lim[LIM_FC] = FC
 n = len(YX)
 bad = 0
 free = 0
@@ -76,16 +78,18 @@ for em in ('native', 'viper'):
     hal = Hal()
     app = App(hal, config={'watchdog_ms': 0, 'emitter': em})
     app.param_set(T.P_GEAR_PLAY, PLAY)
+    app.param_set(T.P_CART_COULOMB, 50 if FC else 0)
     print('alloc_free_' + em, steps_locked(hal, app, 3000))
     print('state_' + em, app.sup.state)
 """
 
 
-@pytest.mark.parametrize("ghb, hpx, play", [(0, 0, 0), (4000, 1200, 19)], ids=["no gear play", "gear play"])
-def test_native_and_viper_equal_bytecode(seq, ghb: int, hpx: int, play: int) -> None:
+@pytest.mark.parametrize("ghb, hpx, play, fc", [(0, 0, 0, 0), (4000, 1200, 19, 0), (4000, 1200, 19, 300)],
+                         ids=["no gear play", "gear play", "gear play and Coulomb friction"])
+def test_native_and_viper_equal_bytecode(seq, ghb: int, hpx: int, play: int, fc: int) -> None:
     # with gear play the gap model (Controller.lim[4], [5]: LIM_GHB, LIM_GAP; the wheel side from lim[6:]) runs too
     yx, yp, r = seq
-    code = H.flat_src(FD) + H.ints_src(YX=yx, YP=yp, R=r) + f"GHB = {ghb}\nHPX = {hpx}\nPLAY = {play}\n" + STEPS + APP
+    code = H.flat_src(FD) + H.ints_src(YX=yx, YP=yp, R=r) + f"GHB = {ghb}\nHPX = {hpx}\nPLAY = {play}\nFC = {fc}\n" + STEPS + APP
     out = dict(line.split() for line in run_unix(code, timeout=120).splitlines() if line.strip())
     assert int(out["n"]) == len(yx) and int(out["bad"]) == 0
     # the sequence crosses the play model's gap (the force reverses) and rests on a flank

@@ -19,7 +19,7 @@ import fwharness as H
 from firmware import gains as G
 from firmware import msgtable as T
 from firmware.app import App
-from firmware.controller import CROSS_SHIFT, LIM_GAP, LIM_GHB, LIM_HPX, Controller
+from firmware.controller import CROSS_SHIFT, LIM_FC, LIM_GAP, LIM_GH, LIM_GHB, LIM_HPX, Controller
 from firmware.sensors import Sensors
 from firmware.store import MIGRATED, NAMES, ConfigStore, encode
 from firmware.supervisor import BALANCING
@@ -101,6 +101,43 @@ def test_a_small_force_crosses_the_play_at_a_quarter_of_the_clamp_and_lands_on_t
     assert seen[land][3] == 0 and seen[-1][3] > 0 and seen[-1][1] < h, seen  # then the force passes
 
 
+def test_in_the_play_the_predictor_gets_the_coulomb_force_against_the_speed() -> None:
+    # the motor side in the play passes nothing to the cart, whose dry friction (compensated by the
+    # table only through the gear) brakes it: the predictor is given -fc sign(estimated speed); on a
+    # flank the force the gear passes, as without friction
+    ghb, fc = 100000, 300
+    c = _controller(ghb)
+    c.lim[LIM_FC] = fc
+    d = c.d
+    seen = set()
+    for k in range(300):
+        gap = c.lim[LIM_GAP]
+        v = c.p[1]
+        ym = 40 * k if k < 150 else 40 * (300 - k)  # the cart forward, then back
+        u = c.step(ym, 0, (20000, -20000)[(k // 60) % 2])
+        ue, g = _passed(gap, u, ghb)
+        want = ue if ue != 0 else (-fc if v > 0 else (fc if v < 0 else 0))
+        assert c.b[d - 1] == want and c.lim[LIM_GAP] == g, (k, gap, v, u, c.b[d - 1])
+        if ue == 0:
+            seen.add((v > 0) - (v < 0))
+    assert seen >= {1, -1}, seen  # in the play both ways
+    c.lim[LIM_GAP] = ghb  # on the forward flank: a push passes, no friction term
+    u = c.step(0, 0, -20000)
+    assert u > 0 and c.b[d - 1] == u
+
+
+def test_cart_coulomb_parameter_sets_the_predictors_force_and_survives_a_reset() -> None:
+    app = App(H.StandInHal(inc=2000), config={})
+    assert app.params[T.P_CART_COULOMB] == 0 and app.ctrl.lim[LIM_FC] == 0
+    assert app.param_set(T.P_CART_COULOMB, 50) == T.OK
+    fcu = app.ctrl.lim[LIM_FC]
+    assert fcu > 0 and app._tel(fcu, 4) == 50  # 0.5 N in u LSB: telemetry's force reads it back
+    assert app.param_set(T.P_CART_COULOMB, 1001) == T.R_OUT_OF_RANGE and app.ctrl.lim[LIM_FC] == fcu
+    app.ctrl.reset(0, 0)  # arming resets the controller's state, not its parameters
+    assert app.ctrl.lim[LIM_FC] == fcu
+    assert T.P_CART_COULOMB in T.DRIVE_PARAMS  # refused while armed or balancing, like gear_play
+
+
 def test_without_play_every_force_passes() -> None:
     c = _controller(0)
     for k in range(50):
@@ -115,14 +152,14 @@ def test_the_x_measurement_stands_for_the_wheel_side_of_the_play() -> None:
     # the estimator's own prediction is taken inside that window.  The reduced-order observer
     # (est 1) takes the measurement as its x, so the filter's x is the wheel side found.
     c = Controller(G.LAYOUT, G.FLAT)
-    assert c.d > 0 and len(c.lim) == 7 + c.d
+    assert c.d > 0 and len(c.lim) == LIM_GH + c.d
     c.reset(0, 0)
     c.est = 1
     h, ghb = 400, 3000
     c.lim[LIM_GHB], c.lim[LIM_HPX] = ghb, h
     seen = []
     for k in range(80):
-        gap_then = c.lim[7]  # the gap model d ticks ago (oldest of its history)
+        gap_then = c.lim[LIM_GH]  # the gap model d ticks ago (oldest of its history)
         p0 = c.p[0]
         ym = 1000 + (40 * k if k < 40 else 3200 - 40 * k)  # the motor side, forward then back
         u = c.step(ym, 0, 0)
@@ -204,7 +241,7 @@ def test_gear_play_keeps_the_report_acceleration_limit_on_a_cart_with_play() -> 
     from sim.scenario import load_scenario
 
     plant = P.replace(**{"motor.backlash": 0.0015})
-    assert drive_params(plant) == {"gear_play": 10}
+    assert drive_params(plant) == {"gear_play": 10, "cart_coulomb": 0}
     cand = candidates(ki=(0.0,), a_cmd=(4.2,), names=("shipped",))[0]
     blob = fixed_design(plant, cand).blob()
     sc = load_scenario("ref_step_20cm")
@@ -220,10 +257,37 @@ def test_gear_play_keeps_the_report_acceleration_limit_on_a_cart_with_play() -> 
 
 
 @pytest.mark.slow
+def test_cart_coulomb_keeps_the_estimate_on_a_cart_that_friction_brakes_in_the_play() -> None:
+    # the report's robot with the realistic set's roughest play and Coulomb friction (3 mm, 0.5 N), a
+    # table for it: the 20 cm step in lockstep HIL with cart_coulomb 0 and with the robot file's
+    from host.bench.robots import true_verdict
+    from host.design.margin import candidates, fixed_design
+    from host.operate.commission import compensation_counts, drive_params
+    from host.operate.commission_lockstep import LockstepRobot
+    from sim.scenario import load_scenario
+
+    plant = P.replace(**{"motor.backlash": 0.003, "cart.coulomb": 0.5, "cart.stiction": 0.5})
+    assert drive_params(plant) == {"gear_play": 19, "cart_coulomb": 50}
+    cand = candidates(ki=(0.0,), a_cmd=(4.2,), names=("shipped",))[0]
+    blob = fixed_design(plant, cand, deadband=compensation_counts(plant)).blob()
+    sc = load_scenario("ref_step_20cm")
+    v = {}
+    with LockstepRobot(plant) as r:
+        r.upload(blob, plant)
+        for fc in (0, 50):
+            r.fw_set["cart_coulomb"] = fc
+            v[fc] = true_verdict(r.run_scenario(sc), sc, plant)
+            assert not v[fc]["fell"]
+    assert v[50]["peak_xddot"] < 0.8 * v[0]["peak_xddot"], v
+    assert v[50]["settle"] <= v[0]["settle"], v
+
+
+@pytest.mark.slow
 @pytest.mark.rp2040
 def test_the_emulated_board_balances_a_cart_with_play_with_gear_play_on(tmp_path) -> None:
     # the bundle's main.py on the emulated Pico (HalPico, the paced loop with the heap locked,
-    # the UART link), the plant with 1.5 mm of play on its pins: gear_play set over the link while
+    # the UART link), the plant with 1.5 mm of play and 0.2 N of Coulomb friction on its pins:
+    # gear_play and cart_coulomb set over the link while
     # disarmed and read back, the step run (the wheel side and the gap model every tick: an allocation
     # would raise MemoryError under the locked heap and stop the robot), requests answered while
     # balancing, and the firmware's own clock saw no late tick
@@ -235,16 +299,19 @@ def test_the_emulated_board_balances_a_cart_with_play_with_gear_play_on(tmp_path
     from host.operate.commission import drive_params
     from sim.scenario import load_scenario
 
-    plant = P.replace(**{"motor.backlash": 0.0015})
+    plant = P.replace(**{"motor.backlash": 0.0015, "cart.coulomb": 0.2})
     counts = drive_params(plant)["gear_play"]
+    fc = drive_params(plant)["cart_coulomb"]  # the predictor's Coulomb force in the play, too
     sc = dataclasses.replace(load_scenario("ref_step_20cm"), duration=3.0)
     with EmulatedHil(build_bundle(tmp_path / "bundle")) as hil:
         hil.request(M.BY_NAME["param_set"](index=T.P_GEAR_PLAY, value=counts))
+        hil.request(M.BY_NAME["param_set"](index=T.P_CART_COULOMB, value=fc))
         assert int(hil.request(M.ParamGet(index=T.P_GEAR_PLAY)).value) == counts
         run = hil.run(sc, plant)
         late = int(hil.request(M.ParamGet(index=T.STATUS_BASE + T.S_LATE)).value)
         after = int(hil.request(M.ParamGet(index=T.P_GEAR_PLAY)).value)  # the run's table kept it
-    assert counts == 10 and after == counts
+        after_fc = int(hil.request(M.ParamGet(index=T.P_CART_COULOMB)).value)
+    assert counts == 10 and after == counts and fc == 20 and after_fc == fc
     assert (run.log["fw_state"][50:] == BALANCING).all()
     assert not run.log["fw_faults"][50:].any()
     assert run.stats["nacks"] == [] and run.stats["telemetry_lost"] == 0

@@ -628,11 +628,14 @@ def drive_params(fw: RobotParams) -> dict[str, int]:
     """The firmware parameters that go with a gain table designed for robot file ``fw`` (both
     robots' ``upload`` sets them): ``gear_play``, its ``motor.backlash`` in encoder counts (0
     without play, at most the parameter's maximum), which the estimator needs to follow the
-    wheel side of the gear."""
+    wheel side of the gear, and ``cart_coulomb``, its ``cart.coulomb`` in 0.01 N, the force the
+    predictor is given against the cart's speed while the motor side crosses the play."""
     from sim.sensors import enc_counts_per_m
 
     play = float(fw.values.get("motor.backlash", 0.0) or 0.0) * float(enc_counts_per_m(fw))
-    return {"gear_play": int(min(param_info("gear_play")["max"], max(0, round(play))))}
+    fc = 100.0 * float(fw.values.get("cart.coulomb", 0.0) or 0.0)
+    return {"gear_play": int(min(param_info("gear_play")["max"], max(0, round(play)))),
+            "cart_coulomb": int(min(param_info("cart_coulomb")["max"], max(0, round(fc))))}
 
 
 def _more_deadband(p: RobotParams, db: float, amp_n: float) -> float:
