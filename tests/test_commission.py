@@ -95,6 +95,36 @@ def test_margin_design_prefers_the_candidate_with_margin_at_the_identified_robot
     assert Mg.design_with_margin(p, box, [tight, easy], top=2).candidate.name == tight.name
 
 
+def test_margin_design_ranks_first_by_the_pendulum_kept_on_the_realistic_plant(monkeypatch) -> None:
+    # the design model scores (in_model: every constraint met with margin by the better one), the robot
+    # with its play and friction keeps or loses the pendulum: a candidate that loses it at any point of
+    # the box on the realistic plant comes after one that loses it at fewer, whatever its in-model score
+    from host.design.uncertainty import in_model
+
+    real = load_params("sim/plants/realistic_cart.toml")
+    model = in_model(real)
+    good, safe = Mg.candidates(ki=(0.0,), a_cmd=(4.73,), names=("x2", "shipped"))
+    ev = {(False, good.name): _evaluation(good, 0.5, 0.6), (False, safe.name): _evaluation(safe, 0.8, 0.85),
+          (True, good.name): _evaluation(good, 0.5, 5.0), (True, safe.name): _evaluation(safe, 0.5, 5.0)}
+    ev[(True, good.name)].metrics["step"]["phi_max"] = np.array([0.5, 2.0]) * 0.3  # lost at the corner
+    seen = []
+
+    def evaluate(params, c, box, push=False, engine=None):
+        seen.append(params is real)
+        return ev[(params is real, c.name)]
+
+    monkeypatch.setattr(Mg, "evaluate", evaluate)
+    box = Mg.confidence_box({"estimates": {}, "ci": {}}, model, realism={})
+    md = Mg.design_with_margin(model, box, [good, safe], top=2, realistic=real)
+    assert md.candidate.name == safe.name and [c.name for c in md.runners_up] == [good.name]
+    assert {t["name"]: t["falls_realistic"] for t in md.tried} == {good.name: 1, safe.name: 0}
+    # without the realistic plant (or with the model as it: no realism), the in-model score decides
+    seen.clear()
+    assert Mg.design_with_margin(model, box, [good, safe], top=2).candidate.name == good.name
+    assert Mg.design_with_margin(model, box, [good, safe], top=2, realistic=model).candidate.name == good.name
+    assert not any(seen)
+
+
 def _cli(capsys, *args: str) -> tuple[int, str]:
     from host.cli.main import main
 
