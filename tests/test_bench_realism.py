@@ -69,13 +69,14 @@ def test_coulomb_compensation_shortens_the_settling_of_a_dry_cart() -> None:
     # the nominal robot with 0.25 N of Coulomb friction, the firmware in lockstep HIL: without
     # compensation the step hunts (stick-slip, settling ~4.7 s); with the table's it settles
     from host.bench.robots import robots
-    from host.bench.realism import _runs, _strip
+    from host.bench.realism import _runs
+    from host.design.uncertainty import in_model
     from host.design.margin import candidates, fixed_design
     from host.operate.commission import compensation_counts
     from host.operate.commission_lockstep import LockstepRobot
     from sim.scenario import load_scenario
 
-    plant = _strip(robots(1)[0][1]).replace(**{"cart.coulomb": 0.25})
+    plant = in_model(robots(1)[0][1]).replace(**{"cart.coulomb": 0.25})
     cand = candidates(ki=(0.0,), a_cmd=(4.2,), names=("shipped",))[0]
     step = [load_scenario("ref_step_20cm")]
     settle = {}

@@ -96,9 +96,9 @@ def test_margin_design_prefers_the_candidate_with_margin_at_the_identified_robot
 
 
 def test_margin_design_ranks_first_by_the_pendulum_kept_on_the_realistic_plant(monkeypatch) -> None:
-    # the design model scores (in_model: every constraint met with margin by the better one), the robot
-    # with its play and friction keeps or loses the pendulum: a candidate that loses it at any point of
-    # the box on the realistic plant comes after one that loses it at fewer, whatever its in-model score
+    # a robot with play and friction: its design model scores (in_model: every constraint met with
+    # margin by the better one), the robot as given keeps or loses the pendulum: a candidate that loses
+    # it at any point of the box comes after one that loses it at fewer, whatever its in-model score
     from host.design.uncertainty import in_model
 
     real = load_params("sim/plants/realistic_cart.toml")
@@ -110,18 +110,20 @@ def test_margin_design_ranks_first_by_the_pendulum_kept_on_the_realistic_plant(m
     seen = []
 
     def evaluate(params, c, box, push=False, engine=None):
-        seen.append(params is real)
-        return ev[(params is real, c.name)]
+        realistic = params.values.get("motor.backlash", 0.0) != 0.0
+        assert realistic or params.values == model.values  # the model or the robot as given, nothing else
+        seen.append(realistic)
+        return ev[(realistic, c.name)]
 
     monkeypatch.setattr(Mg, "evaluate", evaluate)
     box = Mg.confidence_box({"estimates": {}, "ci": {}}, model, realism={})
-    md = Mg.design_with_margin(model, box, [good, safe], top=2, realistic=real)
+    md = Mg.design_with_margin(real, box, [good, safe], top=2)
     assert md.candidate.name == safe.name and [c.name for c in md.runners_up] == [good.name]
     assert {t["name"]: t["falls_realistic"] for t in md.tried} == {good.name: 1, safe.name: 0}
-    # without the realistic plant (or with the model as it: no realism), the in-model score decides
+    assert any(seen) and not all(seen)  # scored in-model, the falls on the robot as given
+    # a robot without realism is its own design model: the in-model score decides
     seen.clear()
     assert Mg.design_with_margin(model, box, [good, safe], top=2).candidate.name == good.name
-    assert Mg.design_with_margin(model, box, [good, safe], top=2, realistic=model).candidate.name == good.name
     assert not any(seen)
 
 

@@ -48,12 +48,6 @@ LEVELS: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
 """Fractions of each range's high end."""
 
 
-def _strip(plant: Any) -> Any:
-    from host.design.uncertainty import in_model
-
-    return in_model(plant)
-
-
 def _runs(robot: Any, plant: Any, scen: Sequence[Any]) -> list[dict[str, Any]]:
     from host.bench.robots import true_verdict
 
@@ -76,7 +70,7 @@ def study(n: int, effects: Sequence[str] = tuple(EFFECTS), levels: Sequence[floa
     """The rows of the section (module docstring) for the first ``n`` robots, ``effects`` x ``levels``."""
     from host.bench.robots import failing_check, robots
     from host.design.margin import candidates
-    from host.design.uncertainty import REALISM, UNCERTAINTY_REALISTIC, load_uncertainty
+    from host.design.uncertainty import REALISM, UNCERTAINTY_REALISTIC, in_model, load_uncertainty
     from host.operate.commission_lockstep import LockstepRobot
     from sim.params import load_params
     from sim.scenario import load_scenario
@@ -87,7 +81,7 @@ def study(n: int, effects: Sequence[str] = tuple(EFFECTS), levels: Sequence[floa
     cands = candidates(ki=(0.0,), a_cmd=(4.73, 4.2), names=("shipped",))
     rows: list[dict[str, Any]] = []
     for label, plant in robots(n):
-        ideal = _strip(plant)
+        ideal = in_model(plant)
         best, best_r, ideal_v = cands[0], math.inf, None
         with LockstepRobot(ideal) as r:
             for c in cands:

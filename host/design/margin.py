@@ -41,7 +41,7 @@ from sim.params import RobotParams
 
 from .integral import IntegralController
 from .robust import FORCE_LSB_MAX, Candidate, Evaluation, evaluate, shipped, worst_rows
-from .uncertainty import UNCERTAINTY_REALISTIC, UncertaintySet, load_uncertainty, uncertainty_from_dict
+from .uncertainty import UNCERTAINTY_REALISTIC, UncertaintySet, in_model, load_uncertainty, uncertainty_from_dict
 
 __all__ = ["IntegralController", "MarginCandidate", "MarginDesign", "confidence_box", "candidates",
            "design_with_margin", "fixed_design", "MARGIN", "A_CMD", "KI_DEFAULT", "KI_GAINS", "SCOPE", "scoped_score", "nominal_ratio"]
@@ -231,8 +231,7 @@ def _force_lsb(params: RobotParams, cand: MarginCandidate) -> float:
 
 
 def design_with_margin(params: RobotParams, box: UncertaintySet, cands: Sequence[MarginCandidate] | None = None, *,
-                       margin: float = MARGIN, engine: str | None = None, top: int = 3,
-                       realistic: RobotParams | None = None) -> MarginDesign:
+                       margin: float = MARGIN, engine: str | None = None, top: int = 3) -> MarginDesign:
     """Score ``cands`` (default :func:`candidates`) over ``box`` and keep the best (module docstring).
 
     Every candidate is first scored without the push (batch scenarios only, the push at the
@@ -240,10 +239,11 @@ def design_with_margin(params: RobotParams, box: UncertaintySet, cands: Sequence
     push at the box's worst points, and the first of those that meets every constraint with
     ``margin`` wins (else the best rank).
 
-    ``realistic``, the same robot with its plant realism (``params`` being the design model,
-    :func:`~host.design.uncertainty.in_model` of it), ranks first by safety: each candidate is
-    also run over ``box`` on that plant, and the one that loses the pendulum at the fewest
-    points comes first, whatever its in-model score.  That plant's runs never settle (the batch's
+    A robot with plant realism (the Coulomb friction, gear play and deadband a cart-only run
+    measured) is scored on its design model, :func:`~host.design.uncertainty.in_model` of it, and
+    ranked first by safety: each candidate is also run over ``box`` on the robot as given, and the
+    one that loses the pendulum at the fewest points comes first, whatever its in-model score.
+    Those runs never settle (the batch's
     controller has none of the firmware's gear-play model or friction compensation), so they
     judge only whether the pendulum is kept: scored on them alone, every candidate's ratio is the
     same never-settled 5.0 and the ranking falls to these falls (the commissioning's score until
@@ -256,7 +256,9 @@ def design_with_margin(params: RobotParams, box: UncertaintySet, cands: Sequence
         No candidate can be exported within the force row's precision bound, or none is stable.
     """
     cands = list(cands) if cands is not None else candidates()
-    if realistic is params:
+    realistic: RobotParams | None = params
+    params = in_model(params)
+    if params is realistic:
         realistic = None  # no plant realism: the design model is the robot
     scored: list[tuple[tuple[Any, ...], MarginCandidate, Evaluation, float]] = []
     tried: list[dict[str, Any]] = []

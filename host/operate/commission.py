@@ -404,7 +404,6 @@ class Commission:
 
     def _design1(self) -> None:
         from host.design.margin import candidates, design_with_margin, confidence_box
-        from host.design.uncertainty import in_model
         from host.studies.identify import robot_toml
 
         p = self._params("robot_cal")
@@ -431,10 +430,10 @@ class Commission:
         box = confidence_box({"estimates": {}, "ci": {"delay": [max(0.0, d - 1 / p.rate), d + 1 / p.rate]}}, p1,
                              floor=0.1, realism={}, push_points=2 if self.fast else 4)
         a = play_a_cmd(p1)
-        # scored on the design model (in_model: the robot file's realism is the table's to compensate),
-        # ranked first by the pendulum kept on the realistic plant (design_with_margin's realistic)
-        md = design_with_margin(in_model(p1), box, candidates(ki=(0.0,), a_cmd=a, names=("shipped", "x2")) if self.fast
-                                else candidates(ki=(0.0,), a_cmd=a), top=2 if self.fast else 3, realistic=p1)
+        # scored on the design model (the robot file's friction and play are the table's and the
+        # firmware's to compensate), ranked first by the pendulum kept with them (design_with_margin)
+        md = design_with_margin(p1, box, candidates(ki=(0.0,), a_cmd=a, names=("shipped", "x2")) if self.fast
+                                else candidates(ki=(0.0,), a_cmd=a), top=2 if self.fast else 3)
         self.state["data"]["design1"] = md.candidate.as_dict(p1) | {"worst_ratio": md.worst_ratio}
         self._upload("robot_stage1", md.candidate, f"stage-1 design {md.candidate.name}")
 
@@ -493,21 +492,19 @@ class Commission:
 
     def _design2(self) -> None:
         from host.design.margin import candidates, confidence_box, design_with_margin
-        from host.design.uncertainty import in_model
 
         pid = self._params("robot_id")
         res = self.state["data"]["identify"]
-        # in-model box on the design model: the identified robot without its plant realism (in_model;
-        # the Coulomb friction, gear play and deadband the cart-only run measured are the table's and
-        # the firmware's to compensate, and at the realistic set's ranges no linear design settles
-        # the step in the 2 % band: every candidate would score 5.0), ranked first by the pendulum kept
-        # on the realistic plant (design_with_margin's realistic); the robot's own verification judges
-        # the rest
+        # in-model box, scored on the design model (design_with_margin: the identified robot without
+        # the Coulomb friction, gear play and deadband the cart-only run measured, which are the
+        # table's and the firmware's to compensate; with them no linear design settles the step in
+        # the 2 % band and every candidate would score 5.0), ranked first by the pendulum kept with
+        # them; the robot's own verification judges the rest
         box = confidence_box(res, pid, realism={}, push_points=2 if self.fast else 4)
         a = play_a_cmd(pid)
         ki = integral_gains(pid, self.fast)
-        md = design_with_margin(in_model(pid), box, candidates(ki=ki, a_cmd=a, names=("shipped", "x2")) if self.fast
-                                else candidates(ki=ki, a_cmd=a), top=2 if self.fast else 3, realistic=pid)
+        md = design_with_margin(pid, box, candidates(ki=ki, a_cmd=a, names=("shipped", "x2")) if self.fast
+                                else candidates(ki=ki, a_cmd=a), top=2 if self.fast else 3)
         self.state["data"]["design2"] = md.candidate.as_dict(pid) | {
             "worst_ratio": md.worst_ratio, "margin": md.margin, "force_lsb": md.force_lsb, "meets": md.meets,
             "precise": md.precise, "runners_up": [c.as_dict(pid) for c in md.runners_up[:VERIFY_FALLBACKS]],
