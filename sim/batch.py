@@ -704,10 +704,16 @@ def _loop_numpy(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
         dirn = np.where(X[1] >= 0.0, 1.0, -1.0)
         eng = np.full(N, 2)
         v0 = np.zeros(N)
+        shr = np.zeros(N)  # the share of the sub-step after a contact located in it (0: none)
+        Mt_ = phys["M"] + phys["m"]
 
         def rhs_real(x: np.ndarray, duty: np.ndarray | None, us: np.ndarray, stk: np.ndarray,
                      ff: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            F = us if duty is None else _gate(force_from_duty(duty, x[1], motor_true), eng)
+            if duty is None:
+                F = us
+            else:
+                Fg = _gate(force_from_duty(duty, x[1], motor_true), eng)
+                F = np.where(shr > 0.0, shr * Fg, Fg)
             if accel_limit is not None:  # the drive's limit, as in the frictionless plant
                 a0 = dynamics(0.0, x, zeros, phys)[1]
                 a1 = dynamics(0.0, x, ones, phys)[1] - a0
@@ -744,6 +750,7 @@ def _loop_numpy(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
                 tr["force"][k] = rhs(X, duty, us)[1]
             else:
                 eng = _engagement(delta, rl.hp, play)
+                shr = np.zeros(N)
                 tr["force"][k] = rhs_real(X, duty, us, stuck, rl.fc * dirn)[1]
         W[:nz] = out[2:] + Bu_col * us
         if k == n_ticks:
@@ -755,6 +762,10 @@ def _loop_numpy(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
                 v0 = (bridge_fraction(duty, mt) * mt["V_supply"]) * mt["r_wheel"] / (mt["kt"] * mt["gear"])
             for _ in range(sub):
                 eng = _engagement(delta, rl.hp, play)
+                if duty is not None:
+                    # a contact within the sub-step, located in it (PlantSim._contact_share)
+                    shr = _contact_share(eng, delta, rl.hp, v0 - X[1], h, play)
+                    eng = np.where(shr > 0.0, np.where(v0 - X[1] > 0.0, 1, -1), eng)
                 F0 = rhs_real(X, duty, us, stuck, rl.fc * dirn)[1]
                 sn, cs = np.sin(X[2]), np.cos(X[2])
                 fext = (F0 + (mL_ * cs) * ((mLg_ * sn) / J_)) - mL_ * X[3] * X[3] * sn
@@ -774,7 +785,17 @@ def _loop_numpy(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
                 k4 = rhs_real(X + h * k3, duty, us, stuck, ff)[0]
                 Xn = X + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
                 stop = rl.fric & ~stuck & (Xn[1] * dirn <= 0.0)  # stopped sliding: held by static friction
-                Xn[1] = np.where(stop, 0.0, Xn[1])
+                if stop.any():
+                    # ... unless the force at rest breaks it loose the other way at once (PlantSim._stop)
+                    Fr = us if duty is None else _gate(force_from_duty(duty, np.zeros(N), motor_true), eng)
+                    sn, cs = np.sin(Xn[2]), np.cos(Xn[2])
+                    frest = (Fr + (mL_ * cs) * ((mLg_ * sn) / J_)) - mL_ * Xn[3] * Xn[3] * sn
+                    rev = stop & (frest * dirn < 0.0) & (np.abs(frest) > rl.fs)
+                    dv = X[1] - Xn[1]
+                    ts = np.where(dv != 0.0, h * X[1] / np.where(dv != 0.0, dv, 1.0), h)
+                    Xn[1] = np.where(rev, Xn[1] + 2.0 * rl.fc * dirn * (h - ts) / Mt_, np.where(stop, 0.0, Xn[1]))
+                    dirn = np.where(rev, -dirn, dirn)
+                    stop = stop & ~rev
                 stuck = stuck | stop
                 dl = (delta + h * v0) - (Xn[0] - X[0])
                 delta = np.where(play, np.where(dl > rl.hp, rl.hp, np.where(dl < -rl.hp, -rl.hp, dl)), delta)
@@ -813,6 +834,14 @@ def _loop_numpy(s: _Setup, runs: RunSet) -> tuple[dict[str, np.ndarray], dict[st
 def _engagement(delta: np.ndarray, hp: np.ndarray, play: np.ndarray) -> np.ndarray:
     # the gear's contact: +1 the forward flank, -1 the backward one, 0 free in the play, 2 no play
     return np.where(play, np.where(delta >= hp, 1, np.where(delta <= -hp, -1, 0)), 2)
+
+
+def _contact_share(eng: np.ndarray, delta: np.ndarray, hp: np.ndarray, rel: np.ndarray, h: float,
+                   play: np.ndarray) -> np.ndarray:
+    # sim.plantsim.PlantSim._contact_share per run, rel = the motor side's speed against the wheel side's
+    safe = np.where(rel != 0.0, rel, 1.0)
+    tc = np.where(rel > 0.0, (hp - delta) / safe, np.where(rel < 0.0, (-hp - delta) / safe, np.inf))
+    return np.where(play & (eng == 0) & (tc < h), np.where(tc > 0.0, 1.0 - tc / h, 1.0), 0.0)
 
 
 def _gate(F: np.ndarray, eng: np.ndarray) -> np.ndarray:

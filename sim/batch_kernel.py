@@ -74,9 +74,11 @@ _K1, _K2, _K3, _K4 = 34, 39, 44, 49
 # plant realism (sim.batch._Realism): the gear play's state and half width, friction, the
 # sliding direction and its force, stuck (1.0) or not, the gear's contact, the motor's
 # no-load speed, the pot's nonlinearity amplitude, the bridge's deadband and minimum duty,
-# the lane's flags (play, friction) and the cart position at the sub-step's start
-(_DL, _HP, _FC, _FS, _DIR, _FF, _STK, _ENG, _V0, _AMP, _DB, _DMIN, _PLAY, _FRIC, _XOLD) = range(54, 69)
-_NROWS = 69
+# the lane's flags (play, friction), the cart position at the sub-step's start, the share of the
+# sub-step after a contact located in it and the cart speed at the sub-step's start
+(_DL, _HP, _FC, _FS, _DIR, _FF, _STK, _ENG, _V0, _AMP, _DB, _DMIN, _PLAY, _FRIC, _XOLD, _SHR,
+ _VIN) = range(54, 71)
+_NROWS = 71
 
 NOISE_NONE, NOISE_ARRAY, NOISE_DRAW = 0, 1, 2
 """Noise sources of :func:`run_chunk`: none, an ``(N, T, 2)`` array drawn beforehand, or drawn
@@ -296,6 +298,8 @@ if AVAILABLE:
         F = _force(S, l, x1, motor)
         if motor:
             F = _gate(F, S[_ENG, l])
+            if S[_SHR, l] > 0.0:
+                F = S[_SHR, l] * F
         if accel:
             F = _accel_clip(F, x1, x3, math.sin(x2), math.cos(x2), S, l, al)
         return F
@@ -310,7 +314,11 @@ if AVAILABLE:
             S[_CS, l] = math.cos(y2)
         for l in range(LANES):
             F = _force(S, l, S[_Y1, l], motor)
-            S[_F, l] = _gate(F, S[_ENG, l]) if motor else F
+            if motor:
+                F = _gate(F, S[_ENG, l])
+                if S[_SHR, l] > 0.0:
+                    F = S[_SHR, l] * F
+            S[_F, l] = F
         if accel:
             for l in range(LANES):
                 S[_F, l] = _accel_clip(S[_F, l], S[_Y1, l], S[_Y3, l], S[_SN, l], S[_CS, l], S, l, al)
@@ -544,6 +552,7 @@ if AVAILABLE:
                         tr[4, k, i] = S[_US, l]
                         if real:
                             S[_ENG, l] = _engagement(S, l)
+                            S[_SHR, l] = 0.0
                             tr[5, k, i] = _force1_real(S, l, motor, accel, al)
                         else:
                             tr[5, k, i] = _force1(S, l, motor, accel, al)
@@ -562,6 +571,19 @@ if AVAILABLE:
                         # at the sub-step's start and held over it (sim.batch's numpy reference)
                         for l in range(K):
                             S[_ENG, l] = _engagement(S, l)
+                            S[_SHR, l] = 0.0
+                            if motor and S[_ENG, l] == 0.0:
+                                # a contact within the sub-step, located in it (sim.batch._contact_share)
+                                rel = S[_V0, l] - S[_X1, l]
+                                hpl = S[_HP, l]
+                                tc = math.inf
+                                if rel > 0.0:
+                                    tc = (hpl - S[_DL, l]) / rel
+                                elif rel < 0.0:
+                                    tc = (-hpl - S[_DL, l]) / rel
+                                if tc < h:
+                                    S[_SHR, l] = 1.0 - tc / h if tc > 0.0 else 1.0
+                                    S[_ENG, l] = 1.0 if rel > 0.0 else -1.0
                             F0 = _force1_real(S, l, motor, accel, al)
                             if S[_FRIC, l] > 0.0:
                                 if S[_STK, l] > 0.0:
@@ -578,6 +600,7 @@ if AVAILABLE:
                             S[_FF, l] = S[_FC, l] * S[_DIR, l]
                             S[_Y1, l], S[_Y2, l], S[_Y3, l] = S[_X1, l], S[_X2, l], S[_X3, l]
                             S[_XOLD, l] = S[_X0, l]
+                            S[_VIN, l] = S[_X1, l]
                         _stage_real(S, _K1, motor, accel, al)
                         _stage_input(S, _K1, hh)
                         _stage_real(S, _K2, motor, accel, al)
@@ -600,8 +623,24 @@ if AVAILABLE:
                                     S[_K1 + c, l] + 2 * S[_K2 + c, l] + 2 * S[_K3 + c, l] + S[_K4 + c, l])
                         for l in range(K):
                             if S[_FRIC, l] > 0.0 and S[_STK, l] == 0.0 and S[_X1, l] * S[_DIR, l] <= 0.0:
-                                S[_X1, l] = 0.0  # stopped sliding: held by static friction
-                                S[_STK, l] = 1.0
+                                # stopped sliding: held by static friction, unless the force at rest
+                                # breaks it loose the other way at once (sim.batch's reference)
+                                Fr = _force(S, l, 0.0, motor)
+                                if motor:
+                                    Fr = _gate(Fr, S[_ENG, l])
+                                x2, x3 = S[_X2, l], S[_X3, l]
+                                sn = math.sin(x2)
+                                cs = math.cos(x2)
+                                fr = (Fr + (S[_ML, l] * cs) * ((S[_MLG, l] * sn) / S[_J, l])) \
+                                    - S[_ML, l] * x3 * x3 * sn
+                                if fr * S[_DIR, l] < 0.0 and abs(fr) > S[_FS, l]:
+                                    dv = S[_VIN, l] - S[_X1, l]
+                                    ts = h * S[_VIN, l] / dv if dv != 0.0 else h
+                                    S[_X1, l] = S[_X1, l] + 2.0 * S[_FC, l] * S[_DIR, l] * (h - ts) / S[_MM, l]
+                                    S[_DIR, l] = -S[_DIR, l]
+                                else:
+                                    S[_X1, l] = 0.0
+                                    S[_STK, l] = 1.0
                             if S[_PLAY, l] > 0.0:
                                 dl = (S[_DL, l] + h * S[_V0, l]) - (S[_X0, l] - S[_XOLD, l])
                                 hpl = S[_HP, l]

@@ -25,7 +25,9 @@ Plant realism (the robot file's ``cart.coulomb``, ``cart.stiction``, ``motor.bac
 ``motor.deadband``, ``motor.duty_min``, ``sensors.pot_inl``; docs/parameters.md, "Plant
 realism"): off on the ideal robot (the defaults), whose ticks run the plain code below; with any
 of them on, :meth:`PlantSim._integrate_real` decides the gear's contact and stuck/sliding at each
-sub-step's start (the scheme of :mod:`sim.batch`, which it agrees with to rounding), the encoder
+sub-step's start -- a contact within the sub-step located in it (:meth:`PlantSim._contact_share`),
+a sliding cart that stops and is pushed the other way at once sliding on
+(:meth:`PlantSim._stop`) -- (the scheme of :mod:`sim.batch`, which it agrees with to rounding), the encoder
 reads the motor side of the gear play and the ADC the pot's nonlinearity.  :attr:`PlantSim.stuck`
 and :attr:`PlantSim.gear_play` show the extra state.
 
@@ -219,6 +221,42 @@ class PlantSim:
             return F if F < 0.0 else 0.0
         return 0.0
 
+    @staticmethod
+    def _contact_share(eng: int, delta: float, hp: float, fu: float, ce: float, xd: float, h: float) -> float:
+        # the motor side free in the gear play (eng 0) at delta, moving at the no-load speed fu / ce
+        # against the wheel side at xd: the share of a sub-step h after it touches a flank (0: it
+        # does not within h).  The contact is located in the sub-step (at the relative speed of
+        # its start), not put off to the next: the force it passes from there is a jump, and a
+        # contact decided only at sub-step starts comes up to a sub-step late, an error of
+        # the order of h that made the cart with play converge only at 32 sub-steps a tick
+        # (docs/parameters.md, "Plant realism")
+        if eng != 0 or hp == 0.0 or ce <= 0.0:
+            return 0.0
+        rel = fu / ce - xd
+        if rel > 0.0:
+            tc = (hp - delta) / rel
+        elif rel < 0.0:
+            tc = (-hp - delta) / rel
+        else:
+            return 0.0
+        if tc >= h:
+            return 0.0
+        return 1.0 - tc / h if tc > 0.0 else 1.0
+
+    @staticmethod
+    def _stop(v_in: float, v: float, dr: float, f_rest: float, fc: float, fs: float, h: float,
+              m: float) -> tuple[float, float, bool]:
+        # a sliding cart (direction dr, speed v_in at the sub-step's start) whose speed reversed
+        # within the sub-step (v): (speed, direction, stuck) at its end.  Held by static friction
+        # (0, dr, True) unless the force on it at rest, f_rest, breaks it loose the other way at
+        # once: then it slides on, the friction turned at the stop (located by the speed's
+        # zero), not held for the rest of the sub-step -- that loses the drive's push over it,
+        # an error of the order of h (docs/parameters.md, "Plant realism")
+        if f_rest * dr < 0.0 and abs(f_rest) > fs:
+            ts = h * v_in / (v_in - v) if v_in != v else h
+            return v + 2.0 * fc * dr * (h - ts) / m, -dr, False
+        return 0.0, dr, True
+
     def _drive_force(self, duty: float, xd: float) -> float:
         # the motor force on the cart at speed xd, through the bridge and the gear play
         if not self._real:
@@ -309,11 +347,15 @@ class PlantSim:
                 if fric and xd != 0.0:
                     self._stuck, self._dir = False, (1.0 if xd > 0.0 else -1.0)
             eng = 2 if hp == 0.0 else (1 if self._delta >= hp else (-1 if self._delta <= -hp else 0))
+            share = self._contact_share(eng, self._delta, hp, fu, ce, xd, h)
+            if share > 0.0:
+                eng = 1 if fu - ce * xd > 0.0 else -1
             if fric:
                 if self._stuck:
                     # the force friction must hold for the cart to stay (xdd = 0, pivot fixed)
                     s, c = sin(ph), cos(ph)
-                    fext = (gate(fu - ce * xd, eng) + (dist(t) if dist is not None else 0.0)
+                    g = gate(fu - ce * xd, eng)
+                    fext = ((share * g if share > 0.0 else g) + (dist(t) if dist is not None else 0.0)
                             + mL * c * (mLg * s / J) - mL * phd * phd * s)
                     if abs(fext) > fs:
                         self._stuck, self._dir = False, (1.0 if fext > 0.0 else -1.0)
@@ -326,14 +368,19 @@ class PlantSim:
                 s = sin(p)
                 if stuck:
                     return 0.0, pivot_fixed_phiddot(s, mLg, J)
-                F = gate(fu - ce * v, eng) + (dist(tt) if dist is not None else 0.0) - ff
+                g = gate(fu - ce * v, eng)
+                F = (share * g if share > 0.0 else g) + (dist(tt) if dist is not None else 0.0) - ff
                 return accelerations(F, v, w, s, cos(p), Mt, mL, J, b, mLg)
 
-            x_old = x
+            x_old, xd_in = x, xd
             x, xd, ph, phd = _rk4(acc, x, xd, ph, phd, t, h)
             if fric and not stuck and xd * self._dir <= 0.0:
-                xd = 0.0  # the sliding cart stopped during the sub-step: static friction holds it
-                self._stuck = True
+                # the sliding cart stopped during the sub-step: static friction holds it, unless
+                # the force on it at rest breaks it loose the other way at once
+                s, c = sin(ph), cos(ph)
+                frest = (gate(fu, eng) + (dist(t + h) if dist is not None else 0.0)
+                         + mL * c * (mLg * s / J) - mL * phd * phd * s)
+                xd, self._dir, self._stuck = self._stop(xd_in, xd, self._dir, frest, fc, fs, h, Mt)
             if hp > 0.0 and ce > 0.0:
                 d = self._delta + h * v0 - (x - x_old)
                 self._delta = hp if d > hp else (-hp if d < -hp else d)

@@ -605,7 +605,8 @@ def _dry_result(carts: Sequence[RunLog], params: RobotParams, d: int, cf: dict[s
              f"b held at the robot file's {b_file:.3g} N s/m (a dry cart's coast-down stops under the Coulomb "
              "friction before b shows), its interval the realistic set's x0.5 .. x2",
              f"the stiction is not resolved by a cart-only PRBS (every reversal breaks the cart loose): "
-             f"between the Coulomb level and the drive's {f_break:.3g} N; {est['stiction']:.3g} N written"]
+             f"between the Coulomb level and the drive's {f_break:.3g} N; {est['stiction']:.3g} N written (the dry "
+             f"fit's breakaway, where the log shows it: {float(cf.get('stiction', est['coulomb'])):.3g} N)"]
     order = (*CART_NAMES, *DRY_NAMES)
     return {"estimates": {k: float(est[k]) for k in order}, "ci": {k: ci[k] for k in order}, "units": CART_UNITS,
             "delay_samples": dw, "latency_samples": tau - dw, "fit_delay": d, "delay_sse": [float(v) for v in sse],
