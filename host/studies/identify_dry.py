@@ -67,6 +67,9 @@ DE_SUBSTEPS = 4
 landed in a wrong minimum at a roughest vertex of the realistic set (2.3 N of Coulomb friction for 0.5)."""
 LOCAL_NFEV = 40
 """Most evaluations of the local fit after it (its Jacobian's not counted)."""
+BRAKE_STARTS: tuple[float | None, ...] = (None, -1.0, 1.5, 3.0)
+"""The enable's delay (ticks; None: the start's) of the local fits started from the global search's
+best besides it, each with the stiction at the Coulomb level (the cost is multimodal in it)."""
 DIFF_STEP = 1e-2
 """Relative step of the fit's finite-difference Jacobian: the model is piecewise smooth (the
 stuck / sliding and contact decisions at sub-step starts), a step of 1e-4 sees its steps."""
@@ -335,8 +338,8 @@ def dry_fit(logs: Sequence[RunLog], M: float, dt: float, d: int, start: dict[str
     x0 = np.clip(x0, _LO + 1e-9, hi_all - 1e-9)
     if "hp" not in start:
         # the global search (the cost is rugged: the play, the stuck / sliding switches and the
-        # lag trade places): differential evolution over the physical range at half the
-        # sub-steps, then the local fit from its best
+        # lag trade places): differential evolution over the physical range at DE_SUBSTEPS
+        # sub-steps a tick, then the local fits below
         from scipy.optimize import differential_evolution
 
         sub = substeps
@@ -353,13 +356,16 @@ def dry_fit(logs: Sequence[RunLog], M: float, dt: float, d: int, start: dict[str
         substeps = sub
         x0 = x_hold.copy()
         x0[free] = de.x
-        # a second local fit from the search's best with the stiction at the Coulomb level and the
-        # brake at the start's: the search at times settles where a high breakaway and a late
-        # brake trade places (a cart of the commission bench: 0.90 encoder counts rms there, 0.32
-        # from here, its stiction 0.2509 N for 0.2509)
-        x1 = x0.copy()
-        x1[7], x1[8] = x_hold[7], 0.0
-        starts = [x0, np.clip(x1, _LO + 1e-9, hi_all - 1e-9)]
+        # local fits from the search's best and from it with the stiction at the Coulomb level and
+        # the brake at each of BRAKE_STARTS: the search at times settles where a high breakaway and
+        # a late brake trade places (a cart of the commission bench, 0.79 mm of play, 0.25 N of
+        # stiction: 0.90 encoder counts rms from the search's best, 0.50 from a brake of -1 tick;
+        # its truth fits to 0.32)
+        starts = [x0]
+        for br in BRAKE_STARTS:
+            x1 = x0.copy()
+            x1[7], x1[8] = (x_hold[7] if br is None else br), 0.0
+            starts.append(np.clip(x1, _LO + 1e-9, hi_all - 1e-9))
     else:
         starts = [x0]
     best = min((least_squares(res, s_[free], bounds=(lo_, hi_), x_scale="jac", diff_step=DIFF_STEP,
