@@ -70,6 +70,9 @@ LOCAL_NFEV = 40
 BRAKE_STARTS: tuple[float | None, ...] = (None, -1.0, 1.5, 3.0)
 """The enable's delay (ticks; None: the start's) of the local fits started from the global search's
 best besides it, each with the stiction at the Coulomb level (the cost is multimodal in it)."""
+PLAY_LAG_STARTS = (0.0, 1.5, 3.0)
+"""Ticks of lag taken off the global search's best for the local fits started from it with 0.1 mm of
+half play (the play and the lag trade places in the cost)."""
 DIFF_STEP = 1e-2
 """Relative step of the fit's finite-difference Jacobian: the model is piecewise smooth (the
 stuck / sliding and contact decisions at sub-step starts), a step of 1e-4 sees its steps."""
@@ -362,6 +365,12 @@ def dry_fit(logs: Sequence[RunLog], M: float, dt: float, d: int, start: dict[str
         # stiction: 0.90 encoder counts rms from the search's best, 0.50 from a brake of -1 tick;
         # its truth fits to 0.32)
         starts = [x0]
+        for dtau in PLAY_LAG_STARTS:
+            # little play, less lag: the search at times takes the lag for play (a bench cart,
+            # 0.25 mm of play: 4.7 mm and 2.7 ticks more lag, 1.9 encoder counts rms; 0.28 from here)
+            x1 = x0.copy()
+            x1[4], x1[6], x1[8] = 0.1e-3 / _SC[4], x0[6] - dtau, 0.0
+            starts.append(np.clip(x1, _LO + 1e-9, hi_all - 1e-9))
         for br in BRAKE_STARTS:
             x1 = x0.copy()
             x1[7], x1[8] = (x_hold[7] if br is None else br), 0.0
