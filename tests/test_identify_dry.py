@@ -157,8 +157,10 @@ def test_the_balancing_runs_low_pass_follows_the_gear_play() -> None:
 def test_the_pivot_inertia_of_a_cart_with_gear_play_is_not_biased_by_the_play(tmp_path) -> None:
     # the commission bench's corner robot with 3 mm of play (its roughest realism): the cart-only
     # run and the balancing run as upright commission records them; at the 10 Hz low-pass of a
-    # cart without play the encoder's jumps across the play bias J = I + m L^2 high (+87 % when
-    # measured), at the play's low-pass (2.1 Hz) within 15 % (+8 %)
+    # cart without play the encoder's jumps across the play biased J = I + m L^2 high (+87 % when
+    # measured), at the play's low-pass (2.1 Hz) within 15 % (+8 %).  Since the balancing run's
+    # cart is moved to the wheel side of the play (identify.wheel_side) the jumps are gone before
+    # the low-pass: +4 % at 2.0 Hz, +2 % at 10 Hz (this test asserted > +30 % at 10 Hz before)
     import warnings
 
     import numpy as np
@@ -188,7 +190,7 @@ def test_the_pivot_inertia_of_a_cart_with_gear_play_is_not_biased_by_the_play(tm
             est[fc] = (res["fc_hz"], (e["I"] + e["mL"] ** 2 / p.m) / J - 1.0)
     assert est[None][0] == pytest.approx(play_fc(cart["estimates"]["backlash"])) and est[None][0] < 2.5
     assert abs(est[None][1]) < 0.15, est
-    assert est[10.0][1] > 0.3, est  # the bias the play's low-pass removes
+    assert abs(est[10.0][1]) < 0.15, est  # the wheel side: no jumps across the play left to filter
 
 
 def test_the_balancing_cart_is_moved_to_the_wheel_side_of_the_gear_play():
