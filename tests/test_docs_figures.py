@@ -106,3 +106,14 @@ def test_the_board_parameters_the_gear_play_docs_name_are_the_firmwares() -> Non
     assert m and units["gear_play"] == "count"
     m = re.search(r"\(board parameter `cart_coulomb`, 0\.01 N;", doc)
     assert m and units["cart_coulomb"] == "cN"
+
+
+def test_the_wheel_side_figures_quoted_are_the_identifications() -> None:
+    # docs/parameters.md, "The wheel side of the balancing run": the cart speed's low-pass and passes
+    from host.studies import identify as I
+
+    doc = _text("docs/parameters.md")
+    m = re.search(r"wheel side's own through a ([\d.]+) Hz low-pass \((\w+) passes", doc)
+    assert m, "docs/parameters.md no longer states how wheel_side takes the cart's speed"
+    words = {"one": 1, "two": 2, "three": 3, "four": 4, "five": 5}
+    assert (float(m.group(1)), words.get(m.group(2), m.group(2))) == (I.WHEEL_V_HZ, I.WHEEL_ITER)
