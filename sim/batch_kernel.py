@@ -47,6 +47,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from .plantsim import PlantSim
+
 try:  # numba is optional: without it simulate_batch uses the numpy reference
     import numba
     from llvmlite import ir
@@ -282,6 +284,11 @@ if AVAILABLE:
         if e == -1.0:
             return F if F < 0.0 else 0.0
         return 0.0
+
+    # the located events (a contact within the sub-step, a stop the drive reverses at once): the
+    # scenario simulator's own functions, compiled -- the reference's arithmetic, operation for operation
+    _contact_share = njit(cache=True, inline="always")(PlantSim._contact_share)
+    _stop = njit(cache=True, inline="always")(PlantSim._stop)
 
     @njit(cache=True, inline="always")
     def _engagement(S, l):  # noqa: ANN001, ANN202
@@ -572,18 +579,12 @@ if AVAILABLE:
                         for l in range(K):
                             S[_ENG, l] = _engagement(S, l)
                             S[_SHR, l] = 0.0
-                            if motor and S[_ENG, l] == 0.0:
-                                # a contact within the sub-step, located in it (sim.batch._contact_share)
-                                rel = S[_V0, l] - S[_X1, l]
-                                hpl = S[_HP, l]
-                                tc = math.inf
-                                if rel > 0.0:
-                                    tc = (hpl - S[_DL, l]) / rel
-                                elif rel < 0.0:
-                                    tc = (-hpl - S[_DL, l]) / rel
-                                if tc < h:
-                                    S[_SHR, l] = 1.0 - tc / h if tc > 0.0 else 1.0
-                                    S[_ENG, l] = 1.0 if rel > 0.0 else -1.0
+                            # a contact within the sub-step, located in it (sim.batch._contact_share)
+                            rel = S[_V0, l] - S[_X1, l]
+                            shr = _contact_share(S[_ENG, l], S[_DL, l], S[_HP, l], rel, h)
+                            if shr > 0.0:
+                                S[_SHR, l] = shr
+                                S[_ENG, l] = 1.0 if rel > 0.0 else -1.0
                             F0 = _force1_real(S, l, motor, accel, al)
                             if S[_FRIC, l] > 0.0:
                                 if S[_STK, l] > 0.0:
@@ -633,13 +634,10 @@ if AVAILABLE:
                                 cs = math.cos(x2)
                                 fr = (Fr + (S[_ML, l] * cs) * ((S[_MLG, l] * sn) / S[_J, l])) \
                                     - S[_ML, l] * x3 * x3 * sn
-                                if fr * S[_DIR, l] < 0.0 and abs(fr) > S[_FS, l]:
-                                    dv = S[_VIN, l] - S[_X1, l]
-                                    ts = h * S[_VIN, l] / dv if dv != 0.0 else h
-                                    S[_X1, l] = S[_X1, l] + 2.0 * S[_FC, l] * S[_DIR, l] * (h - ts) / S[_MM, l]
-                                    S[_DIR, l] = -S[_DIR, l]
-                                else:
-                                    S[_X1, l] = 0.0
+                                v, dr, stk = _stop(S[_VIN, l], S[_X1, l], S[_DIR, l], fr, S[_FC, l], S[_FS, l], h,
+                                                   S[_MM, l])
+                                S[_X1, l], S[_DIR, l] = v, dr
+                                if stk:
                                     S[_STK, l] = 1.0
                             if S[_PLAY, l] > 0.0:
                                 dl = (S[_DL, l] + h * S[_V0, l]) - (S[_X0, l] - S[_XOLD, l])

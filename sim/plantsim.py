@@ -222,17 +222,16 @@ class PlantSim:
         return 0.0
 
     @staticmethod
-    def _contact_share(eng: int, delta: float, hp: float, fu: float, ce: float, xd: float, h: float) -> float:
-        # the motor side free in the gear play (eng 0) at delta, moving at the no-load speed fu / ce
-        # against the wheel side at xd: the share of a sub-step h after it touches a flank (0: it
-        # does not within h).  The contact is located in the sub-step (at the relative speed of
+    def _contact_share(eng: int, delta: float, hp: float, rel: float, h: float) -> float:
+        # the motor side free in the gear play (eng 0) at delta, moving at rel against the wheel
+        # side (its no-load speed fu / ce minus the cart's): the share of a sub-step h after it
+        # touches a flank (0: it does not within h).  The contact is located in the sub-step (at the relative speed of
         # its start), not put off to the next: the force it passes from there is a jump, and a
         # contact decided only at sub-step starts comes up to a sub-step late, an error of
         # the order of h that made the cart with play converge only at 32 sub-steps a tick
         # (docs/parameters.md, "Plant realism")
-        if eng != 0 or hp == 0.0 or ce <= 0.0:
+        if eng != 0 or hp == 0.0:
             return 0.0
-        rel = fu / ce - xd
         if rel > 0.0:
             tc = (hp - delta) / rel
         elif rel < 0.0:
@@ -347,7 +346,7 @@ class PlantSim:
                 if fric and xd != 0.0:
                     self._stuck, self._dir = False, (1.0 if xd > 0.0 else -1.0)
             eng = 2 if hp == 0.0 else (1 if self._delta >= hp else (-1 if self._delta <= -hp else 0))
-            share = self._contact_share(eng, self._delta, hp, fu, ce, xd, h)
+            share = self._contact_share(eng, self._delta, hp, v0 - xd, h) if ce > 0.0 else 0.0
             if share > 0.0:
                 eng = 1 if fu - ce * xd > 0.0 else -1
             if fric:

@@ -397,6 +397,7 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float | None = 
     for lg in bals:
         check_balancing_log(lg, params.rate, fc or FC_HZ)
     has_coast = any(lg.coast.any() for lg in carts)
+    bals_motor: list[RunLog] | None = None  # the balancing runs as read, where the wheel side moved them
     # the first stage (identify_cart): the drive, the friction, the delay and the latency, open
     # loop; the balancing rows then see the same timing and deadband (and its gear play, the
     # low-pass: play_fc)
@@ -411,9 +412,10 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float | None = 
         d, fl, db = int(cres["fit_delay"]), float(cf["f"]), float(cf["deadband"])
         sse = list(cres["delay_sse"])
         # the gear play the cart-only runs found: the balancing rows' cart on the wheel side
-        bals_motor = bals
-        bals = [wheel_side(lg, d, float(cf["a"]), float(cf["D"]), db,
-                           float(cres["estimates"].get("backlash", 0.0)), dt) for lg in bals]
+        play = float(cres["estimates"].get("backlash", 0.0))
+        if play > 0.0:
+            bals_motor = bals
+            bals = [wheel_side(lg, d, float(cf["a"]), float(cf["D"]), db, play, dt) for lg in bals]
         blocks = [(lg, _prep(lg, d, sos, dt, edge, fl, db)) for lg in bals]
         full = {k: float(cf[k]) for k in ("a", "D", "b", "f", "deadband")}
         f = _fit(blocks, M, m, g, cf["b"], (cf["a"], cf["D"]), full, dt)
@@ -475,13 +477,13 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float | None = 
     # the method's bias from the gear play: the play's state is a model's (wheel_side), so the
     # pendulum fitted on the motor side's positions bounds how far that model moves I
     play_move: dict[str, float] = {}
-    if cf is not None and any(a_ is not b_ for a_, b_ in zip(bals, bals_motor)):
+    if bals_motor is not None:
         bm = [(lg, _prep(lg, d, sos, dt, edge, fl, db)) for lg in bals_motor]
         fm = _fit(bm, M, m, g, cf["b"], (cf["a"], cf["D"]), full, dt)
         em = _derive(fm, params, d, dt, mLk) if mLk is not None else _derive(fm, params, d, dt)
         if math.isfinite(em["I"]) and math.isfinite(est["I"]):
             play_move["I"] = abs(em["I"] - est["I"])
-            notes.append(f"gear play {1e3 * float(cres['estimates']['backlash']):.2f} mm: the balancing run's cart "
+            notes.append(f"gear play {1e3 * play:.2f} mm: the balancing run's cart "
                          f"moved to the wheel side of the play (wheel_side); on the motor side I would read "
                          f"{em['I']:.4g}, a difference added to its interval as the play model's bias")
     # intervals: moving-block bootstrap over the balancing rows (the delay held at its

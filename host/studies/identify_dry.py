@@ -149,7 +149,7 @@ def _kernel(duty: np.ndarray, t_off: float, a: float, D: float, b: float, M: flo
                 eng = 0
             # the motor side free in the play touches a flank within this sub-step: from the
             # contact on, it pushes (the share of the sub-step it does, the force's impulse)
-            share = _contact_share(eng, delta, hp, fu, ce, v, h)
+            share = _contact_share(eng, delta, hp, fu / ce - v, h) if ce > 0.0 else 0.0
             if share > 0.0:
                 eng = 1 if fu - ce * v > 0.0 else -1
             if fric:
