@@ -121,6 +121,13 @@ def adc_counts_per_rad(params: ParamsLike) -> float | np.ndarray:
     return 2.0 ** _get(params, "adc_bits") / _get(params, "pot_range")
 
 
+def pot_gain_at_upright(params: ParamsLike) -> float | np.ndarray:
+    """The pot's slope at the upright reading over its nominal one (:func:`adc_counts_per_rad`):
+    ``1 + amp w cos(w pot_offset)`` with the nonlinearity's sine (``pot_inl``; 1 without it)."""
+    amp, w = inl_terms(params)
+    return 1.0 + amp * w * np.cos(w * _get(params, "pot_offset"))
+
+
 def enc_counts_per_m(params: ParamsLike) -> float | np.ndarray:
     """Encoder counts per metre of cart travel, ``enc_cpr / (2*pi*r_wheel)``."""
     return _get(params, "enc_cpr") / (2.0 * math.pi * _get(params, "r_wheel"))

@@ -38,10 +38,13 @@ from typing import Any
 
 import numpy as np
 
+from sim import sensors as ssens
+
 __all__ = ["bench", "bench_rp2040", "id_errors", "ID_TRUTH"]
 
 
 ID_TRUTH = {"I": lambda p: p.I, "mL": lambda p: p.m * p.L, "kt": lambda p: p.kt, "b": lambda p: p.b,
+            "pot_gain": lambda p: float(ssens.pot_gain_at_upright(p)),
             "coulomb": lambda p: float(p.values.get("cart.coulomb", 0.0)),
             "backlash": lambda p: float(p.values.get("motor.backlash", 0.0)),
             "deadband": lambda p: float(p.values.get("motor.deadband", 0.0))}

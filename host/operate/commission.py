@@ -646,4 +646,5 @@ def _more_deadband(p: RobotParams, db: float, amp_n: float) -> float:
 
 
 def _nominal(p: RobotParams) -> dict[str, float]:
-    return {"I": p.I, "mL": p.m * p.L, "b": p.b, "kt": p.kt, "ke": p.kt, "delay": p.delay, "pot_offset": p.pot_offset}
+    return {"I": p.I, "mL": p.m * p.L, "b": p.b, "kt": p.kt, "ke": p.kt, "delay": p.delay, "pot_offset": p.pot_offset,
+            "pot_gain": 1.0}

@@ -36,7 +36,7 @@ def _params_plot(ident: Mapping[str, Any]) -> str:
     import matplotlib.pyplot as plt
 
     e, ci, nom = ident["estimates"], ident.get("ci", {}), ident["nominal"]
-    names = [k for k in ("I", "mL", "b", "kt", "ke") if k in e and nom.get(k)]
+    names = [k for k in ("I", "mL", "b", "kt", "ke", "pot_gain") if k in e and nom.get(k)]
     fig, ax = plt.subplots(figsize=(6, 3))
     for i, k in enumerate(names):
         r = e[k] / nom[k]

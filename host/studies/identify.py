@@ -53,6 +53,7 @@ in one line saying how many board seconds they need.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Any, Sequence
 
 import numpy as np
@@ -65,18 +66,19 @@ from sim.motor import DUTY_MAX
 from sim.params import SCHEMA, RobotParams
 
 __all__ = ["LogError", "RunLog", "read_log", "identify", "identify_cart", "identified_params", "robot_toml",
-           "PARAM_NAMES", "STAGE1_EXTRA", "truth_of", "play_fc", "FC_HZ", "wheel_side", "WHEEL_V_HZ"]
+           "PARAM_NAMES", "STAGE1_EXTRA", "truth_of", "play_fc", "FC_HZ", "wheel_side", "WHEEL_V_HZ", "pot_gain"]
 
-PARAM_NAMES = ("I", "mL", "b", "kt", "ke", "delay", "pot_offset")
+PARAM_NAMES = ("I", "mL", "b", "kt", "ke", "delay", "pot_offset", "pot_gain")
 """Estimated parameters: pivot inertia term (kg m^2), m*L (kg m), cart friction (N s/m), force
-and back-EMF constants (N m/A, V s/rad), sensor delay (s), pot offset (ADC counts)."""
+and back-EMF constants (N m/A, V s/rad), sensor delay (s), pot offset (ADC counts), the pot's
+gain near upright over the robot file's (:func:`pot_gain`; 1 where the logs do not resolve it)."""
 
 STAGE1_EXTRA = ("latency", "deadband")
 """Estimated by the first stage (:func:`identify_cart`) besides :data:`PARAM_NAMES`: the board's
 read-to-drive latency (s) and the bridge's deadband (fraction of full duty; held unless fitted)."""
 
 UNITS = {"I": "kg*m^2", "mL": "kg*m", "b": "N*s/m", "kt": "N*m/A", "ke": "V*s/rad", "delay": "s",
-         "pot_offset": "count", "latency": "s", "deadband": "1", "coulomb": "N", "stiction": "N", "backlash": "m"}
+         "pot_offset": "count", "pot_gain": "1", "latency": "s", "deadband": "1", "coulomb": "N", "stiction": "N", "backlash": "m"}
 BIAS_FLOOR = {"I": 0.05, "mL": 0.04}
 """Fraction of the estimate added (in quadrature) to the bootstrap interval of the balancing stage's
 estimates for the method's bias (the equation-error fit through the low-pass)."""
@@ -90,6 +92,17 @@ the cart's acceleration (:func:`play_fc`)."""
 FC_MIN_HZ = 2.0
 """Hz: the lowest balancing-run low-pass :func:`play_fc` chooses (the pendulum's motion under the
 balancing loop lies below it)."""
+POT_WIN_S = 1.0
+"""s: the windows of :func:`pot_gain`'s integral form (each with its own constant and slope: the
+twice-integrated equation's unknown initial position and speed, and its drift)."""
+POT_GAIN_MAX = 0.2
+"""Largest ``|pot_gain - 1|`` used: beyond it the fit is taken for a failed one (a pot 20 % off its
+file's scale near upright is a calibration to repeat, not a nonlinearity), 1 kept, said in a note."""
+POT_GAIN_CI = 0.03
+"""Largest 95 % half-width of ``pot_gain`` for which the logs' value is used, else 1 (a note)."""
+POT_GAIN_FLOOR = 0.01
+"""The method's bias of ``pot_gain`` (added in quadrature to its interval): on the ideal robot
+(``tests/test_identify.py``) the windows of 0.5-2 s read 0.9998-1.0057 for a true 1."""
 
 
 def play_fc(backlash: float, fc: float = FC_HZ) -> float:
@@ -176,6 +189,65 @@ def wheel_side(lg: RunLog, d: int, a: float, D: float, deadband: float, backlash
     out = copy.copy(lg)
     out.x = xw
     return out
+
+
+def _pot_rows(x: np.ndarray, ph: np.ndarray, valid: np.ndarray, dt: float, win: int) -> tuple[np.ndarray, np.ndarray]:
+    # per window of `win` valid rows: the columns (phi, its double integral, t^2) and the target x,
+    # each with the window's own line (constant and slope) projected out
+    idx = np.flatnonzero(valid)
+    R, Y = [], []
+    for w in range(len(idx) // win):
+        sl = idx[w * win:(w + 1) * win]
+        if sl[-1] - sl[0] != win - 1:
+            continue  # not contiguous
+        p = ph[sl]
+        t = np.arange(win) * dt
+        s1 = np.concatenate([[0.0], np.cumsum(0.5 * (p[1:] + p[:-1])) * dt])
+        s2 = np.concatenate([[0.0], np.cumsum(0.5 * (s1[1:] + s1[:-1])) * dt])
+        C = np.column_stack([p, s2, t * t])
+        L = np.column_stack([np.ones(win), t])
+        q, _ = np.linalg.qr(L)
+        R.append(C - q @ (q.T @ C))
+        y = x[sl]
+        Y.append(y - q @ (q.T @ y))
+    return np.stack(R) if R else np.zeros((0, win, 3)), np.stack(Y) if Y else np.zeros((0, win))
+
+
+def pot_gain(blocks: Sequence[tuple[RunLog, dict[str, np.ndarray]]], g: float, dt: float, *, n_boot: int = 200,
+             seed: int = 0) -> tuple[float, float]:
+    """The pot's gain near upright over the robot file's, from the balancing runs: ``(k, 95 % half-width)``.
+
+    The pendulum's equation ``Leq phidd = g phi + xdd`` (linearised; ``Leq = J / (m L)``) integrated
+    twice over a window: ``Leq phi - x = g SS phi + c0 + c1 t``.  A reading ``phi_m = k phi + beta``
+    (the pot's local gain ``k``: its nonlinearity, a calibration tilt read as a secant) makes it
+    ``x = (Leq / k) phi_m - (g / k) SS phi_m + (g beta / 2 k) t^2 + c0' + c1' t``: the known ``g``
+    separates the gain from ``Leq``, which the differential form's single coefficient
+    (``(g phi_m + k xdd) / Leq``) cannot -- a pot reading 6 % high near upright (``pot_inl`` 1 %)
+    made the pivot inertia 12 % high.  No derivative of a measurement, and both sensors carry the
+    same delay (none to shift).  ``blocks``: the balancing runs with their filtered signals
+    (``_prep``'s ``x``, ``phi``, ``valid``); windows of :data:`POT_WIN_S`; the interval from a
+    bootstrap over the windows.
+    """
+    win = max(8, int(round(POT_WIN_S / dt)))
+    parts = [_pot_rows(s["x"], s["phi"], s["valid"], dt, win) for lg, s in blocks if not lg.cart_only]
+    R = np.concatenate([p[0] for p in parts]) if parts else np.zeros((0, win, 3))
+    Y = np.concatenate([p[1] for p in parts]) if parts else np.zeros((0, win))
+    if len(R) < 3:
+        return math.nan, math.inf
+
+    def solve(ix: np.ndarray) -> float:
+        A = R[ix].reshape(-1, 3)
+        th = np.linalg.lstsq(A, Y[ix].reshape(-1), rcond=None)[0]
+        return -g / th[1] if th[1] < 0 else math.nan
+
+    k = solve(np.arange(len(R)))
+    rng = np.random.default_rng(seed)
+    ks = np.array([solve(rng.integers(0, len(R), len(R))) for _ in range(n_boot)])
+    ks = ks[np.isfinite(ks)]
+    if not math.isfinite(k) or len(ks) < n_boot // 2:
+        return math.nan, math.inf
+    lo, hi = np.percentile(ks, [2.5, 97.5])
+    return float(k), float(max(hi - k, k - lo))
 
 
 def check_balancing_log(lg: RunLog, rate: float, fc: float) -> None:
@@ -335,7 +407,7 @@ def _fit(blocks: list[tuple[RunLog, dict[str, np.ndarray]]], M: float, m: float,
 
 
 def _derive(f: dict[str, Any], params: RobotParams, d: int, dt: float,
-            mL_known: float | None = None) -> dict[str, float]:
+            mL_known: float | None = None, pot_k: float = 1.0) -> dict[str, float]:
     # physical parameters from the regression coefficients and the known constants
     v = params.values
     n, gear, r, R, V = (v["motor.n_motors"], v["motor.gear"], v["motor.r_wheel"], v["motor.R"], v["motor.V_supply"])
@@ -346,7 +418,7 @@ def _derive(f: dict[str, Any], params: RobotParams, d: int, dt: float,
     I = J - mL**2 / params.m  # noqa: E741 - the model's symbol
     cpr = float(ssens.adc_counts_per_rad(params))
     return {"I": I, "mL": mL, "b": f["b"], "kt": kt, "ke": ke, "delay": d * dt,
-            "pot_offset": v["sensors.pot_offset"] + f["beta"] * cpr}
+            "pot_offset": v["sensors.pot_offset"] + f["beta"] * cpr * pot_k, "pot_gain": pot_k}
 
 
 def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float | None = None, max_delay: float = 0.03,
@@ -416,6 +488,19 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float | None = 
         if play > 0.0:
             bals_motor = bals
             bals = [wheel_side(lg, d, float(cf["a"]), float(cf["D"]), db, play, dt) for lg in bals]
+    # the pot's gain near upright (pot_gain): the balancing runs' tilt rescaled to it, so that Leq,
+    # the offset and the reaction's m*L are all in true radians
+    kp, kh = pot_gain([(lg, _prep(lg, 0, sos, dt, edge)) for lg in bals], g, dt, seed=seed)
+    kp_fit = kp
+    pot_ok = math.isfinite(kp) and abs(kp - 1.0) <= POT_GAIN_MAX and kh <= POT_GAIN_CI
+    pot_used = pot_ok and abs(kp - 1.0) > kh
+    if pot_used:
+        bals = [replace(lg, phi=lg.phi / kp) for lg in bals]
+        if bals_motor is not None:
+            bals_motor = [replace(lg, phi=lg.phi / kp) for lg in bals_motor]
+    else:
+        kp = 1.0
+    if cres is not None:
         blocks = [(lg, _prep(lg, d, sos, dt, edge, fl, db)) for lg in bals]
         full = {k: float(cf[k]) for k in ("a", "D", "b", "f", "deadband")}
         f = _fit(blocks, M, m, g, cf["b"], (cf["a"], cf["D"]), full, dt)
@@ -430,7 +515,7 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float | None = 
             fits.append((ff, blocks))
         d = int(np.argmin(sse))
         f, blocks = fits[d]
-    est = _derive(f, params, d, dt)
+    est = _derive(f, params, d, dt, pot_k=kp)
     if cres is not None:
         ce = cres["estimates"]
         est.update(kt=ce["kt"], ke=ce["ke"], b=ce["b"], delay=ce["delay"])
@@ -440,6 +525,17 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float | None = 
         # the balancing stage below still models the cart's reaction as linear
         est.update({k: ce[k] for k in DRY_NAMES if k in ce})
     notes = list(cres["notes"]) if cres is not None else []
+    if pot_used:
+        notes.append(f"pot gain near upright {kp:.4f} x the robot file's (95 % +-{kh:.3f}, from the pendulum's "
+                     f"equation integrated twice, pot_gain): the balancing runs' tilt rescaled; the identified robot's "
+                     f"pot_range is the file's / {kp:.4f}")
+    elif pot_ok:
+        notes.append(f"pot gain near upright {kp_fit:.4f} (95 % +-{kh:.3f}): 1 within its interval, the robot file's "
+                     "scale kept (pot_gain 1)")
+    else:
+        notes.append("pot gain near upright not resolved by the logs (" + (
+            f"{kp_fit:.4f} +-{kh:.3f}" if math.isfinite(kp_fit) else "no fit") + f", used within "
+            f"+-{POT_GAIN_CI:g} and {POT_GAIN_MAX:g} of 1): the robot file's scale kept (pot_gain 1)")
     sources = {k: "logs" for k in PARAM_NAMES}
     if carts and not has_coast:
         pass  # said by identify_cart
@@ -473,19 +569,28 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float | None = 
             notes.append(f"m*L from --params ({mLk:.4g} kg m: the pendulum's masses and centre of mass), {why}; "
                          "I from the pendulum's Leq with it")
             sources["mL"] = "params"
-            est.update({k: v for k, v in _derive(f, params, d, dt, mLk).items() if k in ("I", "mL")})
+            est.update({k: v for k, v in _derive(f, params, d, dt, mLk, pot_k=kp).items() if k in ("I", "mL")})
     # the method's bias from the gear play: the play's state is a model's (wheel_side), so the
     # pendulum fitted on the motor side's positions bounds how far that model moves I
-    play_move: dict[str, float] = {}
+    model_bias: dict[str, float] = {}
     if bals_motor is not None:
         bm = [(lg, _prep(lg, d, sos, dt, edge, fl, db)) for lg in bals_motor]
         fm = _fit(bm, M, m, g, cf["b"], (cf["a"], cf["D"]), full, dt)
-        em = _derive(fm, params, d, dt, mLk) if mLk is not None else _derive(fm, params, d, dt)
+        em = _derive(fm, params, d, dt, mLk, pot_k=kp)
         if math.isfinite(em["I"]) and math.isfinite(est["I"]):
-            play_move["I"] = abs(em["I"] - est["I"])
+            model_bias["I"] = abs(em["I"] - est["I"])
             notes.append(f"gear play {1e3 * play:.2f} mm: the balancing run's cart "
                          f"moved to the wheel side of the play (wheel_side); on the motor side I would read "
                          f"{em['I']:.4g}, a difference added to its interval as the play model's bias")
+    # the method's bias from the pot's gain: the pendulum refitted with the gain at the far end of
+    # its interval (the rows below are bootstrapped with it held)
+    kw = math.hypot(kh, POT_GAIN_FLOOR * kp) if pot_ok else POT_GAIN_MAX
+    if cf is not None and math.isfinite(est["I"]):
+        k2 = kp + kw
+        bk = [(lg, _prep(replace(lg, phi=lg.phi * kp / k2), d, sos, dt, edge, fl, db)) for lg in bals]
+        ek = _derive(_fit(bk, M, m, g, cf["b"], (cf["a"], cf["D"]), full, dt), params, d, dt, mLk, pot_k=k2)
+        if math.isfinite(ek["I"]):
+            model_bias["I"] = math.hypot(model_bias.get("I", 0.0), ek["I"] - est["I"])
     # intervals: moving-block bootstrap over the balancing rows (the delay held at its
     # estimate), the drive's (a, D', b) drawn from the cart fit's Jacobian covariance
     ci: dict[str, list[float]] = {}
@@ -515,11 +620,11 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float | None = 
             if cf:
                 fb.update(a=drive[0], D=drive[1], b=bd)
             boots.append(fb)
-            e = _derive(fb, params, d, dt)
+            e = _derive(fb, params, d, dt, pot_k=kp)
             for k in PARAM_NAMES:
                 draws[k].append(e[k])
         if mLk is not None:
-            draws["I"] = [_derive(fb, params, d, dt, mLk)["I"] for fb in boots]
+            draws["I"] = [_derive(fb, params, d, dt, mLk, pot_k=kp)["I"] for fb in boots]
             draws["mL"] = [mLk]
         elif mv > 0:
             draws["mL"] = list(draws["mL"]) + [est["mL"] - mv, est["mL"] + mv]
@@ -530,9 +635,12 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float | None = 
             if k in BIAS_FLOOR and len(arr) and math.isfinite(est[k]):
                 # the method's bias (measured in the validation) on top of the noise, in quadrature
                 lo, hi = ci[k]
-                w = math.hypot(BIAS_FLOOR[k] * abs(est[k]), play_move.get(k, 0.0))
+                w = math.hypot(BIAS_FLOOR[k] * abs(est[k]), model_bias.get(k, 0.0))  # the play model's and the pot gain's
                 ci[k] = [est[k] - math.hypot(est[k] - lo, w), est[k] + math.hypot(hi - est[k], w)]
         ci["delay"] = [max(0.0, (d - 1) * dt), (d + 1) * dt]  # the grid: whole samples
+        # the pot's gain: its own bootstrap over the windows (the pendulum's rows are fitted with it
+        # held), the method's floor in quadrature; unresolved, the range it would have been used in
+        ci["pot_gain"] = [kp - kw, kp + kw]
     if cres is not None:
         # the first stage's intervals (noise, split-half bias and its floor) for what it estimates
         for k in ("b", "kt", "ke", "delay", "latency", "deadband", *(x for x in DRY_NAMES if x in cres["ci"])):
@@ -547,7 +655,8 @@ def identify(logs: Sequence[RunLog], params: RobotParams, *, fc: float | None = 
 def truth_of(plant: RobotParams) -> dict[str, float]:
     """:data:`PARAM_NAMES` of a (simulated) plant, for validation: ``ke`` = ``kt`` there."""
     return {"I": plant.I, "mL": plant.m * plant.L, "b": plant.b, "kt": plant.kt, "ke": plant.kt,
-            "delay": plant.delay, "pot_offset": float(plant.pot_offset)}
+            "delay": plant.delay, "pot_offset": float(plant.pot_offset),
+            "pot_gain": float(ssens.pot_gain_at_upright(plant))}
 
 
 def identified_params(result: dict[str, Any], params: RobotParams) -> RobotParams:
@@ -555,7 +664,9 @@ def identified_params(result: dict[str, Any], params: RobotParams) -> RobotParam
 
     ``motor.kt`` takes the force constant (the model has one constant for both), the delay is
     rounded to whole control ticks, the pot offset to whole counts; ``pendulum.L_cm`` and
-    ``pendulum.I`` are set explicitly (``L_cm = mL / m``).  A first-stage result
+    ``pendulum.I`` are set explicitly (``L_cm = mL / m``), the pot's gain near upright
+    (``pot_gain``) scales its counts per radian (``sensors.pot_range`` / ``pot_gain``: the
+    tables' tilt is then true radians where the robot balances).  A first-stage result
     (:func:`identify_cart`: no ``I``, ``mL``, pot offset) sets only the drive, the friction and
     the delay; a deadband fitted (two amplitudes) goes to ``motor.deadband``; the dry cart's
     Coulomb friction, stiction and gear play (``identify_cart(..., dry=True)``) to
@@ -567,6 +678,8 @@ def identified_params(result: dict[str, Any], params: RobotParams) -> RobotParam
         ch.update({"pendulum.I": e["I"], "pendulum.L_cm": e["mL"] / params.m})
     if "pot_offset" in e:
         ch["sensors.pot_offset"] = int(round(e["pot_offset"]))
+    if math.isfinite(e.get("pot_gain", math.nan)) and e["pot_gain"] > 0 and e["pot_gain"] != 1.0:
+        ch["sensors.pot_range"] = params.pot_range / e["pot_gain"]
     if math.isfinite(e.get("kt", math.nan)):
         ch["motor.kt"] = e["kt"]
     if "delay" in e:
