@@ -117,3 +117,17 @@ def test_the_wheel_side_figures_quoted_are_the_identifications() -> None:
     assert m, "docs/parameters.md no longer states how wheel_side takes the cart's speed"
     words = {"one": 1, "two": 2, "three": 3, "four": 4, "five": 5}
     assert (float(m.group(1)), words.get(m.group(2), m.group(2))) == (I.WHEEL_V_HZ, I.WHEEL_ITER)
+
+
+def test_the_pot_gain_figures_quoted_are_identifys() -> None:
+    # docs/parameters.md, "The pot's gain near upright": the windows, where the gain is used, the
+    # interval where it is not
+    from host.studies import identify as I
+
+    doc = _text("docs/parameters.md")
+    m = re.search(r"integrated twice over ([\d.]+) s windows\s+\(`POT_WIN_S`\)", doc)
+    assert m and float(m.group(1)) == I.POT_WIN_S, "docs/parameters.md no longer states pot_gain's windows"
+    m = re.search(r"resolved \(within (\d+) % of 1, its 95 % half-width under (\d+) %", doc)
+    assert m and (int(m.group(1)), int(m.group(2))) == (round(100 * I.POT_GAIN_MAX), round(100 * I.POT_GAIN_CI))
+    m = re.search(r"a pot's usual ±([\d.]+) % \(`POT_GAIN_PRIOR`", doc)
+    assert m and float(m.group(1)) == round(100 * I.POT_GAIN_PRIOR, 1)
