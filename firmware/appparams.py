@@ -12,7 +12,7 @@ except ImportError:
 
 from . import fixmath
 from . import msgtable as T
-from .controller import LIM_FC, LIM_GHB, LIM_HPX
+from .controller import FC_COMP, LIM_FC, LIM_FCC, LIM_GHB, LIM_HPX, LIM_KDU, LIM_KDV
 from .supervisor import ARMED, BALANCING
 
 # the parameters with a derived integer (Params._apply_param)
@@ -137,14 +137,22 @@ class Params:
             g = p[i]
             h = (g << self.table[self.off["FMT"]]) >> 1
             ghb = self._gap_ticks(h)
-            self.ctrl.lim[LIM_GHB] = ghb
-            self.ctrl.lim[LIM_HPX] = h
+            lim = self.ctrl.lim
+            lim[LIM_GHB] = ghb
+            lim[LIM_HPX] = h
+            # the duty's sign for the gap model (Motor.duty's KDU u + KDV vh)
+            mo = self.motor
+            lim[LIM_KDU] = mo.kdu
+            lim[LIM_KDV] = mo.kdv if mo.backemf else 0
             # the controller finds the wheel side from the gap model; the sensors' play operator
             # only where there is no gap model (a drive without its back-EMF constants)
             self.sensors.play = 0 if ghb else g >> 1
         elif i == T.P_CART_COULOMB:
             # the predictor's force while the motor side is in the play (controller LIM_FC)
-            self.ctrl.lim[LIM_FC] = self._force_u(p[i])
+            fc = self._force_u(p[i])
+            self.ctrl.lim[LIM_FC] = fc
+            # and the part of it the table's deadband compensation carries (the gap model's)
+            self.ctrl.lim[LIM_FCC] = (fc >> 5) * FC_COMP + (((fc & 31) * FC_COMP) >> 5)
 
     def param_get(self, index):
         # the value, or 0 for an index out of range (the dispatcher checks first)

@@ -60,7 +60,15 @@ LIM_GAP = const(5)
 # side the x measurement stands for is found from the gap at the measurement's time
 LIM_HPX = const(6)
 LIM_FC = const(7)
-LIM_GH = const(8)
+# ... the motor's KDU and KDV (the duty's sign: see the gap model in step) and the Coulomb
+# compensation the duty carries in its own direction (u LSB, FC_COMP/32 of LIM_FC: the tables
+# `upright commission` uploads add that much of the cart's Coulomb friction to their deadband
+# compensation, host.operate.commission.COULOMB_COMP), then the gap history
+LIM_KDU = const(8)
+LIM_KDV = const(9)
+LIM_FCC = const(10)
+LIM_GH = const(11)
+FC_COMP = const(29)
 # crossing the play: while the gap is open toward the force, the force is raised to what reaches
 # the flank, at most the clamp >> CROSS_SHIFT (a quarter: a stronger crossing hits the flank hard
 # enough to break the 5 m/s^2 limit, a weaker one leaves the limit cycle; docs/parameters.md)
@@ -597,6 +605,7 @@ class Controller:
         ue = u
         l = lim[LIM_GHB]
         if l:
+            sv = lim[LIM_KDV] * v  # the duty's back-EMF term (v: vh, as just set)
             v = lim[LIM_GAP]
             if u > 0:
                 w = l - v
@@ -614,12 +623,33 @@ class Controller:
                 if u > w:
                     u = w
                     self.u = u
-            v = v + u
+            # the motor side moves against the wheel side by what the duty makes beyond the cart's
+            # speed: u, and the Coulomb compensation the motor adds in the duty's direction (on a
+            # flank it cancels the cart's friction; free in the play it drives the motor, with
+            # the duty's sign even where the force's is the other -- braking a fast cart, the
+            # back-EMF term outweighs the force)
+            w = u
+            fcc = lim[LIM_FCC]
+            if fcc:
+                sv = sv + lim[LIM_KDU] * u
+                if sv > 0 or (sv == 0 and u > 0):
+                    w = u + fcc
+                elif sv < 0 or u < 0:
+                    fcc = -fcc
+                    w = u + fcc
+                else:
+                    fcc = 0
+            v = v + w
             if v > l:
-                ue = v - l
+                # the force past the flank, less the compensation the cart's friction takes
+                ue = v - l - fcc
+                if ue < 0:
+                    ue = 0
                 v = l
             elif v < -l:
-                ue = v + l
+                ue = v + l - fcc
+                if ue > 0:
+                    ue = 0
                 v = -l
             else:
                 # in the play the gear drives nothing, and the cart's dry friction, which the

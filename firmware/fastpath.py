@@ -22,7 +22,10 @@ _INTEG_HALF = const(32)
 LIM_GHB = const(4)
 LIM_GAP = const(5)
 LIM_FC = const(7)
-LIM_GH = const(8)
+LIM_KDU = const(8)
+LIM_KDV = const(9)
+LIM_FCC = const(10)
+LIM_GH = const(11)
 CROSS_SHIFT = const(2)
 
 
@@ -134,6 +137,7 @@ def step_native(c, yx, yp, r):
     ue = u
     l = lim[LIM_GHB]
     if l:
+        sv = lim[LIM_KDV] * v
         v = lim[LIM_GAP]
         if u > 0:
             w = l - v
@@ -151,12 +155,27 @@ def step_native(c, yx, yp, r):
             if u > w:
                 u = w
                 c.u = u
-        v = v + u
+        w = u
+        fcc = lim[LIM_FCC]
+        if fcc:
+            sv = sv + lim[LIM_KDU] * u
+            if sv > 0 or (sv == 0 and u > 0):
+                w = u + fcc
+            elif sv < 0 or u < 0:
+                fcc = -fcc
+                w = u + fcc
+            else:
+                fcc = 0
+        v = v + w
         if v > l:
-            ue = v - l
+            ue = v - l - fcc
+            if ue < 0:
+                ue = 0
             v = l
         elif v < -l:
-            ue = v + l
+            ue = v + l - fcc
+            if ue > 0:
+                ue = 0
             v = -l
         else:
             ue = 0
@@ -336,6 +355,7 @@ def step_viper(c, yx: int, yp: int, r: int) -> int:
     ue = u
     l = (((lim[LIM_GHB] + sb) & msk) - sb)
     if l:
+        sv = (((lim[LIM_KDV] + sb) & msk) - sb) * v
         v = (((lim[LIM_GAP] + sb) & msk) - sb)
         if u > 0:
             w = l - v
@@ -353,12 +373,27 @@ def step_viper(c, yx: int, yp: int, r: int) -> int:
             if u > w:
                 u = w
                 c.u = u
-        v = v + u
+        w = u
+        fcc = (((lim[LIM_FCC] + sb) & msk) - sb)
+        if fcc:
+            sv = sv + (((lim[LIM_KDU] + sb) & msk) - sb) * u
+            if sv > 0 or (sv == 0 and u > 0):
+                w = u + fcc
+            elif sv < 0 or u < 0:
+                fcc = -fcc
+                w = u + fcc
+            else:
+                fcc = 0
+        v = v + w
         if v > l:
-            ue = v - l
+            ue = v - l - fcc
+            if ue < 0:
+                ue = 0
             v = l
         elif v < -l:
-            ue = v + l
+            ue = v + l - fcc
+            if ue > 0:
+                ue = 0
             v = -l
         else:
             ue = 0

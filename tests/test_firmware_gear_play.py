@@ -19,7 +19,8 @@ import fwharness as H
 from firmware import gains as G
 from firmware import msgtable as T
 from firmware.app import App
-from firmware.controller import CROSS_SHIFT, LIM_FC, LIM_GAP, LIM_GH, LIM_GHB, LIM_HPX, Controller
+from firmware.controller import (CROSS_SHIFT, FC_COMP, LIM_FC, LIM_FCC, LIM_GAP, LIM_GH, LIM_GHB, LIM_HPX, LIM_KDU,
+                                 LIM_KDV, Controller)
 from firmware.sensors import Sensors
 from firmware.store import MIGRATED, NAMES, ConfigStore, encode
 from firmware.supervisor import BALANCING
@@ -124,6 +125,55 @@ def test_in_the_play_the_predictor_gets_the_coulomb_force_against_the_speed() ->
     c.lim[LIM_GAP] = ghb  # on the forward flank: a push passes, no friction term
     u = c.step(0, 0, -20000)
     assert u > 0 and c.b[d - 1] == u
+
+
+def test_in_the_play_the_coulomb_compensation_moves_the_motor_side_the_dutys_way() -> None:
+    # the table's deadband compensation carries FC_COMP/32 of the cart's Coulomb friction in the
+    # duty's direction; on a flank it cancels the friction, free in the play it drives the motor.
+    # Braking a fast cart (force back, the back-EMF term forward: the duty forward) the motor side
+    # crosses toward the back flank slower than the force alone says -- the gap model that left it
+    # out reached the flank 10 ticks before the gear on a 3 mm commission-bench vertex, the
+    # predictor braked a coasting cart, and the engagement's speed error made 10.9 m/s^2 (7.6 with it)
+    ghb, fcc, kdu, kdv = 100000, 300, 1638, 18204
+    for comp in (0, fcc):
+        c = _controller(ghb)
+        c.lim[LIM_FCC], c.lim[LIM_KDU], c.lim[LIM_KDV] = comp, kdu, kdv
+        seen = []
+        for k in range(40):
+            gap, b_before = c.lim[LIM_GAP], c.b[c.d - 1]
+            u = c.step(0, 0, -20000 if k < 20 else 20000)
+            sv = kdu * u + kdv * c.vh
+            s = 1 if sv > 0 or (sv == 0 and u > 0) else (-1 if sv < 0 or u < 0 else 0)
+            w = u + comp * s
+            assert c.lim[LIM_GAP] == max(-ghb, min(ghb, gap + w)), (comp, k, gap, u, c.vh)
+            seen.append((gap, u, s))
+        assert {s for _, _, s in seen} >= {1, -1}
+    # and with the duty's sign the same, the gap moves by u + fcc; opposite, by u - fcc
+    c = _controller(ghb)
+    c.lim[LIM_FCC], c.lim[LIM_KDU], c.lim[LIM_KDV] = fcc, kdu, kdv
+    c.p[1] = 2000  # a fast forward estimate and a reference behind: a braking force, the duty forward
+    u = c.step(0, 0, 20000)
+    assert u < 0 < kdu * u + kdv * c.vh and c.lim[LIM_GAP] == u + fcc, (u, c.vh, c.lim[LIM_GAP])
+    # on a flank the force past it, less the compensation the friction takes, passes
+    c = _controller(ghb)
+    c.lim[LIM_FCC], c.lim[LIM_KDU], c.lim[LIM_KDV] = fcc, kdu, kdv
+    c.lim[LIM_GAP] = ghb
+    u = c.step(0, 0, -20000)
+    assert u > 0 and c.lim[LIM_GAP] == ghb and c.b[c.d - 1] == u  # steady on the flank: u, as before
+
+
+def test_the_coulomb_compensations_part_and_the_motors_constants_reach_the_gap_model() -> None:
+    from host.operate.commission import COULOMB_COMP
+
+    assert COULOMB_COMP == FC_COMP / 32  # the host's tables carry what the firmware counts on
+    app = App(H.StandInHal(inc=2000), config={})
+    assert app.param_set(T.P_CART_COULOMB, 50) == T.OK
+    fc = app.ctrl.lim[LIM_FC]
+    assert app.ctrl.lim[LIM_FCC] == (fc * FC_COMP) >> 5
+    assert app.param_set(T.P_GEAR_PLAY, 20) == T.OK
+    assert (app.ctrl.lim[LIM_KDU], app.ctrl.lim[LIM_KDV]) == (app.motor.kdu, app.motor.kdv)
+    app.ctrl.reset(0, 0)  # arming keeps them
+    assert app.ctrl.lim[LIM_FCC] == (fc * FC_COMP) >> 5 and app.ctrl.lim[LIM_KDU] == app.motor.kdu
 
 
 def test_cart_coulomb_parameter_sets_the_predictors_force_and_survives_a_reset() -> None:

@@ -41,6 +41,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from firmware.controller import FC_COMP
 from firmware.supervisor import F_STALL
 from host.operate.board import BoardError, param_info
 from sim.motor import DUTY_MAX
@@ -62,8 +63,8 @@ CART_A_CMD = 25.0
 CART_MOVED_M = 0.02  # m: a cart-only run that moved the cart less is not a drive's log
 CART_DB_MAX = 4096 / 32767
 """Fraction of full duty: the largest deadband compensation a table carries (the export's bound, 4096 counts)."""
-COULOMB_COMP = 0.9
-"""Fraction of the robot file's Coulomb friction (``cart.coulomb``) the uploaded table adds to its deadband
+COULOMB_COMP = FC_COMP / 32
+"""Fraction (29/32, ``firmware.controller.FC_COMP``: the firmware's gap model counts on it) of the robot file's Coulomb friction (``cart.coulomb``) the uploaded table adds to its deadband
 compensation, as the duty that makes that force at rest: the firmware adds it in the force's direction
 (``firmware/motor.py``), which cancels the friction whenever the cart moves the way it is pushed.
 Slightly under one: a full compensation turns every sign change of the force into a kick the size of
