@@ -38,9 +38,10 @@ def seq():
 
 
 # the three emitters' controller steps on the sequence (YX, YP, R; GHB, HPX, FC: the gear-play model,
-# FC the Coulomb force the predictor is given in the play, Controller.lim[LIM_FC])
+# FC the Coulomb force the predictor is given in the play, Controller.lim[LIM_FC]; with FC, 29/32 of
+# it as the compensation's push in the play, LIM_FCC, and the motor's KDU/KDV for the duty's sign)
 STEPS = """
-from firmware.controller import Controller, LIM_FC
+from firmware.controller import Controller, LIM_FC, LIM_FCC, LIM_KDU, LIM_KDV
 from firmware import fastpath
 c0 = Controller(LAYOUT, FLAT)
 c1 = Controller(LAYOUT, FLAT)
@@ -48,6 +49,9 @@ c2 = Controller(LAYOUT, FLAT)
 c0.lim[4] = c1.lim[4] = c2.lim[4] = GHB
 c0.lim[6] = c1.lim[6] = c2.lim[6] = HPX
 c0.lim[LIM_FC] = c1.lim[LIM_FC] = c2.lim[LIM_FC] = FC
+c0.lim[LIM_FCC] = c1.lim[LIM_FCC] = c2.lim[LIM_FCC] = (FC * 29) >> 5
+c0.lim[LIM_KDU] = c1.lim[LIM_KDU] = c2.lim[LIM_KDU] = KDU
+c0.lim[LIM_KDV] = c1.lim[LIM_KDV] = c2.lim[LIM_KDV] = KDV
 n = len(YX)
 bad = 0
 free = 0
@@ -70,6 +74,9 @@ print('last', u0)
 print('free', free)
 """
 
+# the shipped table's motor row (Motor.kdu, kdv: the duty's sign the gap model takes)
+MOTOR = f"KDU = {FD.tables['MOT'][0]}\nKDV = {FD.tables['MOT'][1]}\n"
+
 # a whole app with each fast emitter (PLAY: the gear play parameter) steps allocation-free
 APP = H.FAKE_HAL + H.APP_STEPS_LOCKED + """
 from firmware.app import App
@@ -89,7 +96,7 @@ for em in ('native', 'viper'):
 def test_native_and_viper_equal_bytecode(seq, ghb: int, hpx: int, play: int, fc: int) -> None:
     # with gear play the gap model (Controller.lim[4], [5]: LIM_GHB, LIM_GAP; the wheel side from lim[6:]) runs too
     yx, yp, r = seq
-    code = H.flat_src(FD) + H.ints_src(YX=yx, YP=yp, R=r) + f"GHB = {ghb}\nHPX = {hpx}\nPLAY = {play}\nFC = {fc}\n" + STEPS + APP
+    code = H.flat_src(FD) + H.ints_src(YX=yx, YP=yp, R=r) + f"GHB = {ghb}\nHPX = {hpx}\nPLAY = {play}\nFC = {fc}\n" + MOTOR + STEPS + APP
     out = dict(line.split() for line in run_unix(code, timeout=120).splitlines() if line.strip())
     assert int(out["n"]) == len(yx) and int(out["bad"]) == 0
     # the sequence crosses the play model's gap (the force reverses) and rests on a flank

@@ -36,7 +36,7 @@ def test_controller_step_of_every_emitter_equal_on_the_board(board: EmulatedBoar
     yx, yp, r = FP.seq_with_extremes()
     yx, yp, r = yx[-900:], yp[-900:], r[-900:]  # the end of the run and every extreme
     code = (H.flat_src(FP.FD) + H.ints_src(YX=yx, YP=yp, R=r)
-            + "GHB = 4000\nHPX = 1200\nFC = 300\n" + FP.STEPS)  # with the gear-play model on
+            + "GHB = 4000\nHPX = 1200\nFC = 300\n" + FP.MOTOR + FP.STEPS)  # with the gear-play model on
     out = dict(line.split() for line in board.exec(code, timeout=60).splitlines() if line.strip())
     assert int(out["n"]) == len(yx) and int(out["bad"]) == 0
 

@@ -100,6 +100,36 @@ def test_tick_time_is_measured_in_emulated_cycles(tilt_runs) -> None:
     assert st["fw_step_us_mean"] < st["tick_us_mean"]  # the step alone, without the link poll
 
 
+def test_the_gear_play_model_runs_in_the_boards_paced_loop(hil: EmulatedHil) -> None:
+    # the gap model with the Coulomb compensation's push (board parameters gear_play and
+    # cart_coulomb, as `upright commission` sets them: drive_params) on the board firmware --
+    # HalPico, the paced loop, the UART0 link -- with a plant with 1 mm of play and 0.2 N of
+    # Coulomb friction on its pins: the parameters answered, the tilt held from the first ticks
+    # to the end, no tick past 2.5 periods, no telemetry lost, nothing refused
+    from firmware import msgtable as T
+    from host.link import messages as M
+    from host.operate.commission import drive_params
+
+    params = load_params().replace(backlash=0.001, coulomb=0.2)
+    dp = drive_params(params)
+    assert dp["gear_play"] > 0 and dp["cart_coulomb"] == 20
+    assert hil.host is not None
+    try:
+        for name, v in dp.items():
+            hil.host.send(M.BY_NAME["param_set"](index=getattr(T, "P_" + name.upper()), value=v))
+        got = {m.index: m.value for m, _ in hil._idle(20_000.0) if m.NAME == "param_value"}
+        assert got == {T.P_GEAR_PLAY: dp["gear_play"], T.P_CART_COULOMB: dp["cart_coulomb"]}, got
+        emu = hil.run(dataclasses.replace(load_scenario("tilt_0p1"), duration=TILT_S), params)
+    finally:
+        for i in (T.P_GEAR_PLAY, T.P_CART_COULOMB):  # the module's other runs without play
+            hil.host.send(M.BY_NAME["param_set"](index=i, value=0))
+        hil._idle(20_000.0)
+    assert (emu.log["fw_state"][50:] == 2).all() and abs(emu.log["phi"][-1]) < 0.05
+    st = emu.stats
+    assert st["loop_iterations"] >= TILT_S * 500 and st["tick_us_max"] < 2.5 * st["period_us"]
+    assert st["telemetry_lost"] == 0 and st["nacks"] == []
+
+
 def test_hil_emulate_cli_writes_json_csv_and_table(bundle: Path, tmp_path: Path) -> None:
     sc = tmp_path / "short.toml"
     sc.write_text('name = "short_tilt"\nduration = 0.4\nseed = 1\n[initial]\nphi = 0.02\n'
