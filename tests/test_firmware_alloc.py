@@ -104,9 +104,16 @@ def control_alloc(n):
 PHASES = """
 hal, app = make(G0)
 hal1, app1 = make(G1)
+hal2, app2 = make(G0)
+# with the gear-play model and the Coulomb compensation's push in it (set while disarmed)
+app2.param_set(T.P_GEAR_PLAY, 19)
+app2.param_set(T.P_CART_COULOMB, 50)
 app.step()
 app1.step()
+app2.step()
 ordinary(hal, app, 5)  # warm-up outside the measurement
+ordinary(hal2, app2, 5)
+run('ordinary_play', lambda: ordinary(hal2, app2, 3000))
 run('ordinary', lambda: ordinary(hal, app, 3000))
 run('ordinary_ki', lambda: ordinary(hal1, app1, 3000))
 run('extremes_app', lambda: extremes_app(hal, app, 400))
