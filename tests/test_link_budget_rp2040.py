@@ -10,7 +10,10 @@ tick, ``App._period``) unchanged by the sweep, balancing
 without a fault after every message; the bursts made frames wait (``link_deferred``), each no
 longer than the admission rule's FORCE ticks.  Timed with the XIP flash-cache model (the predicted real
 Pico).  ``make bench`` (section ``link``) prints the worst gap per message.  One board for the
-module: about 45-70 s of wall time.
+configuration: about 45-70 s of wall time.  Two configurations: the shipped one, and a robot with
+1 mm of gear play and 0.2 N of Coulomb friction with the board parameters ``upright commission``
+sets for it (``gear_play``, ``cart_coulomb``: the step's gap model and the compensation's push run
+in every tick of the sweep).
 """
 
 from __future__ import annotations
@@ -25,14 +28,24 @@ from host.hil.emulated import EmulatedHil
 pytestmark = pytest.mark.rp2040  # slow; skipped without the emulated board (tests/conftest.py)
 
 
-@pytest.fixture(scope="module")
-def result(tmp_path_factory: pytest.TempPathFactory):
+@pytest.fixture(scope="module", params=["shipped", "gear_play"])
+def result(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory):
     # timed with the XIP flash-cache model on (the predicted real Pico, issue 26): command code
     # runs from a cold cache, 300-1530 us a frame (ideal cycles: 60-400 us).  Before the link
     # budgeted in that time, a burst of 12 stats requests made a gap of 3162 us and 8 overruns
+    from firmware import msgtable as T
+    from host.operate.commission import drive_params
+    from sim.params import load_params
+
+    params, board_params = None, None
+    if request.param == "gear_play":
+        params = load_params().replace(backlash=0.001, coulomb=0.2)
+        dp = drive_params(params)
+        assert dp["gear_play"] > 0 and dp["cart_coulomb"] > 0, dp
+        board_params = {getattr(T, "P_" + k.upper()): v for k, v in dp.items()}
     bundle = build_bundle(tmp_path_factory.mktemp("bundle"))
     with EmulatedBoard(bundle, main=True, xip_cache=True) as board, EmulatedHil(bundle, board=board) as hil:
-        yield sweep(hil)
+        yield sweep(hil, params=params, board_params=board_params)
 
 
 def test_every_message_singly_and_in_bursts_leaves_the_loop_on_time(result) -> None:
@@ -57,13 +70,30 @@ def test_every_message_singly_and_in_bursts_leaves_the_loop_on_time(result) -> N
     assert not bad, f"not balancing or a fault after: {bad}"
 
 
-def test_the_firmware_saw_no_late_tick_and_no_overrun(result) -> None:
+GEAR_PLAY_LATE = (
+    "known defect, found when the sweep was first run with the gear-play model on (the step with "
+    "gear_play and cart_coulomb set: step_max 1186 us on the predicted real Pico against 1125 "
+    "shipped): the firmware counted 3 late ticks and 3 overruns over the sweep, and a burst's frame "
+    "waited 219 ticks (the shipped configuration: 0, 0, 29). Bounding the forced frame of a held "
+    "backlog to the late-tick bound did not remove them (3 late ticks, a wait of 333): the excess "
+    "is not in the forced frames alone. The emulated run is deterministic (the same figures on "
+    "three runs): strict, so a fix shows as XPASS")
+
+
+def _known_gear_play_defect(request: pytest.FixtureRequest) -> None:
+    if request.node.callspec.params["result"] == "gear_play":
+        request.node.add_marker(pytest.mark.xfail(strict=True, reason=GEAR_PLAY_LATE))
+
+
+def test_the_firmware_saw_no_late_tick_and_no_overrun(result, request: pytest.FixtureRequest) -> None:
+    _known_gear_play_defect(request)
     b, a = result["before"], result["after"]
     assert a["stats_loop.overruns"] == b["stats_loop.overruns"], (b, a)
     assert a["late_ticks"] == b["late_ticks"] == 0, (b, a)
 
 
-def test_bursts_wait_in_the_receive_buffer_and_are_counted(result) -> None:
+def test_bursts_wait_in_the_receive_buffer_and_are_counted(result, request: pytest.FixtureRequest) -> None:
+    _known_gear_play_defect(request)
     b, a = result["before"], result["after"]
     assert a["link_deferred"] > b["link_deferred"], (b, a)
     # a frame goes in a tick that still has the worst frame's time; a tick that ran past its

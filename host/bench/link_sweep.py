@@ -22,13 +22,13 @@ import dataclasses
 import shutil
 import time
 import zlib
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from firmware import msgtable as T
 from host.boards.rp2040.board import CYCLES_PER_US, FIRMWARE, ROOT
 from host.hil.emulated import EmulatedHil, duty_over
 from host.link import messages as M
-from sim.params import load_params
+from sim.params import RobotParams, load_params
 from sim.plantsim import PlantSim
 from sim.scenario import load_scenario
 
@@ -148,8 +148,14 @@ class StepFigures:
 
 
 def sweep(hil: EmulatedHil, *, settle_ticks: int = SETTLE_TICKS, steps: Sequence[tuple[str, list[M.Message]]] | None = None,
-          progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+          progress: Callable[[str], None] | None = None, params: RobotParams | None = None,
+          board_params: Mapping[int, int] | None = None) -> dict[str, Any]:
     """Balance the simulated pendulum on an open :class:`EmulatedHil` and send the sweep.
+
+    ``params`` is the simulated robot (default the robot file's), ``board_params`` board
+    parameters (``msgtable.P_*`` index -> value) set before arming -- e.g. the gear-play model
+    and the Coulomb compensation ``upright commission`` sets for a robot with play
+    (``host.operate.commission.drive_params``), whose branch of the step then runs in the sweep.
 
     Returns ``{"steps": [StepFigures...], "period_us", "before"/"after": firmware stats,
     "disarm": StepFigures}``.
@@ -162,7 +168,7 @@ def sweep(hil: EmulatedHil, *, settle_ticks: int = SETTLE_TICKS, steps: Sequence
     from host.hil.gains import gain_table
 
     b = hil._b()
-    params = load_params()
+    params = load_params() if params is None else params
     sc = dataclasses.replace(load_scenario(_SCENARIO), duration=3600.0)
     sim = PlantSim(params, sc, seed=1, x0=(0.0, 0.0, 0.02, 0.0))
     if hil.measures_supply:
@@ -178,6 +184,11 @@ def sweep(hil: EmulatedHil, *, settle_ticks: int = SETTLE_TICKS, steps: Sequence
     hil.request(B["clear_faults"]())
     hil.request(B["param_set"](index=T.P_ARM_TILT, value=500))
     hil.request(B["param_set"](index=T.P_TELEM_DIV, value=10))
+    for index, value in (board_params or {}).items():
+        got = hil.request(B["param_set"](index=int(index), value=int(value)))
+        if got.NAME != "param_value" or got.value != int(value):
+            from host.hil.errors import HilError
+            raise HilError(f"the board did not take parameter {index} = {value}: {got}")
     arm = _arm_message(hil)
     s = hil._phase(period_us)
     now = b.cycles
