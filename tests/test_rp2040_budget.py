@@ -124,18 +124,10 @@ def test_encoder_read_is_bounded_while_the_pio_pushes(board: EmulatedBoard) -> N
     assert int(board.exec("print(hal.read_encoder())", timeout=0.5)) == (start + 300) & 0xFFFF
 
 
-def test_whole_loop_iteration_within_a_generous_budget(board: EmulatedBoard) -> None:
-    # with main.py's telemetry rate (every 10th tick), arming and balancing: measured 436 us
-    # mean, 893 us max with the telemetry pair in ideal cycles (the viper emitter's fused
-    # step, issue 12; it was 768 / 1252 us before the slot arrays); predicted for a real Pico
-    # (XIP cache model): about 575 us mean, 1130 us max once warm, 1850 us for the first
-    # ticks after the REPL's compile left the flash cache cold.  `make bench` prints the
-    # figures and the <= 500 us / <= 70 % targets.  Generous for code added later, tight
-    # enough to catch the step losing its slot arrays: the mean within 30 % of the 2 ms period
-    # (600 us), no warm iteration over 70 % (emulated cycles: the host's load does not change
-    # them), the cold first ticks within the period, and the firmware's own clock saw no late
-    # tick and no overrun
-    board.exec("mk(10)", timeout=2.0)
+def _loop_within_the_budget(board: EmulatedBoard, setup: str) -> np.ndarray:
+    # a fresh App (setup: its code), armed, 250 ticks timed by the loop probe, then 250 more;
+    # asserted as the next test says; returns the warm iterations (us)
+    board.exec(setup, timeout=2.0)
     board.uart_write(_frames(M.BY_NAME["arm"](epoch=0)))
     board.loop_probe(gap_us=50.0)
     board.loop_iters.clear()
@@ -165,6 +157,47 @@ def test_whole_loop_iteration_within_a_generous_budget(board: EmulatedBoard) -> 
     out2 = board.exec("app.run(n=250)\nprint(app.sup.state, app.timing.overruns, app.n_late)", timeout=3.0)
     state2, overruns2, late2 = (int(v) for v in out2.split())
     assert state2 == 2 and overruns2 - overruns <= 1 and late2 == late, (out, out2)
+    return warm
+
+
+def test_whole_loop_iteration_within_a_generous_budget(board: EmulatedBoard) -> None:
+    # with main.py's telemetry rate (every 10th tick), arming and balancing: measured 436 us
+    # mean, 893 us max with the telemetry pair in ideal cycles (the viper emitter's fused
+    # step, issue 12; it was 768 / 1252 us before the slot arrays); predicted for a real Pico
+    # (XIP cache model): about 575 us mean, 1130 us max once warm, 1850 us for the first
+    # ticks after the REPL's compile left the flash cache cold.  `make bench` prints the
+    # figures and the <= 500 us / <= 70 % targets.  Generous for code added later, tight
+    # enough to catch the step losing its slot arrays: the mean within 30 % of the 2 ms period
+    # (600 us), no warm iteration over 70 % (emulated cycles: the host's load does not change
+    # them), the cold first ticks within the period, and the firmware's own clock saw no late
+    # tick and no overrun
+    _loop_within_the_budget(board, "mk(10)")
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
+    "known defect: with the gear-play model on, the warm mean loop iteration on a predicted real "
+    "Pico is 613 us (max 1254) against 535 (1181) shipped, over the 30 % bound: Controller.step "
+    "calls its wheel-side correction (wheel_x, a bytecode method) from the viper step, ~78 us a "
+    "tick. Written out in the step it passes, but that shifts the request sweep's admission "
+    "(tests/test_link_budget_rp2040.py, GEAR_PLAY_LATE) for the shipped configuration: the two "
+    "are fixed together. Deterministic (emulated cycles): strict, so a fix shows as XPASS"))
+def test_whole_loop_iteration_with_the_gear_play_model_within_the_same_budget(board: EmulatedBoard) -> None:
+    # the same bounds with the board parameters `upright commission` sets for a robot with 1 mm
+    # of gear play and 0.2 N of Coulomb friction (drive_params): the step's gap model and the
+    # compensation's push run every tick (the shipped configuration leaves that branch off)
+    from firmware import msgtable as T
+    from firmware.controller import LIM_GHB
+    from host.operate.commission import drive_params
+
+    dp = drive_params(load_params().replace(backlash=0.001, coulomb=0.2))
+    assert dp["gear_play"] > 0 and dp["cart_coulomb"] > 0, dp
+    setup = (f"mk(10)\nimport firmware.msgtable as T\n"
+             f"print(app.param_set(T.P_GEAR_PLAY, {dp['gear_play']}), app.param_set(T.P_CART_COULOMB, {dp['cart_coulomb']}))")
+    assert board.exec(setup, timeout=2.0).split() == [str(T.OK)] * 2
+    got = board.exec(f"print(app.params[{T.P_GEAR_PLAY}], app.params[{T.P_CART_COULOMB}], app.ctrl.lim[{LIM_GHB}] > 0)",
+                     timeout=1.0).split()
+    assert got == [str(dp["gear_play"]), str(dp["cart_coulomb"]), "True"], got
+    _loop_within_the_budget(board, "pass")
 
 
 HOOKS = """
