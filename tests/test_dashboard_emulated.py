@@ -70,20 +70,29 @@ class _Page:
         self.stop = threading.Event()
         self.t = threading.Thread(target=self._run, daemon=True)
         self.t.start()
+        # app.js pings on its own timer, every 250 ms, whether or not the stream brings rows (a
+        # ping sent only after a read stopped with the stream: on a loaded machine -- the suite on
+        # two workers -- a stall of the stream over PAGE_TIMEOUT_S made the page dead, the hub
+        # stopped feeding and the board latched `watchdog` before the server's disarm reached it)
+        self.p = threading.Thread(target=self._ping, daemon=True)
+        self.p.start()
 
     def _run(self) -> None:
-        last = 0.0
         try:
             while not self.stop.is_set():
                 chunk = self.res.read1(65536)
                 if not chunk:
                     return
                 self.rows += chunk.count(b"event: t\n")
-                if time.monotonic() - last > 0.25:  # app.js pings every 250 ms
-                    _req(self.url + "api/ping", b"{}", self.id)
-                    last = time.monotonic()
         except (OSError, ValueError):
             return
+
+    def _ping(self) -> None:
+        while not self.stop.wait(0.25):
+            try:
+                _req(self.url + "api/ping", b"{}", self.id)
+            except OSError:
+                return
 
     def close(self) -> None:
         self.stop.set()
