@@ -536,3 +536,16 @@ def app_closed_loop(params: RobotParams, x0: Sequence[float], duration: float, *
                 x = rk4_step(f, x, F, Ts / substeps)
             hist = hist[1:] + [x.copy()]
     return cols
+
+
+def play_robot() -> tuple[RobotParams, dict[int, int]]:
+    """The robot file's robot with 1 mm of gear play and 0.2 N of Coulomb friction, and the board
+    parameters ``upright commission`` sets for it (:func:`host.operate.commission.drive_params`:
+    ``gear_play``, ``cart_coulomb``) as ``msgtable`` index -> value: what the board tests run the
+    step's gap model and the compensation's push with."""
+    from host.operate.board import param_info
+    from host.operate.commission import drive_params
+    from sim.params import load_params
+
+    params = load_params().replace(backlash=0.001, coulomb=0.2)
+    return params, {param_info(k)["index"]: v for k, v in drive_params(params).items()}

@@ -38,10 +38,10 @@ def seq():
 
 
 # the three emitters' controller steps on the sequence (YX, YP, R; GHB, HPX, FC: the gear-play model,
-# FC the Coulomb force the predictor is given in the play, Controller.lim[LIM_FC]; with FC, 29/32 of
+# FC the Coulomb force the predictor is given in the play, Controller.lim[LIM_FC]; with FC, FC_COMP/32 of
 # it as the compensation's push in the play, LIM_FCC, and the motor's KDU/KDV for the duty's sign)
 STEPS = """
-from firmware.controller import Controller, LIM_FC, LIM_FCC, LIM_KDU, LIM_KDV
+from firmware.controller import Controller, LIM_FC, LIM_FCC, LIM_KDU, LIM_KDV, FC_COMP
 from firmware import fastpath
 c0 = Controller(LAYOUT, FLAT)
 c1 = Controller(LAYOUT, FLAT)
@@ -49,7 +49,7 @@ c2 = Controller(LAYOUT, FLAT)
 c0.lim[4] = c1.lim[4] = c2.lim[4] = GHB
 c0.lim[6] = c1.lim[6] = c2.lim[6] = HPX
 c0.lim[LIM_FC] = c1.lim[LIM_FC] = c2.lim[LIM_FC] = FC
-c0.lim[LIM_FCC] = c1.lim[LIM_FCC] = c2.lim[LIM_FCC] = (FC * 29) >> 5
+c0.lim[LIM_FCC] = c1.lim[LIM_FCC] = c2.lim[LIM_FCC] = (FC * FC_COMP) >> 5
 c0.lim[LIM_KDU] = c1.lim[LIM_KDU] = c2.lim[LIM_KDU] = KDU
 c0.lim[LIM_KDV] = c1.lim[LIM_KDV] = c2.lim[LIM_KDV] = KDV
 n = len(YX)

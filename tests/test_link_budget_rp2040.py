@@ -34,15 +34,12 @@ def result(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFact
     # runs from a cold cache, 300-1530 us a frame (ideal cycles: 60-400 us).  Before the link
     # budgeted in that time, a burst of 12 stats requests made a gap of 3162 us and 8 overruns
     from firmware import msgtable as T
-    from host.operate.commission import drive_params
-    from sim.params import load_params
+    from fwharness import play_robot
 
     params, board_params = None, None
     if request.param == "gear_play":
-        params = load_params().replace(backlash=0.001, coulomb=0.2)
-        dp = drive_params(params)
-        assert dp["gear_play"] > 0 and dp["cart_coulomb"] > 0, dp
-        board_params = {getattr(T, "P_" + k.upper()): v for k, v in dp.items()}
+        params, board_params = play_robot()
+        assert board_params[T.P_GEAR_PLAY] > 0 and board_params[T.P_CART_COULOMB] > 0, board_params
     bundle = build_bundle(tmp_path_factory.mktemp("bundle"))
     with EmulatedBoard(bundle, main=True, xip_cache=True) as board, EmulatedHil(bundle, board=board) as hil:
         yield sweep(hil, params=params, board_params=board_params)

@@ -124,9 +124,9 @@ def test_encoder_read_is_bounded_while_the_pio_pushes(board: EmulatedBoard) -> N
     assert int(board.exec("print(hal.read_encoder())", timeout=0.5)) == (start + 300) & 0xFFFF
 
 
-def _loop_within_the_budget(board: EmulatedBoard, setup: str) -> np.ndarray:
+def _loop_within_the_budget(board: EmulatedBoard, setup: str) -> None:
     # a fresh App (setup: its code), armed, 250 ticks timed by the loop probe, then 250 more;
-    # asserted as the next test says; returns the warm iterations (us)
+    # asserted as the next test says
     board.exec(setup, timeout=2.0)
     board.uart_write(_frames(M.BY_NAME["arm"](epoch=0)))
     board.loop_probe(gap_us=50.0)
@@ -157,7 +157,6 @@ def _loop_within_the_budget(board: EmulatedBoard, setup: str) -> np.ndarray:
     out2 = board.exec("app.run(n=250)\nprint(app.sup.state, app.timing.overruns, app.n_late)", timeout=3.0)
     state2, overruns2, late2 = (int(v) for v in out2.split())
     assert state2 == 2 and overruns2 - overruns <= 1 and late2 == late, (out, out2)
-    return warm
 
 
 def test_whole_loop_iteration_within_a_generous_budget(board: EmulatedBoard) -> None:
@@ -187,16 +186,16 @@ def test_whole_loop_iteration_with_the_gear_play_model_within_the_same_budget(bo
     # compensation's push run every tick (the shipped configuration leaves that branch off)
     from firmware import msgtable as T
     from firmware.controller import LIM_GHB
-    from host.operate.commission import drive_params
+    from fwharness import play_robot
 
-    dp = drive_params(load_params().replace(backlash=0.001, coulomb=0.2))
-    assert dp["gear_play"] > 0 and dp["cart_coulomb"] > 0, dp
-    setup = (f"mk(10)\nimport firmware.msgtable as T\n"
-             f"print(app.param_set(T.P_GEAR_PLAY, {dp['gear_play']}), app.param_set(T.P_CART_COULOMB, {dp['cart_coulomb']}))")
+    _, bp = play_robot()
+    gp, fc = bp[T.P_GEAR_PLAY], bp[T.P_CART_COULOMB]
+    assert gp > 0 and fc > 0, bp
+    setup = f"mk(10)\nprint(app.param_set({T.P_GEAR_PLAY}, {gp}), app.param_set({T.P_CART_COULOMB}, {fc}))"
     assert board.exec(setup, timeout=2.0).split() == [str(T.OK)] * 2
     got = board.exec(f"print(app.params[{T.P_GEAR_PLAY}], app.params[{T.P_CART_COULOMB}], app.ctrl.lim[{LIM_GHB}] > 0)",
                      timeout=1.0).split()
-    assert got == [str(dp["gear_play"]), str(dp["cart_coulomb"]), "True"], got
+    assert got == [str(gp), str(fc), "True"], got
     _loop_within_the_budget(board, "pass")
 
 

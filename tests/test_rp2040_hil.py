@@ -107,18 +107,17 @@ def test_the_gear_play_model_runs_in_the_boards_paced_loop(hil: EmulatedHil) -> 
     # Coulomb friction on its pins: the parameters answered, the tilt held from the first ticks
     # to the end, no tick past 2.5 periods, no telemetry lost, nothing refused
     from firmware import msgtable as T
+    from fwharness import play_robot
     from host.link import messages as M
-    from host.operate.commission import drive_params
 
-    params = load_params().replace(backlash=0.001, coulomb=0.2)
-    dp = drive_params(params)
-    assert dp["gear_play"] > 0 and dp["cart_coulomb"] == 20
+    params, bp = play_robot()
+    assert bp[T.P_GEAR_PLAY] > 0 and bp[T.P_CART_COULOMB] == 20
     assert hil.host is not None
     try:
-        for name, v in dp.items():
-            hil.host.send(M.BY_NAME["param_set"](index=getattr(T, "P_" + name.upper()), value=v))
+        for index, v in bp.items():
+            hil.host.send(M.BY_NAME["param_set"](index=index, value=v))
         got = {m.index: m.value for m, _ in hil._idle(20_000.0) if m.NAME == "param_value"}
-        assert got == {T.P_GEAR_PLAY: dp["gear_play"], T.P_CART_COULOMB: dp["cart_coulomb"]}, got
+        assert got == bp, got
         emu = hil.run(dataclasses.replace(load_scenario("tilt_0p1"), duration=TILT_S), params)
     finally:
         for i in (T.P_GEAR_PLAY, T.P_CART_COULOMB):  # the module's other runs without play
