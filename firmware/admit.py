@@ -2,8 +2,9 @@
 # (link_serial.SerialLink, link_can.CanLink): a received frame is handled in this tick only when
 # its planned cost still ends within the tick's limit, counted from the step's *scheduled* start
 # (App: timing.last_us); what does not fit is held for the next tick.  The limit is the period
-# for a frame read in this tick (plim) and app.link_budget_us (11/8 of the period: lim) for one
-# held from the last tick -- so a command too long to fit beside the step and its own reading
+# for a frame read in this tick (plim) and app.link_budget_us (lim: 1.5 periods less what follows
+# a frame before the next step, the larger of 1/8 period and REFILL_US) for one held from the last
+# tick -- so a command too long to fit beside the step and its own reading
 # is read in one tick and handled at the start of the next -- less what the last tick ran past
 # its period (over: the next tick catches up).  A backlog held _FORCE ticks in a row gets one frame whatever the
 # time (a loop rate at which no frame ever fits still answers, one late tick per FORCE ticks of
@@ -47,6 +48,12 @@ from . import msgtable as T
 # 1530, a timing request 1283; every other frame at most ~1090 (arm 1090, excite 1080, param_set
 # 1067, gains_chunk 1059, set_reference 979)
 HB_US = const(400)
+# what follows a frame until the next step starts, on a predicted real Pico: the loop's own code
+# refilling the flash cache the frame's cold code evicted (traced: a param_set's receive phase
+# closed 2699 us after its step's start and the next step began 466 us later, 3165 us between
+# step starts -- a late tick -- where the budget then kept 1/8 period, 250 us at 500 Hz, for it).
+# app.link_budget_us keeps at least this much before 1.5 periods (docs/firmware.md, "Board timing")
+REFILL_US = const(500)
 FRAME_US = const(1200)
 HEAVY_US = const(1600)
 FORCE = const(8)  # ticks a backlog waits at most before one frame goes whatever the time

@@ -10,6 +10,7 @@ except ImportError:
     def const(x):
         return x
 
+from . import admit
 from . import fixmath
 from . import msgtable as T
 from .controller import FC_COMP, LIM_FC, LIM_FCC, LIM_GHB, LIM_HPX, LIM_KDU, LIM_KDV
@@ -93,11 +94,16 @@ class Params:
         self.timing.period_us = self.period_us
         if self._has_period:
             self.hal.set_period(self.period_us)  # HalPico: the driver-enable dead-man's timeout
-        # the link's per-tick budget (link_serial): its frames end within this many us of the
-        # step's scheduled start (11/8 of the period: short of a late tick, 1.5 periods, by
-        # 1/8 of a period for a burst's receive interrupts and a frame over its planned cost;
-        # 5/4 held frames back 225 ticks in a burst on the predicted Pico)
-        self.link_budget_us = self.period_us + (self.period_us >> 1) - (self.period_us >> 3)
+        # the link's per-tick budget (link_serial, link_can: admit.py): its frames end within
+        # this many us of the step's scheduled start -- short of a late tick, 1.5 periods, by what
+        # follows a frame before the next step starts: 1/8 of a period (a burst's receive
+        # interrupts, a frame over its planned cost) and at least admit.REFILL_US (the loop's code
+        # refilling the flash cache the frame evicted).  11/8 of the period at 250 Hz and below;
+        # 5/4 (2500 us) at 500 Hz
+        r = self.period_us >> 3
+        if r < admit.REFILL_US:
+            r = admit.REFILL_US
+        self.link_budget_us = self.period_us + (self.period_us >> 1) - r
         sup.stall_ticks = (self.stall_ms * rate) // 1000
         sup.stall_duty = self.stall_duty + self.motor.deadband
         t = self.table

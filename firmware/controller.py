@@ -470,22 +470,6 @@ class Controller:
             return q
         return r
 
-    def wheel_x(self, yx):
-        # gear play: the wheel side the x measurement yx (the motor side) stands for.  With the
-        # motor side on a flank (the gap model at the measurement's time: d ticks back) the wheel
-        # is half the play behind it; while it crosses the play the encoder says nothing about
-        # the wheel but that it is within half the play of it: the prediction, held inside that
-        # window.  Called by step() only with gear play (integers only, no allocation)
-        lim = self.lim
-        l = lim[LIM_GHB]
-        v = lim[LIM_GH] if self.d > 0 else lim[LIM_GAP]
-        h = lim[LIM_HPX]
-        if v >= l:
-            return yx - h
-        if v <= -l:
-            return yx + h
-        return yx + fixmath.clamp(self.p[0] - yx, h)
-
     # ---- the hot path: one control tick, integers only, no allocation ----
     def step(self, yx, yp, r):
         p = self.p
@@ -493,10 +477,30 @@ class Controller:
         lim = self.lim
         sm = self.sm
         rf = self.rf
-        if lim[LIM_GHB]:
-            # gear play: the encoder reads the motor side (wheel_x: out of line, so that the
-            # step's code without play stays as compact as it was)
-            yx = int(self.wheel_x(yx))
+        l = lim[LIM_GHB]
+        if l:
+            # gear play: the encoder reads the motor side; the wheel side it stands for.  With the
+            # motor side on a flank (the gap model at the measurement's time: d ticks back) the
+            # wheel is half the play behind it; while it crosses the play the encoder says nothing
+            # about the wheel but that it is within half the play of it: the prediction, held
+            # inside that window.  Written out here, not a method: called from the viper step,
+            # a bytecode method cost ~78 us a tick on a predicted Pico (docs/firmware.md)
+            if self.d > 0:
+                v = lim[LIM_GH]
+            else:
+                v = lim[LIM_GAP]
+            h = lim[LIM_HPX]
+            if v >= l:
+                yx = yx - h
+            elif v <= -l:
+                yx = yx + h
+            else:
+                v = p[0] - yx
+                if v > h:
+                    v = h
+                elif v < -h:
+                    v = -h
+                yx = yx + v
         ex = yx - p[0]
         ep = yp - p[2]
         est = self.est

@@ -21,6 +21,7 @@ _INTEG_SHIFT = const(6)
 _INTEG_HALF = const(32)
 LIM_GHB = const(4)
 LIM_GAP = const(5)
+LIM_HPX = const(6)
 LIM_FC = const(7)
 LIM_KDU = const(8)
 LIM_KDV = const(9)
@@ -36,8 +37,24 @@ def step_native(c, yx, yp, r):
     lim = c.lim
     sm = c.sm
     rf = c.rf
-    if lim[LIM_GHB]:
-        yx = int(c.wheel_x(yx))
+    l = lim[LIM_GHB]
+    if l:
+        if c.d > 0:
+            v = lim[LIM_GH]
+        else:
+            v = lim[LIM_GAP]
+        h = lim[LIM_HPX]
+        if v >= l:
+            yx = yx - h
+        elif v <= -l:
+            yx = yx + h
+        else:
+            v = p[0] - yx
+            if v > h:
+                v = h
+            elif v < -h:
+                v = -h
+            yx = yx + v
     ex = yx - p[0]
     ep = yp - p[2]
     est = c.est
@@ -254,8 +271,24 @@ def step_viper(c, yx: int, yp: int, r: int) -> int:
     lim = ptr32(c.lim)
     sm = ptr32(c.sm)
     rf = ptr32(c.rf)
-    if (((lim[LIM_GHB] + sb) & msk) - sb):
-        yx = int(c.wheel_x(yx))
+    l = (((lim[LIM_GHB] + sb) & msk) - sb)
+    if l:
+        if int(c.d) > 0:
+            v = (((lim[LIM_GH] + sb) & msk) - sb)
+        else:
+            v = (((lim[LIM_GAP] + sb) & msk) - sb)
+        h = (((lim[LIM_HPX] + sb) & msk) - sb)
+        if v >= l:
+            yx = yx - h
+        elif v <= -l:
+            yx = yx + h
+        else:
+            v = (((p[0] + sb) & msk) - sb) - yx
+            if v > h:
+                v = h
+            elif v < -h:
+                v = -h
+            yx = yx + v
     ex = yx - (((p[0] + sb) & msk) - sb)
     ep = yp - (((p[2] + sb) & msk) - sb)
     est = int(c.est)

@@ -16,7 +16,7 @@
 # under the links' admission rule (admit.py, shared with link_serial.py): a frame read (its kind
 # is known only then) is dispatched only when its kind's cost (admit.py's, plus _CAN_US) and the
 # SPI loads queued by then (_LOAD_US each) still end within the period (a frame just read) or
-# app.link_budget_us (11/8 of the period: a frame held a tick) of the step's scheduled start;
+# app.link_budget_us (a frame held a tick: 1.5 periods less admit.REFILL_US or 1/8 period) of the step's scheduled start;
 # else it is held (the driver's receive registers keep
 # it: nothing else is read before it goes) for the next tick, and what is still in the chip
 # stays there (two buffers; a third frame is an overflow, counted).  A tick that ran past its
@@ -242,7 +242,7 @@ class CanLink:
         held = False
         if mid >= 0:
             if budget:
-                # held a tick: it may end within 11/8 of the period
+                # held a tick: it may end within app.link_budget_us
                 held = not adm.fits_now(self._plan(mid), 0, False)
             if not held:
                 self._pend = -1

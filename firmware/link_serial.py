@@ -20,8 +20,8 @@
 # ~210 us), then decodes and dispatches frames under the links' admission rule (admit.py, shared
 # with link_can.py): a frame is read only when a heartbeat could still follow, and dispatched only
 # when the decoding (_SCAN_US) and its kind's cost (admit.py's tables: measured) still end within
-# the period (a frame decoded in this tick) or app.link_budget_us (11/8 of the period: a frame
-# held from the last tick) of the step's scheduled start (a decoded frame that does not fit is
+# the period (a frame decoded in this tick) or app.link_budget_us (1.5 periods less the larger of
+# 1/8 period and admit.REFILL_US: a frame held from the last tick) of the step's scheduled start (a decoded frame that does not fit is
 # held for the next tick); a tick that ran past its period hands its excess on.  So no
 # frame makes a gap between two step starts longer than 1.5 periods (a late tick, App._period) on
 # a predicted real board; at most FRAMES_PER_TICK frames and _RX_TICK bytes per tick, and none
@@ -260,7 +260,7 @@ class SerialLink:
                 seq = dec.seq
                 fresh = True
             # a decoded frame: dispatched if it still fits at its kind's cost -- within the period
-            # when decoded in this tick, within 11/8 of it when held from the last one -- else
+            # when decoded in this tick, within app.link_budget_us when held from the last one -- else
             # held (dec.buf keeps it: nothing is scanned before it goes) for the next tick.  So a
             # command whose decoding and cold dispatch do not fit beside the step in one period
             # (a set_reference: ~470 + ~980 us) is decoded in one tick and dispatched at the

@@ -7,7 +7,7 @@ a host heartbeat planned at 400 + 400 (CAN) + 3 x 100 (SPI loads) = 1100 us):
 
 * a frame just read that ends within the period is dispatched in its tick;
 * one that would not is held -- read from the chip once, dispatched once, in the next tick (its
-  limit there 11/8 of the period), nothing else read from the chip before it goes;
+  limit there App.link_budget_us), nothing else read from the chip before it goes;
 * while a frame is held the chip's flags are still read: a bus-off latches F_CAN in its tick and
   drops the held command;
 * a frame that never fits goes after 8 held ticks (admit.FORCE) whatever the time.
@@ -137,7 +137,7 @@ def out() -> dict[str, str]:
 
 
 def test_the_test_runs_at_500_hz(out) -> None:
-    assert out["period"] == "2000 budget 2750", out
+    assert out["period"] == "2000 budget 2500", out
 
 
 def test_a_frame_that_fits_goes_in_its_tick(out) -> None:
@@ -147,7 +147,7 @@ def test_a_frame_that_fits_goes_in_its_tick(out) -> None:
 def test_a_frame_that_does_not_fit_is_held_in_the_driver_and_goes_next_tick(out) -> None:
     # tick 3: read (one of two in the chip), held; the second stays in the chip
     assert out["held"] == "[] 2 20", out
-    # tick 4: the held one goes first (500 + 1100 <= 2750), then the chip's other one (read now,
+    # tick 4: the held one goes first (500 + 1100 <= 2500), then the chip's other one (read now,
     # the fake clock still at 500: 500 + 1100 <= 2000)
     assert out["next"] == "[(4, 20), (4, 20)] 3 -1", out
     assert out["after"].endswith(" 3 0") and out["after"].count("20)") == 2, out

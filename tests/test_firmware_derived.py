@@ -127,12 +127,13 @@ def out(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[int]]:
 
 
 def test_limits_follow_the_table_rate_on_upload_and_load(out) -> None:
-    # rate, period_us, stall_ticks (100 ms), wd_ticks (250 ms), link budget (2/5 period)
-    assert out["boot"] == [500, 2000, 50, 125, 2750]
+    # rate, period_us, stall_ticks (100 ms), wd_ticks (250 ms), link budget (1.5 periods less
+    # the larger of 1/8 period and admit.REFILL_US: 500 us at both rates)
+    assert out["boot"] == [500, 2000, 50, 125, 2500]
     assert out["apply"] == [T.OK]
-    assert out["upload"] == [1000, 1000, 100, 250, 1375]
+    assert out["upload"] == [1000, 1000, 100, 250, 1000]
     assert out["load"] == [0]  # store.LOADED
-    assert out["loaded"] == [1000, 1000, 100, 250, 1375]
+    assert out["loaded"] == [1000, 1000, 100, 250, 1000]
     assert out["cfg"] == [0, 0, 1]  # loaded, slot A, sequence 1
 
 

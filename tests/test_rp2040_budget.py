@@ -173,17 +173,13 @@ def test_whole_loop_iteration_within_a_generous_budget(board: EmulatedBoard) -> 
     _loop_within_the_budget(board, "mk(10)")
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
-    "known defect: with the gear-play model on, the warm mean loop iteration on a predicted real "
-    "Pico is 613 us (max 1254) against 535 (1181) shipped, over the 30 % bound: Controller.step "
-    "calls its wheel-side correction (wheel_x, a bytecode method) from the viper step, ~78 us a "
-    "tick. Written out in the step it passes, but that shifts the request sweep's admission "
-    "(tests/test_link_budget_rp2040.py, GEAR_PLAY_LATE) for the shipped configuration: the two "
-    "are fixed together. Deterministic (emulated cycles): strict, so a fix shows as XPASS"))
 def test_whole_loop_iteration_with_the_gear_play_model_within_the_same_budget(board: EmulatedBoard) -> None:
     # the same bounds with the board parameters `upright commission` sets for a robot with 1 mm
     # of gear play and 0.2 N of Coulomb friction (drive_params): the step's gap model and the
-    # compensation's push run every tick (the shipped configuration leaves that branch off)
+    # compensation's push run every tick (the shipped configuration leaves that branch off).
+    # The mean was 613 us (max 1254) while the step called its wheel-side correction as a
+    # bytecode method from the viper code (~78 us a tick); written out in the step since: 535 /
+    # 1196 us (shipped 526 / 1187; tests/test_link_budget_rp2040.py for the link's side)
     from firmware import msgtable as T
     from firmware.controller import LIM_GHB
     from fwharness import play_robot

@@ -81,7 +81,7 @@ def test_hil_emulate_over_can_balances_as_the_virtual_run(tmp_path: Path) -> Non
     out, js = tmp_path / "out", tmp_path / "r.json"
     # timed with the XIP flash-cache model (the default: the predicted real Pico, issue 26); the
     # CAN link's frames are admitted in that time (firmware/admit.py, as the serial link's: a
-    # frame just read must end within the period, a held one within 11/8 of it).  Before it, a
+    # frame just read must end within the period, a held one within App.link_budget_us).  Before it, a
     # change that only moved code in flash put this run's worst tick at 2108 us of 2000 us
     # (4 overruns, a host heartbeat on a telemetry tick); measured with it: ~1730 us on a
     # telemetry tick, the heartbeat held to the next tick, and one iteration over the period, the
@@ -91,7 +91,7 @@ def test_hil_emulate_over_can_balances_as_the_virtual_run(tmp_path: Path) -> Non
     [rec] = json.loads(js.read_text())
     assert rec["name"] == "tilt_0p1" and rec["mode"] == "emulated" and rec["link"] == "can"
     assert rec["period_us"] == 2000.0 and 0 < rec["tick_us_mean"] <= rec["tick_us_max"]
-    # no late tick (App._period: 1.5 periods); the link's budget ends its work within 11/8
+    # no late tick (App._period: 1.5 periods); the link's budget ends its work within App.link_budget_us
     assert rec["tick_us_max"] < 1.5 * rec["period_us"], rec["tick_us_max"]
     virt = _virtual(sc)
     sv = virt.summary()

@@ -24,6 +24,7 @@ import time
 import zlib
 from typing import Any, Callable, Mapping, Sequence
 
+from firmware import admit
 from firmware import msgtable as T
 from host.boards.rp2040.board import CYCLES_PER_US, FIRMWARE, ROOT
 from host.hil.emulated import EmulatedHil, duty_over
@@ -35,6 +36,9 @@ from sim.scenario import load_scenario
 __all__ = ["SETTLE_TICKS", "BURST", "singles", "bursts", "sweep", "bench"]
 
 SETTLE_TICKS = 30
+DRAIN_BLOCKS = 40
+"""At most this many blocks of ``2 (admit.FORCE + 1)`` ticks a step's backlog is given to drain."""
+_PERIODIC = ("telem_state", "telem_ctrl", "heartbeat")  # the board's own frames, not replies
 """Plant ticks run after each message (or burst) before the next one (60 ms at 500 Hz)."""
 BURST = 12
 """Frames in one burst (about 170 bytes: well inside the board's 1024-byte receive buffer)."""
@@ -158,7 +162,7 @@ def sweep(hil: EmulatedHil, *, settle_ticks: int = SETTLE_TICKS, steps: Sequence
     (``host.operate.commission.drive_params``), whose branch of the step then runs in the sweep.
 
     Returns ``{"steps": [StepFigures...], "period_us", "before"/"after": firmware stats,
-    "disarm": StepFigures}``.
+    "disarm": StepFigures, "keep_ticks": ticks between the host's heartbeats}``.
 
     Raises
     ------
@@ -232,6 +236,15 @@ def sweep(hil: EmulatedHil, *, settle_ticks: int = SETTLE_TICKS, steps: Sequence
         b.uart_write(b"".join(M.encode_serial(m, host.seq + i) for i, m in enumerate(msgs)))
         host.seq = (host.seq + len(msgs)) & 0xFF
         plant(settle_ticks)
+        # what the step left in the board's buffers drains before the next step, so that each
+        # step's backlog is its own (the firmware's link_wait_max, the longest backlog, is then
+        # one step's): blocks of 2 (FORCE + 1) ticks -- a backlog gets a frame at least once in
+        # FORCE + 1 (firmware/admit.py) -- until one hears no reply
+        for _ in range(DRAIN_BLOCKS):
+            n = sum(1 for m in heard if m.NAME not in _PERIODIC)
+            plant(2 * (admit.FORCE + 1))
+            if sum(1 for m in heard if m.NAME not in _PERIODIC) == n:
+                break
         starts = [s0 for s0, _ in hil._iters]
         gaps = [(c - a) / CYCLES_PER_US for a, c in zip(starts, starts[1:])]
         iters = [(e0 - s0) / CYCLES_PER_US for s0, e0 in hil._iters]
@@ -249,7 +262,8 @@ def sweep(hil: EmulatedHil, *, settle_ticks: int = SETTLE_TICKS, steps: Sequence
     figures.append(one("arm (repeat)", [_arm_message(hil, run=plant)]))
     after = _figures(host, plant, heard)
     dis = one("disarm", [B["disarm"]()])
-    return {"steps": figures, "disarm": dis, "period_us": period_us, "before": before, "after": after}
+    return {"steps": figures, "disarm": dis, "period_us": period_us, "before": before, "after": after,
+            "keep_ticks": keep}
 
 
 def _arm_message(hil: EmulatedHil, run: Callable[[int], None] | None = None) -> M.Message:

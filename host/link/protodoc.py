@@ -89,8 +89,8 @@ def render_protocol_md() -> str:
         "",
         "**Bounded work per tick**: the board decodes and answers at most "
         "4 frames a tick (96 bytes, 3 reply frames), the periodic frames first, and dispatches a frame "
-        "only while its planned cost (measured on a predicted real Pico) still ends within 11/8 of the "
-        "period from the step's scheduled start; the rest waits in its receive buffer, counted (status values `link_deferred`,",
+        "only while its planned cost (measured on a predicted real Pico) still ends within 1.5 periods "
+        "of the step's scheduled start less what follows a frame (at least 500 us: `firmware/admit.py`); the rest waits in its receive buffer, counted (status values `link_deferred`,",
         "`link_wait_max`). Heap statistics in `stats_loop` are the last sample, taken between ticks",
         "while the motor is off; a `gains_commit` while armed is refused before any check;",
         "`param_set` of what would tip a balancing robot is refused while armed (below).",
