@@ -13,8 +13,10 @@
 # stdin's readinto waits for all n bytes, so one byte is read per ready poll (bounded: the
 # caller reads what any()/wait() reported).  Nothing allocates after __init__.
 
+from .hilport import HilPort
 
-class UsbStream:
+
+class UsbStream(HilPort):
     def __init__(self):
         import select
         import sys

@@ -51,9 +51,11 @@ def main(link=None, repl_ms=None):
             if mode == T.MODE_REPL:
                 return
     finally:
-        close = getattr(port, "close", None)
-        if close is not None:
-            close()
+        # (a machine.UART is kept open; CAN: no port)
+        if port is not None:
+            from .hilport import HilPort
+            if isinstance(port, HilPort):
+                port.close()
 
 
 def _port(hal, link):
@@ -79,9 +81,10 @@ def _hil(port, boot, uptime=0):
     # MODE hil: lockstep HIL on the robot's link until MODE robot/repl; returns that mode.
     # The motor stays off (the robot loop switched it off; HilHal drives no pin)
     import gc
+    from .hilport import HilPort
     from .main_hil import BoardUART, HilMain
     gc.collect()
-    m = HilMain(port if hasattr(port, "wait") else BoardUART(port), config={"boot": boot, "uptime_ms": uptime})
+    m = HilMain(port if isinstance(port, HilPort) else BoardUART(port), config={"boot": boot, "uptime_ms": uptime})
     m.switch = True
     m.run()
     return m.next_mode

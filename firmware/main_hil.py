@@ -37,6 +37,7 @@ from . import crc16
 from . import msgtable as T
 from .fixmath import ticks_add, ticks_diff
 from .hal_hil import HilHal
+from .hilport import HilPort
 from . import emitter
 
 _RX = const(256)
@@ -51,7 +52,7 @@ class HangUp(Exception):
     pass
 
 
-class BoardUART:
+class BoardUART(HilPort):
     # machine.UART -> the surface HilMain uses: wait(timeout_ms), any(), readinto(buf, n),
     # write(buf, n).  machine.UART.write takes a whole buffer, so the slices of the
     # (single) transmit buffer are made once, the first time it is seen.
@@ -96,7 +97,7 @@ class BoardUART:
 
 
 class HilMain:
-    # uart: UnixUART or machine.UART-like (wait/any, readinto(buf, n), write(buf, n));
+    # uart: a hilport.HilPort (UnixUART, BoardUART around a machine.UART, UsbStream);
     # app_factory(hal, link) -> the firmware app (firmware.app.App or a subclass: its emitter
     # is read here and by the pacer; default App; link is this
     # object in real time, whose poll() app.run() calls after each step)
@@ -259,7 +260,7 @@ class HilMain:
         return 0
 
     def _hung_up(self):
-        return getattr(self.uart, "hup", False)
+        return self.uart.hup
 
     def run(self):
         if self.mode == "lockstep":
@@ -277,7 +278,7 @@ def main(port=None, link="serial", mode="lockstep", node=1, uart=None, heap_lock
     if uart is None:
         from .uart_unix import UnixUART
         uart = UnixUART(port)
-    elif not hasattr(uart, "wait"):
+    elif not isinstance(uart, HilPort):
         uart = BoardUART(uart)
     # boot_file: where the boot counter persists (a board: a file on its flash); each
     # start increments it and HEARTBEAT.boot reports it, so the host sees a reset
@@ -310,6 +311,4 @@ def main(port=None, link="serial", mode="lockstep", node=1, uart=None, heap_lock
         if lock:
             import micropython
             micropython.heap_unlock()
-        close = getattr(uart, "close", None)
-        if close is not None:
-            close()
+        uart.close()

@@ -24,12 +24,14 @@ except ImportError:
     def const(x):
         return x
 
+from .hilport import HilPort
+
 _VMIN = const(6)
 _VTIME = const(5)
 _CC = const(6)
 
 
-class UnixUART:
+class UnixUART(HilPort):
     # path: tty device path (str) or an already-open file descriptor (int).
     # baudrate: applied with termios when the port knows the rate (ignored on a pty).
     def __init__(self, path, baudrate=115200):

@@ -224,7 +224,8 @@ def test_boot_counter_on_by_default_and_can_be_off() -> None:
 
 EMITTER_SCRIPT = r"""
 from firmware import board, main_hil
-class U:
+from firmware.hilport import HilPort
+class U(HilPort):
     def write(self, b, n=None):
         return len(b)
     def readinto(self, b, n=None):
