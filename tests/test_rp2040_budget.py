@@ -234,3 +234,17 @@ def test_user_hook_runs_in_the_spare_time_and_a_slow_one_is_switched_off(board: 
     assert over2 == 1 and runs2 == runs + 1, out  # one call, then off
     assert state2 == 2, out  # one late tick is within the deadline budget: still balancing
     assert late2 - late <= 2 and ov2 - ov <= 2, out  # the hook's one tick (+ the cold first tick)
+
+
+def test_the_per_part_figures_hold_over_heap_layouts() -> None:
+    # make bench's heap-layout rows (host.bench.rp2040._layouts): two fresh boards, the second
+    # with 48 bytes allocated before the firmware's imports (its .mpy code and the App's objects
+    # at other addresses). Every part is timed under both; app.step is the same within 5 % (seen:
+    # within 0.2 %; what moves the figures between builds is the C code's place in flash)
+    from host.bench.rp2040 import PARTS, _layouts
+
+    lay = _layouts("viper", pads=(0, 48), n=20)
+    assert set(lay) == set(PARTS) and all(len(v) == 2 and min(v) > 0 for v in lay.values()), lay
+    a, b = lay["app.step"]
+    assert abs(a - b) <= 0.05 * min(a, b), lay
+    assert max(lay["app.step"]) < 0.3 * 2000, lay

@@ -26,6 +26,11 @@ loop tick    the whole paced-loop iteration (``App.run``: step + link poll, tele
              10th tick as ``main.py`` runs it), found from the outside by the harness's loop
              probe; mean and max over 250 ticks
 
+With the predicted timing the viper figures are also taken under several heap layouts (a
+``bytearray`` of 0-48 bytes made on a fresh board before the firmware's imports,
+:data:`LAYOUT_PADS`): their min, median and max
+by part, and the spread of each -- how far a per-part figure moves with no code changed.
+
 Then the report's 9.3 s square-wave scenario closed on the pins (:mod:`host.hil.emulated`, ``main.py`` as flashed,
 predicted timing): its worst loop tick as a percentage of the period, and the emulator's speed
 (board seconds per wall second).  Last, the issue's targets on the predicted figures, each with
@@ -138,6 +143,32 @@ def _parts(board: EmulatedBoard, em: str, n: int = 40) -> tuple[dict[str, float]
     return {k: float(v) for k, v in ast.literal_eval(d).items()}, int(state)
 
 
+LAYOUT_PADS = (0, 4, 8, 12, 16, 24, 32, 48)
+"""Bytes of a ``bytearray`` made (and kept) on a fresh board before the firmware's imports in
+:func:`_layouts`: each puts the native code and bytecode the bundle's ``.mpy`` files load into
+the heap, and the App's objects, at other addresses."""
+
+
+def _layouts(em: str = "viper", pads: tuple[int, ...] = LAYOUT_PADS, n: int = 40,
+             xip_cache: bool = True) -> dict[str, list[float]]:
+    """The per-part figures of :func:`_parts` under several heap layouts, one fresh board each:
+    part -> one figure per pad of :data:`LAYOUT_PADS` (the same code and inputs; only where the
+    heap puts things differs).  A figure that moves between layouts by more than a change under
+    study moves is no evidence of that change (docs/firmware.md, "Board timing")."""
+    from sim.params import load_params
+
+    out: dict[str, list[float]] = {}
+    for pad in pads:
+        with EmulatedBoard(main=False, xip_cache=xip_cache) as b:
+            b.set_adc(int(round(load_params().pot_offset)))
+            b.exec(f"PAD = bytearray({int(pad)})", timeout=2.0)
+            b.exec(SETUP, timeout=5.0)
+            p, _ = _parts(b, em, n)
+        for k, v in p.items():
+            out.setdefault(k, []).append(v)
+    return out
+
+
 def _loop(board: EmulatedBoard, em: str, ticks: int = 250) -> np.ndarray:
     board.exec(f"a = mk({em!r}, 10)\na.sup.arm()", timeout=2.0)
     board.loop_probe(gap_us=50.0)
@@ -219,6 +250,23 @@ def bench() -> dict[str, Any]:
                 row["state"] = "balancing" if state == 2 else f"state {state}"
                 rows.append(row)
             parts_speed[timing] = (b.cycles - c0) / 125e6 / (time.perf_counter() - w0)
+    # the board's emitter under several heap layouts: how far a per-part figure moves
+    # with nothing changed but where the heap puts things
+    try:
+        lay = _layouts("viper")
+    except Exception as exc:  # noqa: BLE001 - a note, not a crash
+        notes.append(f"heap layouts: {str(exc).splitlines()[0]}")
+        lay = {}
+    for stat, fn in (("min", np.min), ("median", np.median), ("max", np.max)):
+        if lay:
+            row = {"emitter": f"viper, {len(LAYOUT_PADS)} heap layouts: {stat}", "timing": "predicted"}
+            row.update({f"{k} us": round(float(fn(v)), 1) for k, v in lay.items()})
+            rows.append(row)
+    if lay:
+        notes.append("heap layouts (viper, predicted; a fresh board each, a bytearray of "
+                     + "/".join(map(str, LAYOUT_PADS)) + " bytes made before the imports): spread (max - min) / median by part: " + ", ".join(
+                         f"{k} {100 * (max(v) - min(v)) / max(float(np.median(v)), 1e-9):.1f} %"
+                         for k, v in lay.items()))
     notes.append("emulated time at 125 MHz; ideal = M0+ cycles with flash as fast as RAM (rp2040js), predicted = with "
                  "the XIP flash-cache model (harness.mjs; calibration: the rp2040_calibration section, docs/firmware.md "
                  "'Board timing'); loop tick = App.run iteration (step + link poll, telemetry every 10th tick), "
