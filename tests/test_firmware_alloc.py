@@ -18,7 +18,6 @@ import pytest
 
 import fwharness as H
 from host.design.export import export
-from host.boards.mpyrun import run_unix, run_wasm
 
 FD = export()
 FD_KI = export(ki=40.0, deadband=300)
@@ -125,22 +124,6 @@ run('control', lambda: control_alloc(1000))
 print('states', app.sup.state, app1.sup.state, app.ctrl.u, app1.ctrl.integ)
 """
 
-UNIX_RUN = """
-import micropython
-def run(name, fn):
-    micropython.heap_lock()
-    try:
-        fn()
-        ok = True
-    except MemoryError:
-        ok = False
-    micropython.heap_unlock()
-    print(name, 'ok' if ok else 'ALLOC')
-"""
-
-WASM_RUN = H.WASM_ALLOC_RUN
-
-
 def _parse(out: str) -> dict[str, str]:
     res = {}
     for line in out.splitlines():
@@ -151,19 +134,17 @@ def _parse(out: str) -> dict[str, str]:
 
 
 @pytest.mark.slow
-def test_no_allocation_unix_heap_lock() -> None:
-    # the control phase allocates a 64-bit-port big int? no: 2**30 is small on 64 bits;
-    # on this port the control is an explicit list allocation instead
-    code = BODY.replace("        y = x + 1 + k", "        y = [k]") + UNIX_RUN + PHASES
-    res = _parse(run_unix(code, timeout=180))
-    assert res.pop("control") == "ALLOC"  # the lock is real
-    assert res and all(v == "ok" for v in res.values()), res
-
-
-@pytest.mark.slow
-@pytest.mark.wasm
-def test_no_allocation_32bit_wasm_small_ints() -> None:
-    res = _parse(run_wasm(BODY + WASM_RUN + PHASES, timeout=300))
+@pytest.mark.interps("unix", "wasm")
+def test_no_allocation_in_the_loop(interp) -> None:
+    # one body on both ports, each with its allocation probe (fwharness: heap_lock on the 64-bit
+    # unix port, "name 1" when fn allocated; gc.mem_alloc on the 32-bit WebAssembly port, "name
+    # bytes").  The control phase must be seen allocating, so the probe is real: on the 32-bit
+    # port 2**30 + k is a big int; on the 64-bit one it is small, so the control allocates a list
+    body = BODY if interp.name == "wasm" else BODY.replace("        y = x + 1 + k", "        y = [k]")
+    res = _parse(interp.run(body + interp.alloc_run + PHASES, timeout=300))
     control = int(res.pop("control"))
-    assert control > 1000  # 2**30 + k is a big int on this port: the check sees it
+    if interp.name == "wasm":
+        assert control > 1000  # 2**30 + k is a big int on this port: the check sees it
+    else:
+        assert control == 1  # the lock is real
     assert res and all(int(v) == 0 for v in res.values()), res
