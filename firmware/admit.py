@@ -9,7 +9,13 @@
 # its period (over: the next tick catches up).  A backlog held _FORCE ticks in a row gets one frame whatever the
 # time (a loop rate at which no frame ever fits still answers, one late tick per FORCE ticks of
 # traffic).  Then the user hook (set_user): called in the spare time left, timed, switched off
-# when over its budget.
+# when over its budget -- and, with a HAL guard timer (HalPico: machine.Timer, whose callback the
+# rp2 port schedules from the alarm interrupt into the main thread's next bytecode), guarded:
+# the timer is armed for the next step's deadline before the hook is called and cancelled when
+# it returns; if the hook still runs then, the callback (take) runs that step and feeds the
+# watchdog on time, again each period, and App.run goes on from the last of those steps.  A
+# single C call in the hook longer than a period (a blocking bus read) still delays the step:
+# the callback runs at the next bytecode.
 #
 #   a = Admit(app)           app: the App (its clock _ticks/_tdiff, timing, link_budget_us);
 #                            a.on True (a host test may set it False: no rule)
@@ -27,7 +33,8 @@
 #   a.close(now, k, backlog) the receive phase ends (now < 0: the clock is read); backlog:
 #                            frames still waiting (held or unread)
 #   a.over = 0               a tick with no receive phase (nothing came in): nothing carried
-#   a.set_user(fn, us), a.user()   the user hook (after close/idle)
+#   a.set_user(fn, us), a.user()   the user hook (after close/idle); user() returns the steps
+#                            its guard ran (a.dl: the next deadline, a.last: the last one's start)
 #
 # The planned costs are measured on the predicted real Pico (the harness's XIP cache model, a
 # cold cache: command code runs rarely) -- docs/firmware.md, "Board timing".  Allocation-free;
@@ -59,6 +66,21 @@ HEAVY_US = const(1600)
 FORCE = const(8)  # ticks a backlog waits at most before one frame goes whatever the time
 _USER_MARGIN = const(100)  # us a user hook leaves before the next step is due
 _U16 = const(65535)
+_TICK_HZ = const(1000000)
+# arming and cancelling the guard timer on a predicted real Pico: 40 + 17 us warm, ~400 us the
+# first time (cold); not counted in the hook's budget, kept free before the next step with it
+_GUARD_US = const(100)
+
+# the Admit whose user hook runs under its guard timer now (the timer's callback is this
+# module's _take, a plain function: a bound method re-arming its own timer raised MemoryError on
+# the board with the heap locked)
+_GUARD = [None]
+
+
+def _take(t):
+    a = _GUARD[0]
+    if a is not None:
+        a.take(t)
 
 
 class Admit:
@@ -86,6 +108,15 @@ class Admit:
         self.budget = 0
         self.runs = 0
         self.n_over = 0
+        # its guard (HAL guard_timer: None, none on this HAL): armed for the next step's
+        # deadline while the hook runs, its callback runs that step on time (take)
+        self.guard = None
+        self._one_shot = 0
+        self.armed = False
+        self.dl = 0  # the next deadline the guard is armed for
+        self.taken = 0  # steps the guard ran during the last call
+        self.n_taken = 0  # ... since the start (u16)
+        self.last = 0  # when the last of them started
 
     def open(self):
         # (the step's start read now: a TIMING request's reply restarts the app's statistics)
@@ -117,28 +148,83 @@ class Admit:
     def set_user(self, fn, budget_us):
         self.fn = fn
         self.budget = budget_us if budget_us > 0 else 0
+        if fn is not None and self.guard is None:
+            gt = self.app.hal.guard_timer
+            if gt is not None:
+                g = gt()
+                if g is not None:
+                    self._one_shot = g.ONE_SHOT
+                    self.guard = g
         return self.on
+
+    def take(self, t):
+        # the guard timer's callback (in the main thread, inside the user hook): the step whose
+        # deadline has come, on time, and the watchdog fed, as App.run does; armed again for the
+        # next deadline.  Nothing when no hook runs (a callback left queued after deinit)
+        if not self.armed:
+            return
+        app = self.app
+        self.last = self._ticks()
+        try:
+            app._step()
+        except MemoryError:
+            app._loop_fault()
+        f = app._wdt_feed
+        if f is not None:
+            f()
+        self.taken += 1
+        if self.n_taken < _U16:
+            self.n_taken += 1
+        dl = app._tadd(self.dl, app.period_us)
+        self.dl = dl
+        left = self._diff(dl, self._ticks())
+        t.init(mode=self._one_shot, period=left if left > 0 else 1, tick_hz=_TICK_HZ, callback=_take)
 
     def user(self):
         # fn() is called when its budget still ends _USER_MARGIN us before the next step is due;
         # a call over its budget switches the hook off (n_over counts it) and, when it ran past
-        # the period, hands the excess on to the next tick's limit
+        # the period, hands the excess on to the next tick's limit.  With a guard timer (HalPico)
+        # a call still running at the next step's deadline is interrupted at its next bytecode
+        # by that step (take), once per period it runs on.  Returns the steps the guard ran (App.run
+        # goes on from the last of them: self.dl is the next deadline, self.last its start)
         u = self.fn
         if u is None or not self.on:
-            return
+            return 0
         app = self.app
         diff = self._diff
         t0 = app.timing.last_us
         now = diff(self._ticks(), t0) + self.over
-        if now + self.budget > app.period_us - _USER_MARGIN:
-            return
-        u()
+        g = self.guard
+        if now + self.budget + (_GUARD_US if g is not None else 0) > app.period_us - _USER_MARGIN:
+            return 0
+        self.taken = 0
+        if g is not None:
+            dl = app._tadd(t0, app.period_us)
+            self.dl = dl
+            _GUARD[0] = self
+            self.armed = True
+            left = diff(dl, self._ticks())
+            g.init(mode=self._one_shot, period=left if left > 0 else 1, tick_hz=_TICK_HZ, callback=_take)
+            s = self._ticks()
+            try:
+                u()
+            finally:
+                d = diff(self._ticks(), s)
+                self.armed = False
+                g.deinit()
+        else:
+            s = self._ticks()
+            u()
+            d = diff(self._ticks(), s)
         if self.runs < _U16:
             self.runs += 1
         e = diff(self._ticks(), t0) + self.over
-        if e - now > self.budget:
+        if d > self.budget:
             self.fn = None
             if self.n_over < _U16:
                 self.n_over += 1
-            if e > app.period_us:
+            if e > app.period_us and not self.taken:
                 self.over = e - app.period_us
+        if self.taken:
+            self.over = 0
+        return self.taken

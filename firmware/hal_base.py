@@ -17,6 +17,9 @@
 #   n_sensor            attribute, host frames received (HIL: the sensor-pause check)
 #   wdt_start(ms), wdt_feed(), wdt_stop()  the hardware watchdog
 #   mark(cause)         leave a reset-cause marker (msgtable RC_*) for the next start
+#   guard_timer()       a machine.Timer-like one-shot timer (init(mode, period, tick_hz,
+#                       callback), deinit(), ONE_SHOT) whose callback runs in the main thread at
+#                       its next bytecode: admit.py's guard over a user hook (made once, by set_user)
 # Class attributes only: nothing runs at import.
 
 
@@ -33,3 +36,4 @@ class Hal:
     wdt_feed = None
     wdt_stop = None
     mark = None
+    guard_timer = None

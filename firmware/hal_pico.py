@@ -569,6 +569,12 @@ class HalPico(Hal):
         self._wdt = None
         self.wdt_feed = self._nop
 
+    def guard_timer(self):
+        # a one-shot machine.Timer (the rp2 port's: its callback is scheduled from the alarm
+        # interrupt and runs in the main thread at its next bytecode) for admit.py's guard over
+        # a user hook; made once, by set_user, outside the loop
+        return machine.Timer()
+
     def mark(self, cause):
         # the reset cause to report if the board resets from now on (msgtable.RC_*)
         if self._mem is not None:

@@ -222,7 +222,8 @@ class CanLink:
         if self.hi_n or self.lo_n:
             self._flush()
         if self.adm.fn is not None:
-            self.adm.user()
+            return self.adm.user()
+        return 0
 
     def set_user(self, fn, budget_us):
         # the user hook, as link_serial.SerialLink.set_user (admit.Admit.user): called after the

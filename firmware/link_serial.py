@@ -168,7 +168,8 @@ class SerialLink:
         else:
             self.adm.over = 0
         if self.adm.fn is not None:
-            self.adm.user()
+            return self.adm.user()
+        return 0
 
     def set_user(self, fn, budget_us):
         # a user hook (docs/firmware.md, "User code in the spare time"; admit.Admit.user): fn()
