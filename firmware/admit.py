@@ -14,8 +14,8 @@
 # the timer is armed for the next step's deadline before the hook is called and cancelled when
 # it returns; if the hook still runs then, the callback (take) runs that step and feeds the
 # watchdog on time, again each period, and App.run goes on from the last of those steps.  A
-# single C call in the hook longer than a period (a blocking bus read) still delays the step:
-# the callback runs at the next bytecode.
+# single C call in the hook longer than a period that serves no events (a blocking bus
+# transfer; time.sleep_us does serve them) still delays the step: the callback waits for it.
 #
 #   a = Admit(app)           app: the App (its clock _ticks/_tdiff, timing, link_budget_us);
 #                            a.on True (a host test may set it False: no rule)

@@ -207,6 +207,9 @@ def slow():
     t = time.ticks_us()
     while time.ticks_diff(time.ticks_us(), t) < 5000:
         pass
+def sleepy():
+    # ... and one that sleeps 5 ms in one C call (time.sleep_us serves the port's events)
+    time.sleep_us(5000)
 def stats():
     L = app.link
     print(L.user_runs, L.user_over, cnt[0], app.timing.overruns, app.n_late, app.sup.state, L.adm.n_taken)
@@ -245,6 +248,12 @@ def test_user_hook_runs_in_the_spare_time_and_a_slow_one_is_switched_off(board: 
     # 5 ms past a tick's spare time: the next two deadlines came while it ran, the guard ran both
     assert taken2 - taken1 >= 2, out
     assert late2 == late1 and ov2 == ov1, out  # no late tick, no overrun
+    out = board.exec("app.link.set_user(sleepy, 200)\napp.timing.restart()\nc1 = counts()\napp.run(n=100)\n"
+                     "print(*c1)\nstats()", timeout=4.0)
+    ov1, late1, taken1 = (int(v) for v in out.splitlines()[-2].split())
+    runs3, over3, _, ov3, late3, state3, taken3 = (int(v) for v in out.splitlines()[-1].split())
+    assert over3 == 2 and runs3 == runs2 + 1 and state3 == 2, out
+    assert taken3 - taken1 >= 2 and late3 == late1 and ov3 == ov1, out
 
 
 def test_the_per_part_figures_hold_over_heap_layouts() -> None:
