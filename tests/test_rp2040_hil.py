@@ -80,8 +80,15 @@ def test_tilt_is_balanced_from_the_pins_as_in_the_virtual_run(tilt_runs) -> None
     dphi = float(np.max(np.abs(emu.log["phi"][:n] - virt.log["phi"][:n])))
     assert dphi <= DPHI_MAX, f"|dphi| vs the virtual run {dphi:.4f} rad"
     assert abs(emu.log["phi"][-1]) < 0.01
-    # balancing from the first ticks to the end; the motor driven through PWM/DIR
-    assert (emu.log["fw_state"][50:] == 2).all()
+    # balancing from the first ticks to the end; the motor driven through PWM/DIR.  The tick the
+    # arm lands on follows when the host's frame meets the emulated clock, which moves with the
+    # host's load: ticks 17-30 on an idle machine (old and new firmware alike), 51 once in a full
+    # two-worker `make test` -- so the bound is 100 ticks (0.2 s, was 50), and from that first
+    # balancing tick on, every tick balances
+    fs = np.asarray(emu.log["fw_state"])
+    first = int(np.argmax(fs == 2))
+    assert fs[first] == 2 and first <= 100, first
+    assert (fs[first:] == 2).all()
     assert emu.log["duty"].min() < -1000 and emu.log["duty"].max() > 1000
     st = emu.stats
     assert st["telemetry"] >= TILT_S * 500 / 10 - 2 and st["telemetry_lost"] == 0
