@@ -34,7 +34,7 @@
 #                            frames still waiting (held or unread)
 #   a.over = 0               a tick with no receive phase (nothing came in): nothing carried
 #   a.set_user(fn, us), a.user()   the user hook (after close/idle); user() returns the steps
-#                            its guard ran (a.dl: the next deadline, a.last: the last one's start)
+#                            its guard ran (App.guard_tick: run() goes on from the last)
 #
 # The planned costs are measured on the predicted real Pico (the harness's XIP cache model, a
 # cold cache: command code runs rarely) -- docs/firmware.md, "Board timing".  Allocation-free;
@@ -71,9 +71,10 @@ _TICK_HZ = const(1000000)
 # first time (cold); not counted in the hook's budget, kept free before the next step with it
 _GUARD_US = const(100)
 
-# the Admit whose user hook runs under its guard timer now (the timer's callback is this
-# module's _take, a plain function: a bound method re-arming its own timer raised MemoryError on
-# the board with the heap locked)
+# the Admit whose user hook runs under its guard timer now, else None (a callback still queued
+# after the timer's deinit then does nothing).  The timer's callback is this module's _take, a
+# plain function: a bound method re-arming its own timer raised MemoryError on the board with the
+# heap locked
 _GUARD = [None]
 
 
@@ -112,11 +113,9 @@ class Admit:
         # deadline while the hook runs, its callback runs that step on time (take)
         self.guard = None
         self._one_shot = 0
-        self.armed = False
-        self.dl = 0  # the next deadline the guard is armed for
+        self.dl = 0  # the deadline the guard is armed for
         self.taken = 0  # steps the guard ran during the last call
         self.n_taken = 0  # ... since the start (u16)
-        self.last = 0  # when the last of them started
 
     def open(self):
         # (the step's start read now: a TIMING request's reply restarts the app's statistics)
@@ -158,20 +157,10 @@ class Admit:
         return self.on
 
     def take(self, t):
-        # the guard timer's callback (in the main thread, inside the user hook): the step whose
-        # deadline has come, on time, and the watchdog fed, as App.run does; armed again for the
-        # next deadline.  Nothing when no hook runs (a callback left queued after deinit)
-        if not self.armed:
-            return
+        # the guard timer's callback (in the main thread, inside the user hook): the tick whose
+        # deadline has come, on time (App.guard_tick); armed again for the next deadline
         app = self.app
-        self.last = self._ticks()
-        try:
-            app._step()
-        except MemoryError:
-            app._loop_fault()
-        f = app._wdt_feed
-        if f is not None:
-            f()
+        app.guard_tick(self.dl)
         self.taken += 1
         if self.n_taken < _U16:
             self.n_taken += 1
@@ -186,7 +175,7 @@ class Admit:
         # the period, hands the excess on to the next tick's limit.  With a guard timer (HalPico)
         # a call still running at the next step's deadline is interrupted at its next bytecode
         # by that step (take), once per period it runs on.  Returns the steps the guard ran (App.run
-        # goes on from the last of them: self.dl is the next deadline, self.last its start)
+        # goes on from the last of them, App.guard_tick)
         u = self.fn
         if u is None or not self.on:
             return 0
@@ -201,21 +190,17 @@ class Admit:
         if g is not None:
             dl = app._tadd(t0, app.period_us)
             self.dl = dl
-            _GUARD[0] = self
-            self.armed = True
             left = diff(dl, self._ticks())
+            _GUARD[0] = self
             g.init(mode=self._one_shot, period=left if left > 0 else 1, tick_hz=_TICK_HZ, callback=_take)
-            s = self._ticks()
-            try:
-                u()
-            finally:
-                d = diff(self._ticks(), s)
-                self.armed = False
-                g.deinit()
-        else:
-            s = self._ticks()
+        s = self._ticks()
+        try:
             u()
+        finally:
             d = diff(self._ticks(), s)
+            if g is not None:
+                _GUARD[0] = None
+                g.deinit()
         if self.runs < _U16:
             self.runs += 1
         e = diff(self._ticks(), t0) + self.over

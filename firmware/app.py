@@ -155,6 +155,9 @@ class App(Reports, Params, TableUpload, ConfigSave, Target):
         self.late_score = 0
         self.n_late = 0
         self._on_time = 0
+        # the last step guard_tick ran for the link's user hook: its deadline and start (run())
+        self._gdl = 0
+        self._glast = 0
         self._ext = 0
         # arming epoch (HEARTBEAT.epoch; ARM must carry it): changes on every disarm,
         # clear_faults and entry into FAULT (step() watches the state)
@@ -400,11 +403,10 @@ class App(Reports, Params, TableUpload, ConfigSave, Target):
                 try:
                     step()
                     if poll is not None and poll():
-                        # the user hook ran past deadlines and its guard ran those steps on
-                        # time (admit.py): the schedule goes on from the last of them
-                        adm = self.link.adm
-                        deadline = add(adm.dl, -self.period_us)
-                        last = adm.last
+                        # the link's user hook ran past deadlines and its guard ran those steps
+                        # on time (guard_tick): the schedule goes on from the last of them
+                        deadline = self._gdl
+                        last = self._glast
                 except MemoryError:
                     self._loop_fault()
                 if feed is not None:
@@ -500,6 +502,20 @@ class App(Reports, Params, TableUpload, ConfigSave, Target):
         finally:
             if locked:
                 _heap_lock()
+
+    def guard_tick(self, dl):
+        # one tick on time while the link's user hook runs (admit.Admit.take: its guard timer's
+        # callback at the deadline dl): what run()'s loop does for a tick but the link -- the
+        # step, a loop fault on an allocation, the watchdog fed; run() goes on from it
+        self._glast = self._ticks()
+        self._gdl = dl
+        try:
+            self._step()
+        except MemoryError:
+            self._loop_fault()
+        f = self._wdt_feed
+        if f is not None:
+            f()
 
     def _loop_fault(self):
         # the loop could not complete a tick (see run()): latch, motor off
