@@ -36,10 +36,10 @@ from sim.scenario import load_scenario
 __all__ = ["SETTLE_TICKS", "BURST", "singles", "bursts", "sweep", "bench"]
 
 SETTLE_TICKS = 30
+"""Plant ticks run after each message (or burst) before the next one (60 ms at 500 Hz)."""
 DRAIN_BLOCKS = 40
 """At most this many blocks of ``2 (admit.FORCE + 1)`` ticks a step's backlog is given to drain."""
 _PERIODIC = ("telem_state", "telem_ctrl", "heartbeat")  # the board's own frames, not replies
-"""Plant ticks run after each message (or burst) before the next one (60 ms at 500 Hz)."""
 BURST = 12
 """Frames in one burst (about 170 bytes: well inside the board's 1024-byte receive buffer)."""
 _SCENARIO = "tilt_0p1"
@@ -162,7 +162,7 @@ def sweep(hil: EmulatedHil, *, settle_ticks: int = SETTLE_TICKS, steps: Sequence
     (``host.operate.commission.drive_params``), whose branch of the step then runs in the sweep.
 
     Returns ``{"steps": [StepFigures...], "period_us", "before"/"after": firmware stats,
-    "disarm": StepFigures, "keep_ticks": ticks between the host's heartbeats}``.
+    "disarm": StepFigures}``.
 
     Raises
     ------
@@ -262,8 +262,7 @@ def sweep(hil: EmulatedHil, *, settle_ticks: int = SETTLE_TICKS, steps: Sequence
     figures.append(one("arm (repeat)", [_arm_message(hil, run=plant)]))
     after = _figures(host, plant, heard)
     dis = one("disarm", [B["disarm"]()])
-    return {"steps": figures, "disarm": dis, "period_us": period_us, "before": before, "after": after,
-            "keep_ticks": keep}
+    return {"steps": figures, "disarm": dis, "period_us": period_us, "before": before, "after": after}
 
 
 def _arm_message(hil: EmulatedHil, run: Callable[[int], None] | None = None) -> M.Message:

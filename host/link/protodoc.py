@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from firmware import msgtable as T
+from firmware.admit import REFILL_US
 from host.link import messages as M
 
 __all__ = ["render_protocol_md"]
@@ -90,7 +91,8 @@ def render_protocol_md() -> str:
         "**Bounded work per tick**: the board decodes and answers at most "
         "4 frames a tick (96 bytes, 3 reply frames), the periodic frames first, and dispatches a frame "
         "only while its planned cost (measured on a predicted real Pico) still ends within 1.5 periods "
-        "of the step's scheduled start less what follows a frame (at least 500 us: `firmware/admit.py`); the rest waits in its receive buffer, counted (status values `link_deferred`,",
+        "of the step's scheduled start less what follows a frame (at least "
+        f"{REFILL_US} us: `firmware/admit.py`); the rest waits in its receive buffer, counted (status values `link_deferred`,",
         "`link_wait_max`). Heap statistics in `stats_loop` are the last sample, taken between ticks",
         "while the motor is off; a `gains_commit` while armed is refused before any check;",
         "`param_set` of what would tip a balancing robot is refused while armed (below).",
