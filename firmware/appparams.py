@@ -192,6 +192,19 @@ class Params:
         o = self.off["REF"]
         t = self.table
         r = (x_um * t[o] + (t[o + 1] >> 1)) // t[o + 1]
-        self.ref = fixmath.clamp(r, t[self.off["RLIM"]])
+        r = fixmath.clamp(r, t[self.off["RLIM"]])
+        st = self.params[T.P_REF_RATE]
+        c = self.ctrl
+        if st and self.sup.state == BALANCING and not c.catching:
+            # ref_rate_mm_s: the controller's reference moves to r by st x LSB a tick (its ramp,
+            # which Controller.schedule runs; from where a ramp under way has got to), at least 1
+            st = ((st * 1000) // self.rate * t[o] + (t[o + 1] >> 1)) // t[o + 1]
+            if st < 1:
+                st = 1
+            if not c.ramp:
+                c.rr = self.ref
+            c.rstep = st
+            c.ramp = c.rr != r
+        self.ref = r
         self.ref_um = x_um
         return T.OK

@@ -11,4 +11,4 @@ except ImportError:
 
 FW_VERSION = const(0x01)
 TABLE_HASH = const(0x6b2b)
-PARAM_HASH = const(0xcca3)
+PARAM_HASH = const(0x7a97)

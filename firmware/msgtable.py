@@ -351,7 +351,8 @@ P_ENC_SIGN = const(11)
 P_MOTOR_SIGN = const(12)
 P_GEAR_PLAY = const(13)
 P_CART_COULOMB = const(14)
-N_PARAMS = const(15)
+P_REF_RATE = const(15)
+N_PARAMS = const(16)
 
 # parameters that change the drive or what the sensors mean (signs, offsets, the duty clamp,
 # the CAN node id the host reaches the board at): param_set is refused (ARMED) while armed or
@@ -398,6 +399,10 @@ PARAMS = (
      "the cart's Coulomb (sliding) friction in 0.01 N (robot.toml cart.coulomb; upright commission "
      "sets it): with gear_play, the force the predictor is given against the estimated speed while "
      "the motor side crosses the play (the table's compensation acts only through the gear)"),
+    (P_REF_RATE, "ref_rate_mm_s", "mm/s", 0, 5000, 0,
+     "while balancing, a new set_reference moves the controller's reference to it at this speed "
+     "(a ramp, not a step: the step's force demand and its gear-play engagements break the 5 m/s^2 "
+     "limit; robot.toml loop.ref_rate, upright commission sets it); 0: at once"),
 )
 
 # ---- status values: read-only board figures, read with PARAM_GET(STATUS_BASE + k) ----

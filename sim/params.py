@@ -104,6 +104,9 @@ SCHEMA: dict[str, Spec] = {
     "loop.a_max": _P("m/s^2", "cart acceleration constraint", 0.0),
     "loop.phi_max": _P("rad", "tilt constraint", 0.0, math.pi / 2),
     "loop.t_settle": _P("s", "settling-time constraint", 0.0),
+    "loop.ref_rate": _P("m/s", "speed at which the firmware moves its reference to a new set-point while "
+                             "balancing (a ramp: firmware parameter ref_rate_mm_s); 0: a step", 0.0, 5.0,
+                        lo_open=False, default=0.0),
 }
 
 

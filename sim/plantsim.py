@@ -578,6 +578,10 @@ def run_scenario_float(
         z[2] = (adc0 - off) / cpr
     extra: dict[str, list[float]] = {"x_meas": [], "phi_meas": [], "xdot_est": []}
     n = sim.n_ticks
+    # the firmware's set-point ramp (loop.ref_rate, its parameter ref_rate_mm_s): the controller's
+    # reference moves to a new set-point at that speed; 0: at once
+    ramp = float(p.values.get("loop.ref_rate", 0.0) or 0.0) * sim.Ts
+    rq = sim.x_ref() - x_origin
     for k in range(n):
         adc, enc = sim.read()
         d = (enc - last) % sensors.ENC_MODULUS
@@ -585,7 +589,9 @@ def run_scenario_float(
         last = enc
         xm = total / cpm
         phm = (adc - off) / cpr
-        v = np.array([xm, phm, sim.x_ref() - x_origin])
+        rs = sim.x_ref() - x_origin
+        rq = rs if ramp <= 0.0 else min(max(rs, rq - ramp), rq + ramp)
+        v = np.array([xm, phm, rq])
         u = float(Cc[0] @ z + Dc[0] @ v)
         us = min(max(u, -umax), umax)
         xd_est = float(Ez_v[0][1] @ z + Ez_v[1][1] @ v) if Ez_v is not None else 0.0

@@ -291,7 +291,7 @@ def test_gear_play_keeps_the_report_acceleration_limit_on_a_cart_with_play() -> 
     from sim.scenario import load_scenario
 
     plant = P.replace(**{"motor.backlash": 0.0015})
-    assert drive_params(plant) == {"gear_play": 10, "cart_coulomb": 0}
+    assert drive_params(plant) == {"gear_play": 10, "cart_coulomb": 0, "ref_rate_mm_s": 0}
     cand = candidates(ki=(0.0,), a_cmd=(4.2,), names=("shipped",))[0]
     blob = fixed_design(plant, cand).blob()
     sc = load_scenario("ref_step_20cm")
@@ -317,7 +317,7 @@ def test_cart_coulomb_keeps_the_estimate_on_a_cart_that_friction_brakes_in_the_p
     from sim.scenario import load_scenario
 
     plant = P.replace(**{"motor.backlash": 0.003, "cart.coulomb": 0.5, "cart.stiction": 0.5})
-    assert drive_params(plant) == {"gear_play": 19, "cart_coulomb": 50}
+    assert drive_params(plant) == {"gear_play": 19, "cart_coulomb": 50, "ref_rate_mm_s": 0}
     cand = candidates(ki=(0.0,), a_cmd=(4.2,), names=("shipped",))[0]
     blob = fixed_design(plant, cand, deadband=compensation_counts(plant)).blob()
     sc = load_scenario("ref_step_20cm")
@@ -362,8 +362,12 @@ def test_the_emulated_board_balances_a_cart_with_play_with_gear_play_on(tmp_path
         after = int(hil.request(M.ParamGet(index=T.P_GEAR_PLAY)).value)  # the run's table kept it
         after_fc = int(hil.request(M.ParamGet(index=T.P_CART_COULOMB)).value)
     assert counts == 10 and after == counts and fc == 20 and after_fc == fc
-    assert (run.log["fw_state"][50:] == BALANCING).all()
-    assert not run.log["fw_faults"][50:].any()
+    # the state log holds the last HEARTBEAT's state (every heartbeat_ms = 100 ms, 50 ticks): one sent
+    # just before the arm reads disarmed until the next, up to 50 ticks later plus the arm's own tick
+    # (the heartbeat's phase moves with the set-up's requests: 50 ticks was one tick short when the
+    # parameter table grew by ref_rate_mm_s); 60 ticks
+    assert (run.log["fw_state"][60:] == BALANCING).all()
+    assert not run.log["fw_faults"][60:].any()
     assert run.stats["nacks"] == [] and run.stats["telemetry_lost"] == 0
     assert late == 0 and run.stats["overruns"] == 0, (late, run.stats["overruns"])
     assert run.stats["tick_us_max"] < 1.5 * run.stats["period_us"], run.stats["tick_us_max"]
