@@ -131,3 +131,21 @@ def test_the_pot_gain_figures_quoted_are_identifys() -> None:
     assert m and (int(m.group(1)), int(m.group(2))) == (round(100 * I.POT_GAIN_MAX), round(100 * I.POT_GAIN_CI))
     m = re.search(r"a pot's usual ±([\d.]+) % \(`POT_GAIN_PRIOR`", doc)
     assert m and float(m.group(1)) == round(100 * I.POT_GAIN_PRIOR, 1)
+
+
+def test_the_set_point_ramp_quoted_is_commissions() -> None:
+    # the README's commission stage table and its paragraph on what commission sets quote the
+    # ramp of the robot file it writes (host.operate.commission.REF_RATE), and the board parameter's
+    # unit is the message table's
+    from firmware import msgtable as T
+    from host.operate.commission import REF_RATE
+
+    readme = _text("README.md")
+    m = re.search(r"ramps a new set-point at ([\d.]+) m/s \(`loop\.ref_rate`", readme)
+    assert m, "README's identify stage no longer states the set-point ramp"
+    assert float(m.group(1)) == REF_RATE
+    m = re.search(r"the board parameter `ref_rate_mm_s` from the robot file's `loop\.ref_rate` \(([\d.]+) m/s:", readme)
+    assert m, "README no longer says what sets ref_rate_mm_s"
+    assert float(m.group(1)) == REF_RATE
+    units = {p[1]: p[2] for p in T.PARAMS}
+    assert units["ref_rate_mm_s"] == "mm/s"
