@@ -86,15 +86,23 @@ count after the disarm, and the first stage read b 8.0 N s/m for 0.5; on a cart 
 motor side spent most bits crossing the play (the commission bench's lockstep robots ran at 4 until
 this was passed by the stage itself, and their dry fits were refused at 1.0-2.8 encoder counts)."""
 BAL_DIV = 8  # control ticks per PRBS bit of the balancing run (16 ms: slow enough to move the pendulum)
-REF_RATE = 0.5
-"""m/s: the set-point ramp (robot file ``loop.ref_rate``, board parameter ``ref_rate_mm_s``) of the
-robot file ``upright commission`` writes, where the robot file it starts from gives none: the 20 cm
-step then reaches its set-point in 0.4 s instead of at once.  Lockstep HIL, the true cart after a
-fast commissioning of rows 1, 34 and 0 of ``make bench`` section commission: a step asked 6.5 and 6.1
-m/s^2 of the 3 mm and 2.4 mm play robots (the report's limit is 5) and 4.3 of the report's own robot;
-the ramp 3.0, 3.3 and 1.4 m/s^2, the settling 4.3 -> 4.3 s, 2.5 -> 2.9 s and 1.9 -> 2.2 s (the
-limit cycles of the play and the dry friction, not the ramp, hold the first two outside the band).
-At 0.25 m/s the accelerations were 1.6 and 1.9 m/s^2 but the 2.4 mm robot settled in 3.3 s."""
+REF_RATE = (1.5, 0.5)
+"""m/s: the set-point ramps (robot file ``loop.ref_rate``, board parameter ``ref_rate_mm_s``) of the
+robot file ``upright commission`` writes, where the robot file it starts from gives none: the first
+for a robot whose gear play is at most :data:`VERIFY_PLAY_MAX`, the second beyond it; the 20 cm
+step then reaches its set-point in 0.13 s or 0.4 s instead of at once.  Lockstep HIL, the true cart
+after a fast commissioning (rows of ``make bench`` section commission; the same table, the step
+at 0 / 0.5 / 0.75 / 1.0 / 1.5 m/s):
+
+- 3 mm and 2.4 mm of play (rows 1, 34): peak |xdd| 6.5 / 3.0 / 3.5 / 6.2 / 6.7 and 6.1 / 3.3 /
+  6.1 / 6.0 / 6.8 m/s^2 (the limit: 5): past 0.5 m/s the gear's engagements break it again;
+- the report's robot (row 0) 4.3 / 1.4 / 1.8 / 1.9 / 2.0 m/s^2, settling 1.91 / 2.17 / 2.05 / 2.02 /
+  1.97 s; 0.25 mm of play (row 40) 4.6 / 1.7 / 2.5 / 2.9 / 3.2 m/s^2, settling 3.07 / 2.52 / 2.52 /
+  2.55 / 2.45 s: a slower ramp delays the settling by about its own length, so where the play
+  allows it the ramp is fast.
+
+The limit cycles of the play and the dry friction, not the ramp, keep most robots with play
+outside the settling band (``make bench`` section commission)."""
 
 
 PLAY_A_CMD = 3.0
@@ -493,8 +501,10 @@ class Commission:
         bad = [k for k, v in e.items() if not math.isfinite(v)]
         if bad or not (e["I"] > 0 and e["mL"] > 0 and e["kt"] > 0):
             raise CommissionError(f"identify: unusable estimates ({', '.join(bad) or 'non-positive I, mL or kt'})")
-        # the firmware's predictor length, and the set-point ramp of the robot file or REF_RATE
-        pid = identified_params(res, p).replace(**{"sensors.delay": p.delay, "loop.ref_rate": ref_rate(p)})
+        # the firmware's predictor length; the set-point ramp of the robot file, else REF_RATE's for
+        # the gear play identified
+        pid = identified_params(res, p).replace(**{"sensors.delay": p.delay})
+        pid = pid.replace(**{"loop.ref_rate": ref_rate(pid)})
         (self.out / "robot_id.toml").write_text(robot_toml(pid, "upright commission: identified robot"))
         self.state["data"]["identify"] = {"estimates": e, "ci": res["ci"], "notes": res.get("notes", []),
                                           "nominal": {k: float(v) for k, v in _nominal(p).items()}}
@@ -653,9 +663,13 @@ def drive_params(fw: RobotParams) -> dict[str, int]:
 
 def ref_rate(p: RobotParams) -> float:
     """The set-point ramp (m/s) of the robot file ``upright commission`` writes for robot file ``p``:
-    its own ``loop.ref_rate`` where it gives one, else :data:`REF_RATE`."""
+    its own ``loop.ref_rate`` where it gives one, else :data:`REF_RATE`'s for its gear play
+    (``motor.backlash``)."""
     v = float(p.values.get("loop.ref_rate", 0.0) or 0.0)
-    return v if v > 0.0 else REF_RATE
+    if v > 0.0:
+        return v
+    play = float(p.values.get("motor.backlash", 0.0) or 0.0)
+    return REF_RATE[0] if not play > VERIFY_PLAY_MAX else REF_RATE[1]
 
 
 def _more_deadband(p: RobotParams, db: float, amp_n: float) -> float:
