@@ -190,3 +190,30 @@ def test_the_emulated_board_ramps_a_set_point_on_time(tmp_path) -> None:
             assert late == 0 and run.stats["overruns"] == 0, (rate, late, run.stats["overruns"])
             peak[rate] = float(np.max(np.abs(run.log["xddot"])))
     assert peak[RATE_MM_S] < 0.7 * peak[0], peak
+
+
+@pytest.mark.slow
+def test_the_float_reference_ramps_as_the_firmware_does() -> None:
+    # the report's robot, its 20 cm step with ref_rate_mm_s on the unix port (lockstep HIL, heap
+    # locked) and the float design with the robot file's loop.ref_rate (sim.plantsim's loop): they
+    # agree to the HIL tests' bound (two ADC counts, tests/test_hil_loop.py TOL_PHI), and both
+    # differ from the step by far more -- the agreement is the ramp's, not a step's
+    from host.hil.reference import float_reference
+    from host.hil.session import HilSession
+    from sim.scenario import load_scenario
+
+    tol_phi = 2 * P.pot_range / 2**P.adc_bits
+    sc = load_scenario("ref_step_20cm")
+    ramped = P.replace(**{"loop.ref_rate": RATE_MM_S * 1e-3})
+    with HilSession(heap_lock=True) as sess:
+        run = sess.run_lockstep(sc, P, fw_params={"ref_rate_mm_s": RATE_MM_S})
+    ref = float_reference(sc, ramped)
+    step = float_reference(sc, P)
+    assert np.all(run.log["fw_state"] == 2) and np.all(run.log["fw_faults"] == 0)
+    err = float(np.max(np.abs(run.log["phi"] - ref["phi"])))
+    assert err <= tol_phi, err
+    assert float(np.max(np.abs(run.log["x"] - ref["x"]))) < 0.002
+    assert float(np.max(np.abs(step["phi"] - ref["phi"]))) > 5 * tol_phi
+    # the float loop's ramp: its peak acceleration well under the step's, its cart at the set-point
+    assert float(np.max(np.abs(ref["xddot"]))) < 0.6 * float(np.max(np.abs(step["xddot"])))
+    assert abs(float(ref["x"][int(5.0 * P.rate)]) - 0.2) < 0.005
