@@ -23,21 +23,15 @@ from sim.params import load_params
 P = load_params()
 RATE_MM_S = 500
 
-RAMP = H.INTS_SRC + H.FAKE_HAL + """
+RAMP = """
 from firmware.app import App
 from firmware import msgtable as T
-class G:
-    pass
-G.VERSION = %d
-G.CRC = %d
-G.LAYOUT = %r
-G.FLAT = tuple(ints(%r))
 hal = Hal()
 app = App(hal, gains=G, config={'watchdog_ms': 0, 'arm_tilt_mrad': 500, 'stall_ms': 0})
 c = app.ctrl
 print('range', app.param_set(T.P_REF_RATE, 5001))
 print('kept', app.params[T.P_REF_RATE])
-print('set', app.param_set(T.P_REF_RATE, %d))
+print('set', app.param_set(T.P_REF_RATE, RATE))
 # disarmed: the set-point is the reference at once
 app.cmd_set_reference(100000)
 print('disarmed_ramp', int(c.ramp))
@@ -89,15 +83,14 @@ print('ticks2', n2)
 def more():
     app.cmd_set_reference(0)
     ramp_ticks(1000)
-%s
 """
 
 
 def _code(interp: H.Interp) -> str:
-    fd = export(P)
-    layout = tuple(H.layout_of(fd))
+    # the shipped design's table as App's gains module, the stand-in HAL, then the ramp's phases and
+    # the allocation probe of this interpreter (none on the board: the ramp's ticks just run there)
     probe = (interp.alloc_run + "\nrun('alloc', more)\n") if interp.alloc_run else "more()\n"
-    return RAMP % (fd.tables["HDR"][0], fd.crc(), layout, " ".join(map(str, fd.flat())), RATE_MM_S, probe)
+    return (H.INTS_SRC + H.FAKE_HAL + H.gains_src("G", export(P)) + f"RATE = {RATE_MM_S}\n" + RAMP + probe)
 
 
 def test_a_set_point_ramps_at_ref_rate_while_balancing(interp: H.Interp) -> None:
