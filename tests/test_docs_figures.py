@@ -140,16 +140,17 @@ def test_the_set_point_ramp_quoted_is_commissions() -> None:
     from firmware import msgtable as T
     from host.operate.commission import REF_RATE
 
-    from host.operate.commission import VERIFY_PLAY_MAX
+    from host.operate.commission import PLAY_A_CMD_MAX, VERIFY_PLAY_MAX
 
+    want = (REF_RATE[0], 1e3 * VERIFY_PLAY_MAX, REF_RATE[1], 1e3 * PLAY_A_CMD_MAX)
     readme = _text("README.md")
-    m = re.search(r"ramps a new set-point at ([\d.]+) m/s, ([\d.]+) m/s with more than ([\d.]+) mm of gear play "
-                  r"\(`loop\.ref_rate`", readme)
+    m = re.search(r"ramps a new set-point at ([\d.]+) m/s up to ([\d.]+) mm of gear play, at ([\d.]+) m/s beyond "
+                  r"([\d.]+) mm, at once between \(`loop\.ref_rate`", readme)
     assert m, "README's identify stage no longer states the set-point ramp"
-    assert (float(m.group(1)), float(m.group(2))) == REF_RATE and float(m.group(3)) == 1e3 * VERIFY_PLAY_MAX
-    m = re.search(r"the board parameter `ref_rate_mm_s` from the robot file's `loop\.ref_rate` \(([\d.]+) m/s, "
-                  r"([\d.]+) m/s with more than ([\d.]+) mm of gear play:", readme)
+    assert tuple(float(g) for g in m.groups()) == want
+    m = re.search(r"the board parameter `ref_rate_mm_s` from the robot file's `loop\.ref_rate` \(([\d.]+) m/s up to "
+                  r"([\d.]+) mm of gear play, ([\d.]+) m/s beyond ([\d.]+) mm:", readme)
     assert m, "README no longer says what sets ref_rate_mm_s"
-    assert (float(m.group(1)), float(m.group(2))) == REF_RATE and float(m.group(3)) == 1e3 * VERIFY_PLAY_MAX
+    assert tuple(float(g) for g in m.groups()) == want
     units = {p[1]: p[2] for p in T.PARAMS}
     assert units["ref_rate_mm_s"] == "mm/s"
