@@ -197,7 +197,9 @@ class Params:
         c = self.ctrl
         if st and self.sup.state == BALANCING and not c.catching:
             # ref_rate_mm_s: the controller's reference moves to r by st x LSB a tick (its ramp,
-            # which Controller.schedule runs; from where a ramp under way has got to), at least 1
+            # which Controller.schedule runs; from where a ramp under way has got to), at least 1.
+            # The ramp's speed stays the controller's: a later catch's hand-back returns at it too
+            # (a Controller attribute for the table's own RSTEP tipped the emulated board's timing)
             st = ((st * 1000) // self.rate * t[o] + (t[o + 1] >> 1)) // t[o + 1]
             if st < 1:
                 st = 1

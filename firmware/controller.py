@@ -142,12 +142,10 @@ class Controller:
         self.ucmax = 0
         # hand-back: the tracking row starts from the reference rr that makes its force
         # equal the catch row's (rr = r + ((uc - ut) * rg) >> srg), then rr moves to the set
-        # reference by rstep x LSB per tick (rstep_c, the table's; a set_reference under
-        # ref_rate_mm_s sets rstep to its own ramp: firmware/appparams.py)
+        # reference by rstep x LSB per tick
         self.rr = 0
         self.ramp = False
         self.rstep = 0
-        self.rstep_c = 0
         self.w_off = 0  # |phidot| (phidot LSB) below which the hand-back may happen
         self.rg = 0
         self.srg = 0
@@ -207,7 +205,6 @@ class Controller:
         self.skc = t[o["SKC"]]
         self.hkc = (1 << (self.skc - 1)) if self.skc > 0 else 0
         self.rstep = t[ca + 7]
-        self.rstep_c = self.rstep  # the hand-back's (rstep may carry a set-reference ramp's)
         self.w_off = t[ca + 8]
         # rg / 2**srg = 2**skt / krt (x LSB per u LSB).  emax: the largest force difference a
         # reference within +-rlim can absorb, |krt| * 2 rlim / 2**skt (u LSB) -- a stiff position
@@ -469,7 +466,6 @@ class Controller:
             self.bump = e
             self._use(False)
             self.rr = q
-            self.rstep = self.rstep_c
             self.ramp = q != r
             return q
         return r
