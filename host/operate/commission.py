@@ -657,12 +657,10 @@ def drive_params(fw: RobotParams) -> dict[str, int]:
     ``ref_rate_mm_s``, its ``loop.ref_rate`` in mm/s, the set-point ramp (0: a step)."""
     from sim.sensors import enc_counts_per_m
 
-    play = float(fw.values.get("motor.backlash", 0.0) or 0.0) * float(enc_counts_per_m(fw))
-    fc = 100.0 * float(fw.values.get("cart.coulomb", 0.0) or 0.0)
-    rate = 1000.0 * float(fw.values.get("loop.ref_rate", 0.0) or 0.0)
-    return {"gear_play": int(min(param_info("gear_play")["max"], max(0, round(play)))),
-            "cart_coulomb": int(min(param_info("cart_coulomb")["max"], max(0, round(fc)))),
-            "ref_rate_mm_s": int(min(param_info("ref_rate_mm_s")["max"], max(0, round(rate))))}
+    scale = {"gear_play": ("motor.backlash", float(enc_counts_per_m(fw))), "cart_coulomb": ("cart.coulomb", 100.0),
+             "ref_rate_mm_s": ("loop.ref_rate", 1000.0)}
+    return {name: int(min(param_info(name)["max"], max(0, round(k * float(fw.values.get(key, 0.0) or 0.0)))))
+            for name, (key, k) in scale.items()}
 
 
 def ref_rate(p: RobotParams) -> float:
