@@ -183,16 +183,19 @@ class Params:
         self._apply_param(index)
         return T.OK
 
+    def _x_lsb(self, um):
+        # a cart position (um) in the active table's x LSB, rounded (its REF scale)
+        o = self.off["REF"]
+        t = self.table
+        return (um * t[o] + (t[o + 1] >> 1)) // t[o + 1]
+
     def cmd_set_reference(self, x_um):
         # a set-point is the controlling host's stream: it feeds the link watchdog
         self.sup.feed()
         lim = self.params[T.P_REF_LIMIT]
         if x_um > lim or x_um < -lim:
             return T.R_OUT_OF_RANGE
-        o = self.off["REF"]
-        t = self.table
-        r = (x_um * t[o] + (t[o + 1] >> 1)) // t[o + 1]
-        r = fixmath.clamp(r, t[self.off["RLIM"]])
+        r = fixmath.clamp(self._x_lsb(x_um), self.table[self.off["RLIM"]])
         st = self.params[T.P_REF_RATE]
         c = self.ctrl
         if st and self.sup.state == BALANCING and not c.catching:
@@ -200,7 +203,7 @@ class Params:
             # which Controller.schedule runs; from where a ramp under way has got to), at least 1.
             # The ramp's speed stays the controller's: a later catch's hand-back returns at it too
             # (a Controller attribute for the table's own RSTEP tipped the emulated board's timing)
-            st = ((st * 1000) // self.rate * t[o] + (t[o + 1] >> 1)) // t[o + 1]
+            st = self._x_lsb((st * 1000) // self.rate)
             if st < 1:
                 st = 1
             if not c.ramp:
