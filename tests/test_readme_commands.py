@@ -272,7 +272,7 @@ def test_readme_usb_link_commands(tmp_path: Path) -> None:
             assert b"\r\n42\r\n" in until(b"\r\n42\r\n"), "the REPL did not run the line"
         os.killpg(p.pid, signal.SIGTERM)
         assert p.wait(timeout=60) == 0, p.stderr.read()  # type: ignore[union-attr]
-        assert list(tmp_path.iterdir()) == [], "temporary files left behind"
+        assert list(tmp_path.iterdir()) == [], ("temporary files left behind", sorted(map(str, tmp_path.rglob("*"))))
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)

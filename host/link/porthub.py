@@ -67,6 +67,35 @@ def _sock_dir(create: bool = True) -> Path | None:
     return d
 
 
+#: the longest path a Unix socket address holds (``sun_path``, 108 bytes with its NUL on Linux)
+SUN_PATH_MAX = 107
+
+
+def _sock_call(call: Any, path: Path) -> None:
+    """``call`` (a socket's ``bind`` or ``connect``) on ``path``, however long ``$TMPDIR`` is.
+
+    A path longer than :data:`SUN_PATH_MAX` bytes (a deep ``$TMPDIR``: a test's temporary
+    directory) goes through the directory's descriptor, ``/proc/self/fd/N/NAME``, which
+    Linux resolves to the same file.
+    """
+    if len(os.fsencode(str(path))) <= SUN_PATH_MAX:
+        call(str(path))
+        return
+    fd = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        call(f"/proc/self/fd/{fd}/{path.name}")
+    finally:
+        os.close(fd)
+
+
+def _drop_dir(d: Path) -> None:
+    # the last hub leaves no directory behind (others keep it: rmdir fails on a directory with sockets)
+    try:
+        d.rmdir()
+    except OSError:
+        pass
+
+
 def hub_path(port: str, create: bool = True) -> Path | None:
     """The hub socket of a device (None: no safe place for one; ``create=False``: only look, the
     private directory is not made)."""
@@ -203,7 +232,7 @@ def attach(port: str) -> SocketPort | None:
     s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
         s.settimeout(1.0)
-        s.connect(str(path))
+        _sock_call(s.connect, path)
     except OSError:
         s.close()
         return None
@@ -286,10 +315,11 @@ class PortHub:
             pass
         self._srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
-            self._srv.bind(str(path))
+            _sock_call(self._srv.bind, path)
             self._srv.listen(8)
         except OSError:
             self._srv.close()
+            _drop_dir(path.parent)
             raise
         self._srv.setblocking(False)
         # close() wakes the thread through this pipe: without tools it sleeps in select
@@ -427,10 +457,7 @@ class PortHub:
             self.path.unlink()
         except OSError:
             pass
-        try:
-            self.path.parent.rmdir()  # the last hub leaves no directory behind (others keep it)
-        except OSError:
-            pass
+        _drop_dir(self.path.parent)
         with self._lock:
             for c in self.clients:
                 with c.lock:
