@@ -186,3 +186,23 @@ def test_firmware_module_compiles_for_rp2040(mod, tmp_path):
     proc = subprocess.run([str(mpy_cross), "-march=armv6m", "-o", str(tmp_path / f"{mod}.mpy"), str(root / "firmware" / f"{mod}.py")],
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
+
+
+def test_a_port_joined_mid_frame_is_not_a_drop():
+    """A link that opens a port the board already talks on (``SerialLink``: ``mid_stream``)
+    may first read the tail of a frame sent before it listened: counted as ``joined``, not as
+    a drop. The first chunk that decodes is kept, and after it every bad chunk is a drop."""
+    a = M.encode_serial(M.ParamGet(index=3), 9)
+    b = M.encode_serial(M.ParamGet(index=4), 10)
+    dec = M.SerialStreamDecoder(mid_stream=True)
+    got = dec.feed(a[5:] + b + a[:-4] + b"\x00" + a)
+    assert [(m.index, s) for m, s in got] == [(4, 10), (3, 9)]
+    assert dec.joined == len(a) - 6 and dec.drops["length"] == 1 and sum(dec.drops.values()) == 1
+    # a port opened at a frame boundary loses nothing
+    clean = M.SerialStreamDecoder(mid_stream=True)
+    assert [m.index for m, _ in clean.feed(a + a[5:])] == [3] and clean.joined == 0
+    assert sum(clean.drops.values()) == 1
+    # the default keeps the firmware decoder's rules: the same tail is a drop
+    strict = M.SerialStreamDecoder()
+    strict.feed(a[5:] + b)
+    assert strict.joined == 0 and sum(strict.drops.values()) == 1

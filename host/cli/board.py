@@ -234,7 +234,8 @@ def render_status(st: dict[str, Any]) -> str:
     lines.append(f"  heartbeat {rate:.1f} Hz" if rate else "  heartbeat rate: fewer than two heartbeats seen")
     lk = st["link"]
     drops = ", ".join(f"{k} {v}" for k, v in lk["drops"].items() if v) or "none"
-    lines.append(f"  link: {lk['sent']} frames sent, {lk['received']} received, host drops {drops}")
+    joined = f" (joined mid-frame: {lk['joined_bytes']} bytes skipped)" if lk.get("joined_bytes") else ""
+    lines.append(f"  link: {lk['sent']} frames sent, {lk['received']} received, host drops {drops}{joined}")
     bs = st.get("board_stats", {})
     if "decode" in bs:
         d = bs["decode"]

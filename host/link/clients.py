@@ -742,9 +742,10 @@ class SerialLink(Link):
         self._ser = ser
         self.via_hub = via_hub
         self.hub_owner = port_holders(self.url) if via_hub else []
-        # a frame cut by the move is dropped, the counts go on
-        dec = M.SerialStreamDecoder()
-        dec.drops, dec.ok = self.decoder.drops, self.decoder.ok
+        # the port is joined mid-stream: the tail of a frame sent before it was opened (or cut by
+        # the move to or from a hub) is not a drop; the counts go on
+        dec = M.SerialStreamDecoder(mid_stream=True)
+        dec.drops, dec.ok, dec.joined = self.decoder.drops, self.decoder.ok, self.decoder.joined
         self.decoder = dec
         # the port stays non-blocking (timeout 0): waiting is a select() on its file
         # descriptor when it has one (changing a pyserial timeout reconfigures the tty)

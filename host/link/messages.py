@@ -430,12 +430,23 @@ class SerialStreamDecoder:
 
     Drop counters by cause (``drops["crc"|"length"|"unknown"|"overrun"]``) follow the
     same rules as the firmware decoder, so the two can be compared byte for byte.
+
+    Parameters
+    ----------
+    mid_stream : bool
+        The stream may begin inside a frame (a port opened while the board talks, or holding
+        the rest of a frame another tool read half of): a first chunk that does not decode is
+        the tail of a frame sent before this decoder listened. It is counted in
+        :attr:`joined`, not as a drop. A first chunk that decodes is kept.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, *, mid_stream: bool = False) -> None:
         self._buf = bytearray()
         self.drops: dict[str, int] = {"crc": 0, "length": 0, "unknown": 0, "overrun": 0}
         self.ok = 0
+        #: bytes of a first chunk that did not decode (``mid_stream``): a frame joined halfway
+        self.joined = 0
+        self._first = mid_stream
 
     def feed(self, data: bytes) -> list[tuple[Message, int]]:
         """Consume ``data``; return every complete valid frame in order."""
@@ -471,8 +482,13 @@ class SerialStreamDecoder:
                 raise LengthError("truncated")
             res = _check_raw(raw)
         except FrameError as exc:
+            if self._first:
+                self._first = False
+                self.joined += len(chunk)
+                return None
             self.drops[exc.cause] += 1
             return None
+        self._first = False
         self.ok += 1
         return res
 
