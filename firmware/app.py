@@ -590,17 +590,20 @@ class App(Reports, Params, TableUpload, ConfigSave, Target):
 
     def fill_telemetry(self, arr):
         # TELEM_STATE (x, xdot, phi, phidot: filtered estimate) then TELEM_CTRL
-        # (ref, force, duty, step_us), in the message units (viper: one call, same values)
+        # (ref, force, duty, step_us), in the message units (viper: one call, same values).
+        # ref is the reference the controller tracks: the ramp's while one runs (set-point or
+        # catch hand-back, Controller.schedule), else the set-point
         c = self.ctrl
+        ref = c.rr if c.ramp else self.ref
         if self._tel_fast is not None:
-            self._tel_fast(arr, self.table, c.xf, self._tel_o, c.vh, self.ref, c.u)
+            self._tel_fast(arr, self.table, c.xf, self._tel_o, c.vh, ref, c.u)
         else:
             xf = c.xf
             arr[0] = self._tel(xf[0], 0)
             arr[1] = self._tel(c.vh, 1)
             arr[2] = self._tel(xf[2], 2)
             arr[3] = self._tel(xf[3], 3)
-            arr[4] = self._tel(self.ref, 0)
+            arr[4] = self._tel(ref, 0)
             arr[5] = self._tel(c.u, 4)
         if self.sup.state != BALANCING:
             # motor off (disarmed, armed waiting to catch, fault): the force is what is

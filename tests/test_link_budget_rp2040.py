@@ -89,3 +89,28 @@ def test_bursts_wait_in_the_receive_buffer_and_are_counted(result) -> None:
     # configurations since the budget keeps admit.REFILL_US after a frame (fewer held frames fit
     # beside a step: more go by forcing)
     assert 2 <= a["link_wait_max"] <= 2 * BURST * admit.FORCE, a
+
+
+def test_a_set_point_ramp_runs_through_the_requests(result) -> None:
+    # the ramp steps (link_sweep.ramps): ref_rate_mm_s on, the set-point moved 5 cm and back, each
+    # move followed at once by what `upright board status` asks and every parameter read.  The
+    # telemetry's reference passes through values between the ends (the ramp ran in the ticks
+    # that handled the requests; a step would jump) and ends at the set-point.  The timing of
+    # these steps is in the two tests above (no late iteration, no overrun, no late tick)
+    from host.bench.link_sweep import RAMP_MM_S, RAMP_UM
+
+    steps = {f.label: f for f in result["steps"]}
+    end = RAMP_UM // 100  # telem_ctrl.ref is in 0.1 mm
+    for label, a, b in (("ramp set_reference out, status", 0, end), ("ramp set_reference back, status", end, 0)):
+        f = steps[label]
+        assert f.state == 2 and f.faults == 0, f
+        lo, hi = min(a, b), max(a, b)
+        inside = [r for r in f.refs if lo < r < hi]
+        # 50 ticks of ramp at 500 mm/s, telemetry every 10th tick: about 5 frames inside
+        assert len(inside) >= 2, (label, f.refs)
+        assert list(f.refs) == sorted(f.refs, reverse=a > b), (label, f.refs)  # monotonic: no jump back
+        assert f.refs[-1] == b, (label, f.refs)
+        # no faster than the rate: a telemetry frame every 10 ticks (2 ms each) moves <= 10 * step
+        per_frame = RAMP_MM_S * 10 * 2 // 100 + 1  # 0.1 mm
+        moves = [abs(y - x) for x, y in zip(f.refs, f.refs[1:])]
+        assert max(moves) <= per_frame, (label, f.refs)

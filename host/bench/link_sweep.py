@@ -33,7 +33,7 @@ from sim.params import RobotParams, load_params
 from sim.plantsim import PlantSim
 from sim.scenario import load_scenario
 
-__all__ = ["SETTLE_TICKS", "BURST", "singles", "bursts", "sweep", "bench"]
+__all__ = ["SETTLE_TICKS", "BURST", "RAMP_UM", "RAMP_MM_S", "singles", "bursts", "ramps", "sweep", "bench"]
 
 SETTLE_TICKS = 30
 """Plant ticks run after each message (or burst) before the next one (60 ms at 500 Hz)."""
@@ -43,6 +43,10 @@ _PERIODIC = ("telem_state", "telem_ctrl", "heartbeat")  # the board's own frames
 BURST = 12
 """Frames in one burst (about 170 bytes: well inside the board's 1024-byte receive buffer)."""
 _SCENARIO = "tilt_0p1"
+RAMP_UM = 50_000
+"""The set-point move of the ramp steps (um): 5 cm."""
+RAMP_MM_S = 500
+"""``ref_rate_mm_s`` of the ramp steps: 5 cm in 100 ms (50 ticks), the step's requests inside it."""
 
 
 def _requests() -> list[int]:
@@ -137,6 +141,22 @@ def bursts(table: bytes, token: int = 0) -> list[tuple[str, list[M.Message]]]:
     return out
 
 
+def ramps() -> list[tuple[str, list[M.Message]]]:
+    """The set-point ramp under requests: ``ref_rate_mm_s`` set to :data:`RAMP_MM_S`, the
+    set-point moved :data:`RAMP_UM` and back, each move followed at once by what ``upright board
+    status`` asks (a heartbeat, the version, the stats, the timing) and every parameter read --
+    the ramp branch of the controller's schedule runs in the ticks that handle them."""
+    B = M.BY_NAME
+    st = B["request"](msg_id=T.STATS_DECODE)
+    status = [B["request"](msg_id=T.HEARTBEAT), B["request"](msg_id=T.VERSION), st, B["request"](msg_id=T.TIMING)]
+    reads = [B["param_get"](index=i) for i in range(T.N_PARAMS)]
+    rate = B["param_set"](index=T.P_REF_RATE, value=RAMP_MM_S)
+    return [
+        ("ramp set_reference out, status", [rate, _fill(B["set_reference"], x_um=RAMP_UM), *status, *reads]),
+        ("ramp set_reference back, status", [_fill(B["set_reference"], x_um=0), *status, *reads]),
+    ]
+
+
 @dataclasses.dataclass
 class StepFigures:
     """What one sweep step (one message or burst) did to the loop."""
@@ -149,6 +169,8 @@ class StepFigures:
     """Longest loop iteration (step + link poll; > one period: an overrun)."""
     state: int
     faults: int
+    refs: tuple[int, ...] = ()
+    """The reference (``telem_ctrl.ref``, raw LSB of 0.1 mm) of every telemetry frame heard."""
 
 
 def sweep(hil: EmulatedHil, *, settle_ticks: int = SETTLE_TICKS, steps: Sequence[tuple[str, list[M.Message]]] | None = None,
@@ -249,14 +271,14 @@ def sweep(hil: EmulatedHil, *, settle_ticks: int = SETTLE_TICKS, steps: Sequence
         gaps = [(c - a) / CYCLES_PER_US for a, c in zip(starts, starts[1:])]
         iters = [(e0 - s0) / CYCLES_PER_US for s0, e0 in hil._iters]
         f = StepFigures(label, len(msgs), max(gaps) if gaps else float("nan"), max(iters) if iters else float("nan"),
-                        hil._state, hil._faults)
+                        hil._state, hil._faults, tuple(int(m.ref) for m in heard if m.NAME == "telem_ctrl"))
         if progress is not None:
             progress(f"{label}: gap {f.gap_us:.0f} us, iteration {f.iter_us:.0f} us, state {f.state} faults {f.faults}")
         return f
 
     if steps is None:
         token = int(_ask(hil, plant, B["request"](msg_id=T.SESSION), "session").token)
-        steps = [*singles(table, token), *bursts(table, token)]
+        steps = [*singles(table, token), *bursts(table, token), *ramps()]
     for label, msgs in steps:
         figures.append(one(label, msgs))
     figures.append(one("arm (repeat)", [_arm_message(hil, run=plant)]))
