@@ -3,7 +3,8 @@
 The first tool that opens a serial device (:class:`host.link.clients.SerialLink`) takes it
 exclusively (an ``flock``) and serves a hub on a Unix socket in a directory only its user
 can enter (``$TMPDIR/upright-UID/``, one socket per device, named from the device's real
-path).  A later upright tool that finds the port locked attaches to that socket instead of
+path; a path past the 107 bytes a Unix socket address holds, under a deep ``$TMPDIR``, is bound
+and reached through the directory's descriptor).  A later upright tool that finds the port locked attaches to that socket instead of
 failing, so ``upright board status`` works while ``upright board arm``, ``log`` or the
 dashboard runs.  A process that is not an upright tool (mpremote, a terminal) gets the lock's
 "port busy" with the holder's PID.
