@@ -275,37 +275,6 @@ def test_a_design_the_robot_fails_gives_way_to_the_runner_up(tmp_path) -> None:
     assert "runner-up" in (out / "report.html").read_text()
 
 
-#: the commission bench's robot (sim/uncertainty_realistic.toml, a vertex at the roughest realism)
-#: that fell in the balancing run before BAL_MARGIN (three more like it: 20 ms of delay)
-LOST_IN_THE_RUN = ("inertia x0.5 cart_mass x0.8 pendulum_mass x1.2 friction x2 supply x0.85 motor_constant x1.1 "
-                   "coulomb 0.5 stiction 0.75 backlash 0.003 deadband 0.04 duty_min 0.01 pot_inl 0.01 delay 20 ms")
-
-
-@pytest.mark.slow
-def test_the_balancing_run_keeps_a_margin_below_the_tries(tmp_path) -> None:
-    # its 2 s tries grew to 1.13 N (peak 0.041 rad); the 15 s run at that amplitude met a larger
-    # PRBS extreme (0.124 rad at 8.9 s), overshot the stop bound and fell. The run goes at
-    # BAL_MARGIN x the last try's amplitude and the stages up to it finish without a fall
-    from host.design.uncertainty import UNCERTAINTY_REALISTIC, load_uncertainty
-    from host.operate.commission import BAL_MARGIN, STAGES, Commission, weighed
-    from host.operate.commission_lockstep import LockstepRobot
-    from host.studies.identify import robot_toml
-
-    base = load_params()
-    rate = float(base.rate)
-    pt = next(p for p in load_uncertainty(UNCERTAINTY_REALISTIC).points(rate, base.delay) if p.label(rate) == LOST_IN_THE_RUN)
-    plant = base.replace(**dict(pt.overrides(base)), **{"sensors.delay": pt.delay_ticks / rate})
-    (tmp_path / "weighed.toml").write_text(robot_toml(weighed(base, plant)))
-    lines: list[str] = []
-    with LockstepRobot(plant) as r:
-        c = Commission(r, tmp_path / "c", params_in=tmp_path / "weighed.toml", say=lines.append, fast=True)
-        c.run(stages=STAGES[:STAGES.index("balance") + 1])  # a fall raises CommissionError
-    b = c.state["data"]["balance"]
-    assert not any(t["fell"] or t["stopped"] for t in b["tries"]), b["tries"]
-    assert b["amplitude_n"] == pytest.approx(BAL_MARGIN * b["tries"][-1]["amplitude_n"]), b
-    assert (tmp_path / "c" / "balance.csv").exists()
-
-
 @pytest.mark.slow
 def test_commission_a_realistic_cart_refuses_or_verifies(tmp_path) -> None:
     # the realistic cart (dry friction, backlash, deadband): the identification of

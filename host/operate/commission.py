@@ -48,7 +48,7 @@ from sim.motor import DUTY_MAX
 from sim.params import RobotParams, load_params
 
 __all__ = ["STAGES", "CommissionError", "Commission", "telemetry_metrics", "PHI_BOUND", "STATE_FILE", "weighed",
-           "BAL_MARGIN", "COULOMB_COMP", "compensation_counts", "deadband_counts", "drive_params", "XDD_LOWPASS_HZ", "VERIFY_PLAY_MAX",
+           "COULOMB_COMP", "compensation_counts", "deadband_counts", "drive_params", "XDD_LOWPASS_HZ", "VERIFY_PLAY_MAX",
            "PLAY_A_CMD", "PLAY_A_CMD_MAX", "play_a_cmd", "CART_DIV",
            "VERIFY_FALLBACKS", "integral_gains", "REF_RATE", "ref_rate"]
 
@@ -72,12 +72,6 @@ the friction (``make bench`` section ``realism``, ``upright commission``'s note 
 0.8-1.0 x the friction settle the step at 0.25-0.5 N where no compensation settles none; 1.2 x breaks
 the acceleration limit)."""
 CART_S, COAST_S, BAL_TRY_S, BAL_S = 8.0, 3.0, 2.0, 15.0
-BAL_MARGIN = 0.7
-"""The balancing run's amplitude as a fraction of the largest 2 s try that stayed inside the tilt
-bound: its 15 s of PRBS meet larger extremes than a try's 2 s.  At 1.0, 4 of the commission bench's
-50 robots (20 ms delay, the roughest realism) fell in the run at the amplitude their tries had
-passed (row 10: 0.041 rad in the try at 1.13 N, then 0.124 rad and a fall 8.9 s into the run);
-at 0.7 they balance through it."""
 VERIFY_FALLBACKS = 2
 """Runners-up of the final design the verification tries, best first, when the robot fails the
 chosen one on a check the host can judge: the design ranks by the model over the identification's
@@ -488,8 +482,6 @@ class Commission:
         if all(t["peak_phi"] == 0.0 for t in tries):
             raise CommissionError(f"balance: the pendulum did not move at up to {amp:.2f} N of excitation (the "
                                   "largest the stage-1 table allows): the cart sticks -- check the drive")
-        if not tries[-1]["stopped"]:
-            amp *= BAL_MARGIN  # (a stopped try has halved it already)
         run = self.robot.excite(1, amp, seconds=BAL_S, div=BAL_DIV, phi_stop=PHI_BOUND)
         if run.fell:
             raise CommissionError(f"balance: the pendulum fell at {amp:.2f} N")
