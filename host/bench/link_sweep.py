@@ -119,6 +119,12 @@ def _fill(c: type[M.Message], **kw: Any) -> M.Message:
     return c(**{k: v for k, v in kw.items() if k in names})
 
 
+def _status() -> list[M.Message]:
+    # what `upright board status` asks: the heartbeat, the version, the stats, the timing
+    req = M.BY_NAME["request"]
+    return [req(msg_id=T.HEARTBEAT), req(msg_id=T.VERSION), req(msg_id=T.STATS_DECODE), req(msg_id=T.TIMING)]
+
+
 def bursts(table: bytes, token: int = 0) -> list[tuple[str, list[M.Message]]]:
     """Bursts of :data:`BURST` back-to-back frames: the same message again and again (each kind a
     tool sends in a loop), what ``upright board status`` sends, and everything at once."""
@@ -133,8 +139,7 @@ def bursts(table: bytes, token: int = 0) -> list[tuple[str, list[M.Message]]]:
         ("burst gains_chunk", [B["gains_chunk"](offset=0, data=table[:T.CHUNK_BYTES])] * BURST),
         ("burst gains_commit", [_fill(B["gains_commit"], check=zlib.crc32(table))] * BURST),
         ("burst set_reference", [_fill(B["set_reference"], x_um=0)] * BURST),
-        ("burst status", [B["request"](msg_id=T.HEARTBEAT), B["request"](msg_id=T.VERSION), st,
-                          B["request"](msg_id=T.TIMING)] * 3),
+        ("burst status", _status() * 3),
     ]
     every = [m for _, ms in singles(table, token) for m in ms if m.NAME not in ("excite",)]
     out.append(("burst everything", every[:2 * BURST]))
@@ -147,8 +152,7 @@ def ramps() -> list[tuple[str, list[M.Message]]]:
     status`` asks (a heartbeat, the version, the stats, the timing) and every parameter read --
     the ramp branch of the controller's schedule runs in the ticks that handle them."""
     B = M.BY_NAME
-    st = B["request"](msg_id=T.STATS_DECODE)
-    status = [B["request"](msg_id=T.HEARTBEAT), B["request"](msg_id=T.VERSION), st, B["request"](msg_id=T.TIMING)]
+    status = _status()
     reads = [B["param_get"](index=i) for i in range(T.N_PARAMS)]
     rate = B["param_set"](index=T.P_REF_RATE, value=RAMP_MM_S)
     return [

@@ -246,6 +246,11 @@ class Link:
         """Frames dropped by the receiver, by cause."""
         return {}
 
+    @property
+    def joined(self) -> int:
+        """Bytes of a frame the port held when the link opened (its tail: not a drop)."""
+        return 0
+
     # ---- sharing between threads ----
     def share(self, reader: threading.Thread | None = None) -> None:
         """Let one pump thread own the receive side from now on (idempotent).
@@ -786,6 +791,10 @@ class SerialLink(Link):
     @property
     def drops(self) -> dict[str, int]:
         return dict(self.decoder.drops)
+
+    @property
+    def joined(self) -> int:
+        return self.decoder.joined
 
     def _send(self, msg: M.Message, seq: int) -> None:
         data = M.encode_serial(msg, seq)

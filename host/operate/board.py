@@ -555,9 +555,8 @@ class Board:
             "fault_names": st["fault_names"],
             "heartbeat": {k: v for k, v in st.items() if k not in ("state_name", "fault_names")},
             "heartbeat_hz": self.heartbeat_rate(),
-            # joined_bytes: the tail of a frame the port held when the link opened (not a drop)
             "link": {"sent": link.sent, "received": link.received, "drops": link.drops,
-                     "joined_bytes": int(getattr(getattr(link, "decoder", None), "joined", 0))},
+                     "joined_bytes": link.joined},
             "board_stats": self.stats(),
             "board_status": self.status_values(),
         }
