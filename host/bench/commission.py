@@ -10,7 +10,11 @@ points), the first ``n`` of the nominal point, every ``stride``-th vertex and th
    traces against the report's constraints), then
 2. commissioned end to end (:class:`host.operate.commission.Commission`, ``fast``; the robot file
    it starts from is ``sim/robot.toml`` with that robot's masses, as weighed), and verified
-   again with the commissioned table (the commissioning's own telemetry verdict and the truth).
+   again with the commissioned table (the commissioning's own telemetry verdict and the truth),
+3. and the **ceiling** of what a commissioning can reach with this controller structure
+   (:func:`ceiling`): tables designed for the robot's *true* parameters (a perfect identification),
+   by the commissioning's own rules, the best of them chosen by the truth
+   (``UPRIGHT_BENCH_COMMISSION_CEILING=0`` skips it).
 
 Rows: per robot the verdicts before/after, the first report constraint failed after it
 (``fails``), whether the pendulum was lost during commissioning (a stage refused after a fall,
@@ -40,7 +44,7 @@ import numpy as np
 
 from sim import sensors as ssens
 
-__all__ = ["bench", "bench_rp2040", "id_errors", "ID_TRUTH"]
+__all__ = ["bench", "bench_rp2040", "id_errors", "ID_TRUTH", "ceiling"]
 
 
 ID_TRUTH = {"I": lambda p: p.I, "mL": lambda p: p.m * p.L, "kt": lambda p: p.kt, "b": lambda p: p.b,
@@ -82,6 +86,50 @@ def _id_note(rows: list[dict[str, Any]]) -> str:
             + (", ".join(parts) or "none identified") + "; coulomb N, backlash m, deadband fraction of full duty")
 
 
+def ceiling(robot: Any, plant: Any, scen: list[Any]) -> dict[str, Any]:
+    """Does any table designed for ``plant``'s true parameters meet every report constraint on it?
+
+    The commissioning's candidates (its ``--fast`` weight sets, integral gains, force clamp and
+    set-point ramp for that robot file, :mod:`host.operate.commission`), each designed for the true
+    robot at the firmware's predictor length with its true deadband and Coulomb friction
+    compensated, uploaded to ``robot`` (a :class:`~host.operate.commission_lockstep.LockstepRobot`
+    of ``plant``) and run through ``scen`` (the step and the push, the true traces).  An upper
+    bound on commissioning: a perfect identification, and the best design picked by the truth
+    (the same noise seed every run).
+
+    Returns
+    -------
+    dict
+        ``ceiling`` (a table passed), ``ceiling_table`` (its name, or the one with the smallest
+        worst settling time), ``ceiling_settle`` (s) and ``ceiling_fails`` (the first check that
+        table fails, ``""`` if it passes).
+    """
+    from host.bench.robots import failing_check, true_verdict
+    from host.design.margin import candidates, fixed_design
+    from host.operate.commission import FAST_WEIGHTS, compensation_counts, integral_gains, play_a_cmd, ref_rate
+    from sim.params import load_params
+
+    fw = plant.replace(**{"loop.ref_rate": ref_rate(plant), "sensors.delay": load_params().delay})
+    best: tuple[Any, ...] | None = None
+    for c in candidates(ki=integral_gains(fw), a_cmd=play_a_cmd(fw), names=FAST_WEIGHTS):
+        try:
+            blob = fixed_design(fw, c, deadband=compensation_counts(fw)).blob()
+        except ValueError:  # not stabilising, or a row that does not fit
+            continue
+        robot.upload(blob, fw)
+        vs = [true_verdict(robot.run_scenario(sc), sc, plant) for sc in scen]
+        ok = all(v["pass"] for v in vs)
+        key = (not ok, max(v["settle"] for v in vs), c.name,
+               next((f for f in (failing_check(v, plant) for v in vs) if f), ""))
+        if best is None or key[:2] < best[:2]:
+            best = key
+        if ok:
+            break
+    if best is None:
+        return {"ceiling": False, "ceiling_table": "", "ceiling_settle": math.inf, "ceiling_fails": "no table"}
+    return {"ceiling": not best[0], "ceiling_table": best[2], "ceiling_settle": best[1], "ceiling_fails": best[3]}
+
+
 def bench(n: int | None = None) -> dict[str, Any]:
     """Commission ``n`` robots (module docstring)."""
     from host.bench.robots import failing_check, robots, true_verdict
@@ -92,6 +140,7 @@ def bench(n: int | None = None) -> dict[str, Any]:
     from sim.scenario import load_scenario
 
     n = int(os.environ.get("UPRIGHT_BENCH_COMMISSION_N", "50")) if n is None else int(n)
+    with_ceiling = os.environ.get("UPRIGHT_BENCH_COMMISSION_CEILING", "1") != "0"
     design = load_params()
     scen = [load_scenario("ref_step_20cm"), load_scenario("push_0p2N_5s")]
     rows: list[dict[str, Any]] = []
@@ -136,6 +185,8 @@ def bench(n: int | None = None) -> dict[str, Any]:
                 else:
                     row["after"], row["fails"] = False, "refused"
             row["lost"] = lost
+            if with_ceiling:
+                row.update(ceiling(r, plant, scen))
         row["wall_s"] = time.monotonic() - t0
         rows.append(row)
     k = len(rows)
@@ -143,6 +194,12 @@ def bench(n: int | None = None) -> dict[str, Any]:
     notes = [f"{k} robots of sim/uncertainty_realistic.toml (nominal, vertices at the roughest realism, random)",
              f"meet every report constraint (step + push, true traces): shipped table {sum(r['shipped'] for r in rows)}/{k}, "
              f"after commissioning {sum(r['after'] for r in rows)}/{k} (target >= 95 %)",
+             (f"ceiling (tables for each robot's true parameters, the best picked by the truth): "
+              f"{sum(r['ceiling'] for r in rows)}/{k}; commissioning reached "
+              f"{sum(r['after'] for r in rows if r['ceiling'])} of those; the ceiling fails on "
+              + (", ".join(f"{f} {m}" for f, m in collections.Counter(
+                  r["ceiling_fails"] for r in rows if not r["ceiling"]).most_common()) or "none")
+              if rows and "ceiling" in rows[0] else "ceiling: skipped"),
              f"lost the pendulum during commissioning: {sum(r['lost'] for r in rows)} (target 0); "
              f"stages refused: {sum(bool(r['refused']) for r in rows)}",
              "refused at: " + (", ".join(f"{st} {n}" for st, n in sorted(collections.Counter(
@@ -160,7 +217,8 @@ def bench(n: int | None = None) -> dict[str, Any]:
                 if any(math.isfinite(r["margin"]) for r in rows) else "none designed")]
     return {"title": "commission: robots of the realistic set, end to end in lockstep HIL", "rows": rows, "notes": notes,
             "summary": {"robots": k, "shipped_pass": sum(r["shipped"] for r in rows),
-                        "after_pass": sum(r["after"] for r in rows), "lost": sum(r["lost"] for r in rows),
+                        "after_pass": sum(r["after"] for r in rows),
+                        "ceiling_pass": sum(r.get("ceiling", False) for r in rows), "lost": sum(r["lost"] for r in rows),
                         "median_s": float(np.median(secs))}}
 
 
