@@ -388,3 +388,35 @@ def test_the_weighed_robot_file_has_the_robots_masses_and_measured_supply() -> N
     w = weighed(design, plant)
     assert w.M == pytest.approx(plant.M) and w.values["motor.V_supply"] == pytest.approx(plant.values["motor.V_supply"])
     assert w.kt == pytest.approx(design.kt)  # what the cart-only run identifies stays the datasheet's
+
+
+def test_the_verification_tries_one_of_each_weight_set_first() -> None:
+    # the ki and clamp variants of one weight set fail together on a robot far more often than two
+    # weight sets do: fallback_order interleaves the sets, keeping the design's order within a round
+    from types import SimpleNamespace
+
+    from host.operate.commission import FAST_WEIGHTS, VERIFY_FALLBACKS, fallback_order
+
+    names = ["shipped_a4.2_ki1", "shipped_a4.73_ki0", "x2_a4.2_ki0", "shipped_a4.2_ki0", "x4_a4.2_ki1",
+             "x2_a4.2_ki1", "x4_a4.2_ki0"]
+    got = [c.name for c in fallback_order("shipped_a4.2_ki0", [SimpleNamespace(name=n) for n in names])]
+    assert got == ["x2_a4.2_ki0", "x4_a4.2_ki1", "shipped_a4.2_ki1", "x2_a4.2_ki1", "x4_a4.2_ki0",
+                   "shipped_a4.73_ki0", "shipped_a4.2_ki0"]
+    assert sorted(got) == sorted(names)  # a reordering: nothing lost, nothing added
+    assert fallback_order("x2_a3_ki0", []) == []
+    assert "x4" in FAST_WEIGHTS and VERIFY_FALLBACKS >= len(FAST_WEIGHTS)
+
+
+def test_the_bench_ceiling_passes_the_report_robot_with_its_first_table() -> None:
+    # make bench section commission's ceiling: tables for the true parameters, by the commissioning's
+    # rules; on the report's own robot the first candidate (the shipped weights) meets every constraint
+    from host.bench.commission import ceiling
+    from host.operate.commission_lockstep import LockstepRobot
+    from sim.scenario import load_scenario
+
+    p = load_params()
+    scen = [load_scenario("ref_step_20cm"), load_scenario("push_0p2N_5s")]
+    with LockstepRobot(p) as r:
+        c = ceiling(r, p, scen)
+    assert c["ceiling"] and c["ceiling_fails"] == "" and c["ceiling_table"].startswith("shipped")
+    assert 0.0 < c["ceiling_settle"] <= p.t_settle
