@@ -407,16 +407,16 @@ def test_the_verification_tries_one_of_each_weight_set_first() -> None:
     assert "x4" in FAST_WEIGHTS and VERIFY_FALLBACKS >= len(FAST_WEIGHTS)
 
 
-def test_the_bench_ceiling_passes_the_report_robot_with_its_first_table() -> None:
-    # make bench section commission's ceiling: tables for the true parameters, by the commissioning's
+def test_the_benchs_true_tables_pass_the_report_robot_with_the_first() -> None:
+    # make bench section commission's reference: tables for the true parameters, by the commissioning's
     # rules; on the report's own robot the first candidate (the shipped weights) meets every constraint
-    from host.bench.commission import ceiling
+    from host.bench.commission import true_tables
     from host.operate.commission_lockstep import LockstepRobot
     from sim.scenario import load_scenario
 
     p = load_params()
     scen = [load_scenario("ref_step_20cm"), load_scenario("push_0p2N_5s")]
     with LockstepRobot(p) as r:
-        c = ceiling(r, p, scen)
-    assert c["ceiling"] and c["ceiling_fails"] == "" and c["ceiling_table"].startswith("shipped")
-    assert 0.0 < c["ceiling_settle"] <= p.t_settle
+        c = true_tables(r, p, scen)
+    assert c["truth_pass"] and c["truth_fails"] == "" and c["truth_table"].startswith("shipped")
+    assert 0.0 < c["truth_settle"] <= p.t_settle
