@@ -404,6 +404,10 @@ def test_the_verification_tries_one_of_each_weight_set_first() -> None:
                    "shipped_a4.73_ki0", "shipped_a4.2_ki0"]
     assert sorted(got) == sorted(names)  # a reordering: nothing lost, nothing added
     assert fallback_order("x2_a3_ki0", []) == []
+    # a weight set whose own name has underscores is one set
+    two = [SimpleNamespace(name=n) for n in ("x2_obs_fast_a4.2_ki0", "x2_obs_fast_a4.2_ki1", "x2_a4.2_ki0")]
+    assert [c.name for c in fallback_order("shipped_a4.2_ki0", two)] == [
+        "x2_obs_fast_a4.2_ki0", "x2_a4.2_ki0", "x2_obs_fast_a4.2_ki1"]
     assert "x4" in FAST_WEIGHTS and VERIFY_FALLBACKS >= len(FAST_WEIGHTS)
 
 

@@ -93,11 +93,11 @@ def true_tables(robot: Any, plant: Any, scen: list[Any]) -> dict[str, Any]:
     set-point ramp for that robot file, :mod:`host.operate.commission`), each designed for the true
     robot at the firmware's predictor length with its true deadband and Coulomb friction
     compensated, uploaded to ``robot`` (a :class:`~host.operate.commission_lockstep.LockstepRobot`
-    of ``plant``) and run through ``scen`` (the step and the push, the true traces).  An upper
-    bound on commissioning: a perfect identification, and the best design picked by the truth
-    (the same noise seed every run).  Not a strict bound on commissioning, whose design is for
-    the identified robot over its confidence box (its delay, not the firmware's predictor length)
-    and may pass where these do not.
+    of ``plant``) and run through ``scen`` (the step and the push, the true traces): a perfect
+    identification, and the best design picked by the truth (the same noise seed every run).  A
+    reference for commissioning, not a strict bound: its design is for the identified robot over
+    its confidence box (its delay, not the firmware's predictor length) and may pass where these
+    do not.
 
     Returns
     -------

@@ -78,8 +78,8 @@ check the host can judge: the design ranks by the model over the identification'
 no friction, no play), the robot judges.  Tried in :func:`fallback_order` (one of each weight set
 before a second of any: where a robot of the bench passes with tables for its true parameters,
 it passes with one weight set's and fails the others'), each the report's step and push (about
-20 s of the robot's time).  Not after a fall
-(no more risk on the robot); none better on the robot: the first choice stays in force.
+20 s of the robot's time).  Not after a fall (no more risk on the robot); none better on the
+robot: the first choice stays in force.
 ``make bench`` section commission (N=50, fast), with 2 runners-up of the shipped and x2
 weights: 4 of 50 met every report constraint; with the x4 weights (:data:`FAST_WEIGHTS`) and 5
 runners-up in this order: 6 of 50, the two more by their 2nd and 6th design tried."""
@@ -642,8 +642,9 @@ def integral_gains(p: RobotParams, fast: bool = False) -> tuple[float, ...]:
 
 
 def _weights(name: str) -> str:
-    # a candidate's weight set: its name without the clamp and integral suffixes ("x2_a4.2_ki1" -> "x2")
-    return name.split("_a", 1)[0]
+    # a candidate's weight set: its name without the clamp and integral suffixes that
+    # host.design.margin.candidates appends ("x2_obs_fast_a4.2_ki1" -> "x2_obs_fast")
+    return name.rsplit("_ki", 1)[0].rsplit("_a", 1)[0]
 
 
 def fallback_order(first: str, runners: list[Any]) -> list[Any]:
