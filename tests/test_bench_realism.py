@@ -68,8 +68,7 @@ def test_the_uploaded_table_compensates_most_of_the_coulomb_friction() -> None:
 def test_coulomb_compensation_shortens_the_settling_of_a_dry_cart() -> None:
     # the nominal robot with 0.25 N of Coulomb friction, the firmware in lockstep HIL: without
     # compensation the step hunts (stick-slip, settling ~4.7 s); with the table's it settles
-    from host.bench.robots import robots
-    from host.bench.realism import _runs
+    from host.bench.robots import robots, true_verdicts
     from host.design.uncertainty import in_model
     from host.design.margin import candidates, fixed_design
     from host.operate.commission import compensation_counts
@@ -83,6 +82,6 @@ def test_coulomb_compensation_shortens_the_settling_of_a_dry_cart() -> None:
     with LockstepRobot(plant) as r:
         for a in (0.0, 0.8):
             r.upload(fixed_design(plant, cand, deadband=compensation_counts(plant, a)).blob(), plant)
-            settle[a] = _runs(r, plant, step)[0]["settle"]
+            settle[a] = true_verdicts(r, plant, step)[0]["settle"]
     assert settle[0.0] > plant.t_settle, settle
     assert settle[0.8] < 0.6 * settle[0.0], settle

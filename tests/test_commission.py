@@ -393,20 +393,19 @@ def test_the_weighed_robot_file_has_the_robots_masses_and_measured_supply() -> N
 def test_the_verification_tries_one_of_each_weight_set_first() -> None:
     # the ki and clamp variants of one weight set fail together on a robot far more often than two
     # weight sets do: fallback_order interleaves the sets, keeping the design's order within a round
-    from types import SimpleNamespace
-
     from host.operate.commission import FAST_WEIGHTS, VERIFY_FALLBACKS, fallback_order
 
+    by = {c.name: c for c in Mg.candidates(ki=(0.0, 1.0), a_cmd=(4.2, 4.73))}
     names = ["shipped_a4.2_ki1", "shipped_a4.73_ki0", "x2_a4.2_ki0", "shipped_a4.2_ki0", "x4_a4.2_ki1",
              "x2_a4.2_ki1", "x4_a4.2_ki0"]
-    got = [c.name for c in fallback_order("shipped_a4.2_ki0", [SimpleNamespace(name=n) for n in names])]
+    got = [c.name for c in fallback_order(by["shipped_a4.2_ki0"], [by[n] for n in names])]
     assert got == ["x2_a4.2_ki0", "x4_a4.2_ki1", "shipped_a4.2_ki1", "x2_a4.2_ki1", "x4_a4.2_ki0",
                    "shipped_a4.73_ki0", "shipped_a4.2_ki0"]
     assert sorted(got) == sorted(names)  # a reordering: nothing lost, nothing added
-    assert fallback_order("x2_a3_ki0", []) == []
-    # a weight set whose own name has underscores is one set
-    two = [SimpleNamespace(name=n) for n in ("x2_obs_fast_a4.2_ki0", "x2_obs_fast_a4.2_ki1", "x2_a4.2_ki0")]
-    assert [c.name for c in fallback_order("shipped_a4.2_ki0", two)] == [
+    assert fallback_order(by["x2_a4.2_ki0"], []) == []
+    # x2 with a faster estimator is a weight set of its own
+    two = [by[n] for n in ("x2_obs_fast_a4.2_ki0", "x2_obs_fast_a4.2_ki1", "x2_a4.2_ki0")]
+    assert [c.name for c in fallback_order(by["shipped_a4.2_ki0"], two)] == [
         "x2_obs_fast_a4.2_ki0", "x2_a4.2_ki0", "x2_obs_fast_a4.2_ki1"]
     assert "x4" in FAST_WEIGHTS and VERIFY_FALLBACKS >= len(FAST_WEIGHTS)
 

@@ -106,20 +106,17 @@ def true_tables(robot: Any, plant: Any, scen: list[Any]) -> dict[str, Any]:
         worst settling time), ``truth_settle`` (s) and ``truth_fails`` (the first check that
         table fails, ``""`` if it passes).
     """
-    from host.bench.robots import failing_check, true_verdict
-    from host.design.margin import candidates, fixed_design
-    from host.operate.commission import FAST_WEIGHTS, compensation_counts, integral_gains, play_a_cmd, ref_rate
-    from sim.params import load_params
+    from host.bench.robots import failing_check, true_verdicts, upload_true_table
+    from host.design.margin import candidates
+    from host.operate.commission import FAST_WEIGHTS, integral_gains, play_a_cmd, ref_rate
 
-    fw = plant.replace(**{"loop.ref_rate": ref_rate(plant), "sensors.delay": load_params().delay})
     best: tuple[Any, ...] | None = None
-    for c in candidates(ki=integral_gains(fw), a_cmd=play_a_cmd(fw), names=FAST_WEIGHTS):
+    for c in candidates(ki=integral_gains(plant), a_cmd=play_a_cmd(plant), names=FAST_WEIGHTS):
         try:
-            blob = fixed_design(fw, c, deadband=compensation_counts(fw)).blob()
+            upload_true_table(robot, plant, c, **{"loop.ref_rate": ref_rate(plant)})
         except ValueError:  # not stabilising, or a row that does not fit
             continue
-        robot.upload(blob, fw)
-        vs = [true_verdict(robot.run_scenario(sc), sc, plant) for sc in scen]
+        vs = true_verdicts(robot, plant, scen)
         ok = all(v["pass"] for v in vs)
         key = (not ok, max(v["settle"] for v in vs), c.name,
                next((f for f in (failing_check(v, plant) for v in vs) if f), ""))
@@ -134,7 +131,7 @@ def true_tables(robot: Any, plant: Any, scen: list[Any]) -> dict[str, Any]:
 
 def bench(n: int | None = None) -> dict[str, Any]:
     """Commission ``n`` robots (module docstring)."""
-    from host.bench.robots import failing_check, robots, true_verdict
+    from host.bench.robots import failing_check, robots, true_verdicts
     from host.operate.commission import Commission, CommissionError, weighed
     from host.studies.identify import robot_toml
     from host.operate.commission_lockstep import LockstepRobot
@@ -151,7 +148,7 @@ def bench(n: int | None = None) -> dict[str, Any]:
         t0 = time.monotonic()
         with LockstepRobot(plant) as r:
             r.fw_params = design  # the shipped table (the firmware's own; nothing uploaded)
-            before = [true_verdict(r.run_scenario(sc), sc, plant) for sc in scen]
+            before = true_verdicts(r, plant, scen)
             row["shipped"] = all(v["pass"] for v in before)
             row["shipped_fell"] = any(v["fell"] for v in before)
             lost = False
@@ -178,7 +175,7 @@ def bench(n: int | None = None) -> dict[str, Any]:
                 row["runner_up"] = bool(data.get("design2", {}).get("chosen_by_model"))
                 row.update(id_errors(data, plant))
                 if ver:
-                    after = [true_verdict(r.run_scenario(sc), sc, plant) for sc in scen]
+                    after = true_verdicts(r, plant, scen)
                     row["after"] = all(v["pass"] for v in after)
                     row["fails"] = next((f for f in (failing_check(v, plant) for v in after) if f), "")
                     row["after_settle"] = max(v["settle"] for v in after)

@@ -48,34 +48,18 @@ LEVELS: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
 """Fractions of each range's high end."""
 
 
-def _runs(robot: Any, plant: Any, scen: Sequence[Any]) -> list[dict[str, Any]]:
-    from host.bench.robots import true_verdict
-
-    return [true_verdict(robot.run_scenario(sc), sc, plant) for sc in scen]
-
-
-def _upload(robot: Any, plant: Any, cand: Any, fw: Any) -> None:
-    from host.design.margin import fixed_design
-    from host.operate.commission import compensation_counts
-
-    design = plant.replace(**{"sensors.delay": fw.delay})  # the firmware's predictor length
-    robot.upload(fixed_design(design, cand, deadband=compensation_counts(plant)).blob(), design)
-
-
 def _ratio(vs: Sequence[dict[str, Any]], p: Any) -> float:
     return max(max(v["peak_phi"] / p.phi_max, v["peak_xddot"] / p.a_max, v["settle"] / p.t_settle) for v in vs)
 
 
 def study(n: int, effects: Sequence[str] = tuple(EFFECTS), levels: Sequence[float] = LEVELS) -> list[dict[str, Any]]:
     """The rows of the section (module docstring) for the first ``n`` robots, ``effects`` x ``levels``."""
-    from host.bench.robots import failing_check, robots
+    from host.bench.robots import failing_check, robots, true_verdicts, upload_true_table
     from host.design.margin import candidates
     from host.design.uncertainty import REALISM, UNCERTAINTY_REALISTIC, in_model, load_uncertainty
     from host.operate.commission_lockstep import LockstepRobot
-    from sim.params import load_params
     from sim.scenario import load_scenario
 
-    fw = load_params()
     ranges = load_uncertainty(UNCERTAINTY_REALISTIC).realism
     scen = [load_scenario("ref_step_20cm"), load_scenario("push_0p2N_5s")]
     cands = candidates(ki=(0.0,), a_cmd=(4.73, 4.2), names=("shipped",))
@@ -85,8 +69,8 @@ def study(n: int, effects: Sequence[str] = tuple(EFFECTS), levels: Sequence[floa
         best, best_r, ideal_v = cands[0], math.inf, None
         with LockstepRobot(ideal) as r:
             for c in cands:
-                _upload(r, ideal, c, fw)
-                vs = _runs(r, ideal, scen)
+                upload_true_table(r, ideal, c)
+                vs = true_verdicts(r, ideal, scen)
                 ok = all(v["pass"] for v in vs)
                 rr = _ratio(vs, ideal) - (10.0 if ok else 0.0)
                 if rr < best_r:
@@ -101,8 +85,8 @@ def study(n: int, effects: Sequence[str] = tuple(EFFECTS), levels: Sequence[floa
                 ch = {REALISM[k]: lev * float(ranges[k][1]) for k in EFFECTS[eff]}
                 pl = ideal.replace(**ch)
                 with LockstepRobot(pl) as r:
-                    _upload(r, pl, best, fw)
-                    vs = _runs(r, pl, scen)
+                    upload_true_table(r, pl, best)
+                    vs = true_verdicts(r, pl, scen)
                 rows.append({"robot": label, "effect": eff, "level": float(lev),
                              "value": " ".join(f"{k.split('.')[-1]}={v:.3g}" for k, v in ch.items()) if eff != "all"
                              else "all", "table": best.name, "pass": all(v["pass"] for v in vs),

@@ -547,7 +547,7 @@ class Commission:
         self.state["data"]["design2"] = md.candidate.as_dict(pid) | {
             "worst_ratio": md.worst_ratio, "margin": md.margin, "force_lsb": md.force_lsb, "meets": md.meets,
             "precise": md.precise, "runners_up": [c.as_dict(pid) for c in
-                                                        fallback_order(md.candidate.name, md.runners_up)[:VERIFY_FALLBACKS]],
+                                                        fallback_order(md.candidate, md.runners_up)[:VERIFY_FALLBACKS]],
             "rows": md.rows(pid), "tried": md.tried, "box": {k: list(v) for k, v in box.factors.items()} | {
                 "delay": list(box.delay)}}
         label = f"final design {md.candidate.name} (margin {100 * md.margin:.0f} %)"
@@ -641,20 +641,17 @@ def integral_gains(p: RobotParams, fast: bool = False) -> tuple[float, ...]:
     return KI_GAINS[:2] if fast else KI_GAINS
 
 
-def _weights(name: str) -> str:
-    # a candidate's weight set: its name without the clamp and integral suffixes that
-    # host.design.margin.candidates appends ("x2_obs_fast_a4.2_ki1" -> "x2_obs_fast")
-    return name.rsplit("_ki", 1)[0].rsplit("_a", 1)[0]
+def fallback_order(first: Any, runners: list[Any]) -> list[Any]:
+    """The design's runners-up (:class:`~host.design.robust.Candidate`, best first) in the order the
+    verification tries them after candidate ``first``: a weight set (``Q``, ``R``, estimator) not
+    yet tried before a second candidate of any (stable: within each round, the design's order)."""
+    def weights(c: Any) -> tuple[Any, ...]:
+        return tuple(c.Q), c.R, c.observer
 
-
-def fallback_order(first: str, runners: list[Any]) -> list[Any]:
-    """The design's runners-up (best first) in the order the verification tries them after the
-    candidate named ``first``: a weight set not yet tried before a second candidate of any (stable:
-    within each round, the design's order)."""
-    seen: dict[str, int] = {_weights(first): 1}
+    seen: dict[tuple[Any, ...], int] = {weights(first): 1}
     keyed = []
     for k, c in enumerate(runners):
-        w = _weights(c.name)
+        w = weights(c)
         keyed.append((seen.get(w, 0), k, c))
         seen[w] = seen.get(w, 0) + 1
     return [c for _, _, c in sorted(keyed, key=lambda t: t[:2])]
